@@ -1,0 +1,151 @@
+"""Rigid poses and the lambda noise model.
+
+Units follow REP 103: metres and radians. A `Pose` maps model coordinates to camera
+coordinates (BOP `cam_R_m2c`, `cam_t_m2c`), camera frame as OpenCV (x right, y down, z forward).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SIGMA_R = 0.35  # rad, rotation noise at lambda = 1
+SIGMA_T = 0.15  # share of the object diameter, translation noise at lambda = 1
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Model-to-camera rigid transform: x_cam = R @ x_model + t (t in metres)."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
+
+    @staticmethod
+    def identity() -> "Pose":
+        return Pose(np.eye(3), np.zeros(3))
+
+    @staticmethod
+    def from_matrix(T: np.ndarray) -> "Pose":
+        T = np.asarray(T, dtype=np.float64)
+        return Pose(T[:3, :3], T[:3, 3])
+
+    def matrix(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t
+        return T
+
+    def compose(self, other: "Pose") -> "Pose":
+        """self ∘ other: apply `other` first, then `self`."""
+        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+
+    def inverse(self) -> "Pose":
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        """Apply the pose to Nx3 points."""
+        return np.asarray(points) @ self.R.T + self.t
+
+    def is_valid(self, tol: float = 1e-3) -> bool:
+        """Finite, orthonormal with det +1, and in front of the camera."""
+        if not (np.all(np.isfinite(self.R)) and np.all(np.isfinite(self.t))):
+            return False
+        if np.abs(self.R @ self.R.T - np.eye(3)).max() > tol or abs(np.linalg.det(self.R) - 1) > tol:
+            return False
+        return bool(self.t[2] > 0)
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """The cross-product matrix [w]x."""
+    x, y, z = np.asarray(w, dtype=np.float64)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula: rotation matrix exp([w]x) of a rotation vector w (rad)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        return np.eye(3) + skew(w)
+    K = skew(w / theta)
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector w with exp([w]x) = R."""
+    R = np.asarray(R, dtype=np.float64)
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos))
+    if theta < 1e-9:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    if np.pi - theta < 1e-6:
+        # Near pi: axis from the largest diagonal term of (R + I) / 2.
+        M = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(M)))
+        axis = M[:, i] / np.sqrt(max(M[i, i], 1e-12))
+        return axis / np.linalg.norm(axis) * theta
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * theta / (2.0 * np.sin(theta))
+
+
+def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (rad) of the relative rotation between two rotation matrices."""
+    cos = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def perturb(
+    pose: Pose,
+    lam: float,
+    diameter: float,
+    rng: np.random.Generator,
+    sigma_r: float = SIGMA_R,
+    sigma_t: float = SIGMA_T,
+) -> Pose:
+    """The paper's noise model for simulated initialisation.
+
+    R' = exp([w]x) R with w ~ N(0, (lam * sigma_r)^2 I3);
+    t' = t + d with d ~ N(0, (lam * sigma_t * diameter)^2 I3). lam = 0 returns the pose.
+    """
+    if not np.isfinite(lam) or lam < 0:
+        raise ValueError(f"lambda must be a finite number >= 0, got {lam}")
+    w = rng.normal(0.0, lam * sigma_r, size=3)
+    d = rng.normal(0.0, lam * sigma_t * diameter, size=3)
+    return Pose(exp_so3(w) @ pose.R, pose.t + d)
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), as geometry_msgs/Quaternion orders it."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0 else -q
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion (x, y, z, w); normalised first."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )

@@ -1,0 +1,43 @@
+"""Loopback-only ROS 2 defaults for every process the project starts.
+
+Set before rclpy creates its first DDS participant; a value the user already exported wins.
+- ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: discovery stays on this machine (Kilted ignores
+  the older ROS_LOCALHOST_ONLY).
+- FASTDDS_DEFAULT_PROFILES_FILE: the shipped profile (large shared-memory segment for images,
+  UDP on 127.0.0.1 only).
+- ROS_DOMAIN_ID: 42 by default (README, "ROS 2 settings"); any 0-101 the user exports wins.
+- RMW_IMPLEMENTATION=rmw_fastrtps_cpp, the middleware the wheels ship.
+- AMENT_PREFIX_PATH: the interpreter's prefix, where the PyPI ROS wheels put share/ (nothing
+  else sets it outside a sourced ROS installation).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+DEFAULT_DOMAIN_ID = 42
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
+
+
+def ros_environment_defaults() -> dict[str, str]:
+    """The defaults this project applies, as environment variables."""
+    return {
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "FASTDDS_DEFAULT_PROFILES_FILE": str(FASTDDS_PROFILE),
+        "ROS_DOMAIN_ID": str(DEFAULT_DOMAIN_ID),
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "AMENT_PREFIX_PATH": sys.prefix,
+    }
+
+
+def configure_ros_environment(env: dict[str, str] | None = None) -> dict[str, str]:
+    """Fill in the defaults that are not set in `env` (default: this process's environment)."""
+    target = os.environ if env is None else env
+    for key, value in ros_environment_defaults().items():
+        if not target.get(key):
+            target[key] = value
+    domain = target["ROS_DOMAIN_ID"]
+    if not domain.isdigit() or not 0 <= int(domain) <= 232:
+        raise ValueError(f"ROS_DOMAIN_ID must be an integer in 0..232 (0..101 recommended), got {domain!r}")
+    return dict(target)
