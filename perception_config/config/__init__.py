@@ -1,0 +1,1 @@
+"""Shipped configuration files (pipeline YAML, node parameters)."""

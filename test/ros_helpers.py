@@ -1,0 +1,78 @@
+"""Start project nodes as separate OS processes and talk to them with a real rclpy node."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+VENV_BIN = Path(sys.executable).parent
+
+
+def ros_test_env() -> dict[str, str]:
+    """The environment for node processes of this test session: loopback, a domain of its own."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = os.environ["ROS_DOMAIN_ID"]
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def pick_domain_id() -> int:
+    """A domain id unlikely to collide with other processes on a shared machine (42 is the default)."""
+    return random.SystemRandom().choice([d for d in range(60, 101) if d != 42])
+
+
+class NodeProcess:
+    """A node started from its console script; stopped with SIGINT, then SIGKILL."""
+
+    def __init__(self, script: str, params: dict[str, object] | None = None, log_dir: Path | None = None) -> None:
+        args = [str(VENV_BIN / script), "--ros-args"]
+        for key, value in (params or {}).items():
+            args += ["-p", f"{key}:={value}"]
+        self.log = (log_dir or Path("/tmp")) / f"{script}-{os.getpid()}-{time.time_ns()}.log"
+        self._log_file = open(self.log, "w")
+        self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT)
+
+    def output(self) -> str:
+        if not self._log_file.closed:
+            self._log_file.flush()
+        return self.log.read_text()
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log_file.close()
+        return self.proc.returncode
+
+
+def wait_for_service(node, client, timeout: float = 20.0, process: NodeProcess | None = None) -> None:
+    """Wait for a service; fail at once with the node's output when its process died."""
+    deadline = time.monotonic() + timeout
+    while not client.wait_for_service(timeout_sec=0.2):
+        if process is not None and not process.alive():
+            raise AssertionError(f"{process.log.name} died (exit {process.proc.returncode}):\n{process.output()}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"service {client.srv_name} did not appear within {timeout} s")
+
+
+def call(node, client, request, timeout: float = 10.0):
+    """Call a service from the test's node and spin until the answer (or fail after `timeout`)."""
+    import rclpy
+
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done():
+        raise AssertionError(f"no answer from {client.srv_name} within {timeout} s")
+    return future.result()

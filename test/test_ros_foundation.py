@@ -1,0 +1,143 @@
+"""The foundation: compiled interfaces import, loopback defaults, and a real service call
+between two OS processes over Fast DDS (generation_node serving, this test process calling)."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from perception_config.geometry import Pose, exp_so3, rotation_angle
+from ros_helpers import NodeProcess, call, wait_for_service
+
+
+def test_interfaces_import_with_fields():
+    from perception_config_interfaces.msg import Hypothesis, ObjectPoses, OperatorTrace
+    from perception_config_interfaces.srv import (
+        EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis,
+    )
+
+    h = Hypothesis(object_id="5", scores=[0.5, 0.25], score_names=["psi_c", "psi_d"])
+    assert list(h.scores) == [0.5, 0.25] and h.pose.orientation.w == 1.0
+    assert ObjectPoses().object_ids == [] and OperatorTrace().operations == []
+    assert hasattr(GenerateHypothesis.Request(), "noise_lambda")
+    assert hasattr(RefineHypothesis.Response(), "hypothesis")
+    assert hasattr(ScoreHypothesis.Request(), "methods")
+    assert hasattr(Pick.Response(), "picked")
+    assert hasattr(EstimatePose.Response(), "operations")
+
+
+def test_environment_defaults_are_loopback_and_respect_the_user():
+    from perception_config.ros.environment import FASTDDS_PROFILE, configure_ros_environment
+
+    env = configure_ros_environment({})
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env["ROS_DOMAIN_ID"] == "42"
+    assert env["FASTDDS_DEFAULT_PROFILES_FILE"] == str(FASTDDS_PROFILE) and FASTDDS_PROFILE.is_file()
+    assert "127.0.0.1" in FASTDDS_PROFILE.read_text()
+    user = configure_ros_environment({"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
+    assert user["ROS_DOMAIN_ID"] == "7" and user["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    with pytest.raises(ValueError, match="ROS_DOMAIN_ID"):
+        configure_ros_environment({"ROS_DOMAIN_ID": "abc"})
+
+
+@pytest.fixture(scope="module")
+def generation_node(tmp_path_factory):
+    models = tmp_path_factory.mktemp("models")
+    (models / "models_info.json").write_text(json.dumps({"3": {"diameter": 120.0}, "7": {"diameter": 80.0}}))
+    node = NodeProcess("generation_node", {"models_dir": str(models), "frame_timeout": 0.5}, tmp_path_factory.mktemp("logs"))
+    yield node
+    code = node.stop()
+    assert code == 0, f"generation_node did not stop cleanly on SIGINT (exit {code}):\n{node.output()}"
+
+
+def _publish_ground_truth(ros_node, stamp_sec: int, poses: dict[str, Pose]):
+    import rclpy
+    from perception_config_interfaces.msg import ObjectPoses
+
+    from perception_config.ros.conversions import pose_to_msg
+
+    pub = ros_node.create_publisher(ObjectPoses, "perception/ground_truth", 10)
+    msg = ObjectPoses()
+    msg.header.stamp.sec = stamp_sec
+    msg.header.frame_id = "camera_color_optical_frame"
+    msg.object_ids = list(poses)
+    msg.poses = [pose_to_msg(p) for p in poses.values()]
+    # Wait until the node's subscription has matched, then publish.
+    for _ in range(100):
+        if pub.get_subscription_count() > 0:
+            break
+        rclpy.spin_once(ros_node, timeout_sec=0.05)
+    assert pub.get_subscription_count() > 0, "generation_node's ground-truth subscription never matched"
+    pub.publish(msg)
+    return pub
+
+
+def test_generate_hypothesis_across_processes(ros_node, generation_node):
+    from perception_config_interfaces.srv import GenerateHypothesis
+
+    from perception_config.ros.conversions import msg_to_pose
+
+    client = ros_node.create_client(GenerateHypothesis, "generate_hypothesis")
+    wait_for_service(ros_node, client, process=generation_node)
+    gt = {"3": Pose(exp_so3([0.1, -0.4, 0.2]), [0.05, -0.02, 0.8]), "7": Pose(np.eye(3), [0.0, 0.1, 0.6])}
+    _publish_ground_truth(ros_node, 100, gt)
+
+    def request(obj: str, lam: float, seed: int = 0, sec: int = 100, method: str = ""):
+        req = GenerateHypothesis.Request(object_id=obj, noise_lambda=lam, seed=seed, method=method)
+        req.frame.stamp.sec = sec
+        return call(ros_node, client, req)
+
+    exact = request("3", 0.0)
+    assert exact.success, exact.message
+    pose = msg_to_pose(exact.hypothesis.pose)
+    assert np.allclose(pose.t, gt["3"].t, atol=1e-9) and rotation_angle(pose.R, gt["3"].R) < 1e-6
+    assert exact.hypothesis.header.stamp.sec == 100 and exact.hypothesis.object_id == "3"
+    assert exact.elapsed > 0
+
+    # Seeded noise: same seed, same hypothesis; errors of the documented scale.
+    a, b = request("3", 0.5, seed=11), request("3", 0.5, seed=11)
+    assert a.success and b.success
+    pa, pb = msg_to_pose(a.hypothesis.pose), msg_to_pose(b.hypothesis.pose)
+    assert np.allclose(pa.t, pb.t) and np.allclose(pa.R, pb.R)
+    errs_t, errs_r = [], []
+    for seed in range(1, 41):
+        r = request("3", 0.5, seed=seed)
+        p = msg_to_pose(r.hypothesis.pose)
+        errs_t.append(np.linalg.norm(p.t - gt["3"].t))
+        errs_r.append(rotation_angle(p.R, gt["3"].R))
+    # E|d| for a 3-D Gaussian with sigma = 0.5*0.15*0.12 m is sigma*sqrt(8/pi) = 14.4 mm.
+    assert 0.009 < np.mean(errs_t) < 0.020
+    # Rotation: sigma 0.175 rad per axis -> mean angle about 0.28 rad.
+    assert 0.18 < np.mean(errs_r) < 0.38
+
+    # The latest frame (zero stamp).
+    latest = request("7", 0.0, sec=0)
+    assert latest.success and abs(latest.hypothesis.pose.position.y - 0.1) < 1e-9
+
+
+@pytest.mark.parametrize(
+    "kwargs, expected",
+    [
+        ({"obj": "99", "lam": 0.3}, "not in that frame"),
+        ({"obj": "3", "lam": 0.3, "method": "magic"}, "unknown method"),
+        ({"obj": "3", "lam": math.nan}, "noise_lambda"),
+        ({"obj": "3", "lam": 50.0}, "noise_lambda"),
+        ({"obj": "3", "lam": 0.3, "sec": 12345}, "within frame_timeout"),
+    ],
+)
+def test_bad_requests_answer_false_and_the_node_keeps_serving(ros_node, generation_node, kwargs, expected):
+    from perception_config_interfaces.srv import GenerateHypothesis
+
+    client = ros_node.create_client(GenerateHypothesis, "generate_hypothesis")
+    wait_for_service(ros_node, client, process=generation_node)
+    _publish_ground_truth(ros_node, 200, {"3": Pose(np.eye(3), [0.0, 0.0, 0.7])})
+    req = GenerateHypothesis.Request(object_id=kwargs["obj"], noise_lambda=kwargs["lam"], method=kwargs.get("method", ""))
+    req.frame.stamp.sec = kwargs.get("sec", 200)
+    bad = call(ros_node, client, req)
+    assert not bad.success and expected in bad.message
+    good = GenerateHypothesis.Request(object_id="3", noise_lambda=0.0)
+    good.frame.stamp.sec = 200
+    assert call(ros_node, client, good).success, "node stopped serving after a bad request"
+    assert generation_node.alive()
