@@ -1,0 +1,676 @@
+"""Object models: mesh, surface samples, diameter, symmetries and edge points, prepared once.
+
+Everything every block needs about an object is computed here once per model file and cached,
+so refinement and scoring never touch a mesh file in their hot loop. Units are metres inside
+the code; BOP PLY files are millimetres and are converted when read.
+
+The PLY reader is a small numpy parser (ascii and binary, any property order, optional normals
+and colours) rather than open3d: it gives error messages that name the file and the problem,
+and it keeps this module free of the 1 s open3d import.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .geometry import Pose
+
+MM = 1e-3  # metres per millimetre: BOP files are in mm
+
+DEFAULT_N_POINTS = 3000  # surface samples per model: enough for ICP and scores, cheap to transform
+DEFAULT_CONT_STEP_DEG = 10.0  # sampling step of continuous symmetries
+DEFAULT_EDGE_ANGLE_DEG = 30.0  # dihedral angle above which a mesh edge counts as sharp
+DEFAULT_MAX_EDGE_POINTS = 2000
+
+
+class PlyError(ValueError):
+    """A PLY file that cannot be read as a triangle mesh; the message names the file."""
+
+
+@dataclass(eq=False)
+class ObjectModel:
+    """A rigid object model in metres, with everything derived from the mesh precomputed.
+
+    Instances are shared through a cache: arrays are read-only and equality is identity
+    (so a model can key per-model caches such as the renderer's raycasting scenes).
+    """
+
+    obj_id: int
+    vertices: np.ndarray  # (N, 3) float64 metres, model frame
+    faces: np.ndarray  # (M, 3) int32 vertex indices, triangles
+    normals: np.ndarray  # (N, 3) float64 unit vertex normals
+    diameter: float  # metres: max distance between two model points
+    points: np.ndarray  # (P, 3) area-uniform surface samples
+    point_normals: np.ndarray  # (P, 3) unit normals at `points`
+    symmetries: list[Pose]  # symmetry transformations in the model frame, identity first
+    edge_points: np.ndarray  # (E, 3) points on sharp mesh edges
+    edge_dirs: np.ndarray  # (E, 3) unit 3D directions of those edges
+    hull_points: np.ndarray  # (H, 3) convex hull vertices: tight projected boxes, diameter
+    bbox_min: np.ndarray  # (3,) axis-aligned box corner in the model frame
+    bbox_size: np.ndarray  # (3,) box extents
+    colors: np.ndarray | None = None  # (N, 3) uint8 vertex colours, when the file has them
+    path: Path | None = None
+    info: dict[str, Any] | None = field(default=None, repr=False)  # the models_info entry (mm)
+
+    def __repr__(self) -> str:
+        return (
+            f"ObjectModel(obj_id={self.obj_id}, vertices={len(self.vertices)}, faces={len(self.faces)}, "
+            f"diameter={self.diameter:.4f} m, symmetries={len(self.symmetries)}, path={self.path})"
+        )
+
+    @property
+    def is_symmetric(self) -> bool:
+        return len(self.symmetries) > 1
+
+    @property
+    def corners(self) -> np.ndarray:
+        """The 8 corners (8, 3) of the axis-aligned bounding box in the model frame."""
+        idx = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=np.float64)
+        return self.bbox_min + idx * self.bbox_size
+
+
+# --------------------------------------------------------------------------- PLY reading
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+@dataclass
+class _PlyProperty:
+    name: str
+    dtype: str
+    count_dtype: str | None = None  # set for list properties
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    properties: list[_PlyProperty] = field(default_factory=list)
+
+
+def read_ply(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
+    """Read a PLY file into {element: {property: array}}; list properties become lists of arrays
+    or, when every record has the same length, a 2D array.
+
+    Raises PlyError naming the file for anything malformed (bad header, truncated body, bad token).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"PLY file not found: {path}") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise PlyError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+    nl = data.find(b"\n", end)
+    if nl < 0:
+        raise PlyError(f"{path}: truncated right after the header")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    body = memoryview(data)[nl + 1:]
+    fmt, elements = _parse_ply_header(path, header)
+    if fmt == "ascii":
+        return _read_ply_ascii(path, bytes(body), elements)
+    return _read_ply_binary(path, body, elements, "<" if fmt == "binary_little_endian" else ">")
+
+
+def _parse_ply_header(path: Path, lines: list[str]) -> tuple[str, list[_PlyElement]]:
+    fmt = ""
+    elements: list[_PlyElement] = []
+    for line in lines[1:]:
+        tok = line.split()
+        if not tok or tok[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if tok[0] == "format":
+                fmt = tok[1]
+                if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                    raise PlyError(f"{path}: unknown PLY format {fmt!r}")
+            elif tok[0] == "element":
+                elements.append(_PlyElement(tok[1], int(tok[2])))
+            elif tok[0] == "property":
+                if not elements:
+                    raise PlyError(f"{path}: property before any element in the header")
+                if tok[1] == "list":
+                    prop = _PlyProperty(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]])
+                else:
+                    prop = _PlyProperty(tok[2], _PLY_TYPES[tok[1]])
+                elements[-1].properties.append(prop)
+            else:
+                raise PlyError(f"{path}: unexpected header line {line!r}")
+        except (IndexError, KeyError, ValueError) as e:
+            if isinstance(e, PlyError):
+                raise
+            raise PlyError(f"{path}: bad PLY header line {line!r}") from None
+    if not fmt:
+        raise PlyError(f"{path}: PLY header has no format line")
+    return fmt, elements
+
+
+def _read_ply_binary(
+    path: Path, body: memoryview, elements: list[_PlyElement], endian: str
+) -> dict[str, dict[str, np.ndarray]]:
+    out: dict[str, dict[str, np.ndarray]] = {}
+    pos = 0
+    for el in elements:
+        lists = [p for p in el.properties if p.count_dtype]
+        if not lists:
+            dt = np.dtype([(p.name, endian + p.dtype) for p in el.properties])
+            need = dt.itemsize * el.count
+            if len(body) - pos < need:
+                raise PlyError(
+                    f"{path}: truncated: element '{el.name}' needs {need} bytes, {len(body) - pos} left"
+                )
+            rec = np.frombuffer(body, dtype=dt, count=el.count, offset=pos)
+            pos += need
+            out[el.name] = {p.name: rec[p.name] for p in el.properties}
+            continue
+        # Fast path: every list in this element has the length of the first record's list
+        # (all triangles, the BOP case). Verified below; falls back to a record-by-record read.
+        fields, p2 = [], pos
+        try:
+            for p in el.properties:
+                if p.count_dtype:
+                    cdt = np.dtype(endian + p.count_dtype)
+                    if el.count == 0:
+                        n = 0
+                    else:
+                        if len(body) - p2 < cdt.itemsize:
+                            raise PlyError(f"{path}: truncated in element '{el.name}'")
+                        n = int(np.frombuffer(body, cdt, 1, p2)[0])
+                    fields += [(p.name + "#n", cdt), (p.name, endian + p.dtype, (n,))]
+                    p2 += cdt.itemsize + n * np.dtype(p.dtype).itemsize
+                else:
+                    fields.append((p.name, endian + p.dtype))
+                    p2 += np.dtype(p.dtype).itemsize
+            dt = np.dtype(fields)
+        except ValueError as e:
+            if isinstance(e, PlyError):
+                raise
+            raise PlyError(f"{path}: bad list in element '{el.name}': {e}") from None
+        need = dt.itemsize * el.count
+        rec = None
+        if len(body) - pos >= need:
+            rec = np.frombuffer(body, dtype=dt, count=el.count, offset=pos)
+            if not all(np.all(rec[p.name + "#n"] == dt[p.name].shape[0]) for p in lists):
+                rec = None
+        if rec is not None:
+            out[el.name] = {p.name: rec[p.name] for p in el.properties}
+            pos += need
+            continue
+        out[el.name], pos = _read_binary_records(path, body, el, endian, pos)
+    return out
+
+
+def _read_binary_records(
+    path: Path, body: memoryview, el: _PlyElement, endian: str, pos: int
+) -> tuple[dict[str, Any], int]:
+    """Record-by-record reader for elements with lists of varying length (e.g. quads)."""
+    cols: dict[str, list] = {p.name: [] for p in el.properties}
+    for _ in range(el.count):
+        for p in el.properties:
+            if p.count_dtype:
+                cdt = np.dtype(endian + p.count_dtype)
+                if pos + cdt.itemsize > len(body):
+                    raise PlyError(f"{path}: truncated in element '{el.name}'")
+                n = int(np.frombuffer(body, cdt, 1, pos)[0])
+                pos += cdt.itemsize
+                idt = np.dtype(endian + p.dtype)
+                if pos + n * idt.itemsize > len(body):
+                    raise PlyError(f"{path}: truncated in element '{el.name}'")
+                cols[p.name].append(np.frombuffer(body, idt, n, pos))
+                pos += n * idt.itemsize
+            else:
+                dt = np.dtype(endian + p.dtype)
+                if pos + dt.itemsize > len(body):
+                    raise PlyError(f"{path}: truncated in element '{el.name}'")
+                cols[p.name].append(np.frombuffer(body, dt, 1, pos)[0])
+                pos += dt.itemsize
+    return {k: (v if any(p.name == k and p.count_dtype for p in el.properties) else np.array(v))
+            for k, v in cols.items()}, pos
+
+
+def _read_ply_ascii(path: Path, body: bytes, elements: list[_PlyElement]) -> dict[str, dict[str, np.ndarray]]:
+    lines = body.split(b"\n")
+    out: dict[str, dict[str, np.ndarray]] = {}
+    start = 0
+    for el in elements:
+        chunk = lines[start:start + el.count]
+        if len(chunk) < el.count or (el.count and not chunk[-1].strip()):
+            got = sum(1 for c in chunk if c.strip())
+            raise PlyError(f"{path}: truncated: element '{el.name}' has {got} of {el.count} lines")
+        start += el.count
+        try:
+            tokens = np.array(b" ".join(chunk).split(), dtype=np.float64)
+        except ValueError:
+            raise PlyError(f"{path}: non-numeric value in element '{el.name}'") from None
+        ncols = len(el.properties)
+        lists = [p for p in el.properties if p.count_dtype]
+        if not lists:
+            if tokens.size != el.count * ncols:
+                raise PlyError(
+                    f"{path}: element '{el.name}' has {tokens.size} values, expected {el.count * ncols}"
+                )
+            table = tokens.reshape(el.count, ncols)
+            out[el.name] = {p.name: table[:, i].astype(p.dtype) for i, p in enumerate(el.properties)}
+            continue
+        # Uniform rows (all triangles) reshape at once; otherwise parse line by line.
+        width = tokens.size // el.count if el.count else 0
+        table = tokens.reshape(el.count, width) if el.count and tokens.size == el.count * width else None
+        if table is not None:
+            cols, c = {}, 0
+            for p in el.properties:
+                if p.count_dtype:
+                    n = int(table[0, c]) if el.count else 0
+                    if c + 1 + n > width or not np.all(table[:, c] == n):
+                        table = None
+                        break
+                    cols[p.name] = table[:, c + 1:c + 1 + n].astype(p.dtype)
+                    c += 1 + n
+                else:
+                    cols[p.name] = table[:, c].astype(p.dtype)
+                    c += 1
+            if table is not None and c == width:
+                out[el.name] = cols
+                continue
+        out[el.name] = _read_ascii_records(path, chunk, el)
+    return out
+
+
+def _read_ascii_records(path: Path, chunk: list[bytes], el: _PlyElement) -> dict[str, Any]:
+    cols: dict[str, list] = {p.name: [] for p in el.properties}
+    for ln, line in enumerate(chunk):
+        tok = line.split()
+        c = 0
+        try:
+            for p in el.properties:
+                if p.count_dtype:
+                    n = int(tok[c])
+                    cols[p.name].append(np.array(tok[c + 1:c + 1 + n], dtype=np.float64).astype(p.dtype))
+                    if len(cols[p.name][-1]) != n:
+                        raise IndexError
+                    c += 1 + n
+                else:
+                    cols[p.name].append(float(tok[c]))
+                    c += 1
+        except (IndexError, ValueError):
+            raise PlyError(f"{path}: malformed record {ln} of element '{el.name}'") from None
+    return {k: (v if any(p.name == k and p.count_dtype for p in el.properties) else np.array(v))
+            for k, v in cols.items()}
+
+
+def read_ply_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Triangle mesh of a PLY file in file units: vertices (N,3) float64, faces (M,3) int32,
+    vertex normals (N,3) or None, vertex colours (N,3) uint8 or None. Polygons are fan-triangulated.
+    """
+    path = Path(path)
+    ply = read_ply(path)
+    v = ply.get("vertex")
+    if v is None or not all(k in v for k in "xyz"):
+        raise PlyError(f"{path}: no 'vertex' element with x, y, z")
+    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+    if len(vertices) == 0 or not np.all(np.isfinite(vertices)):
+        raise PlyError(f"{path}: vertices are empty or not finite")
+    normals = None
+    if all(k in v for k in ("nx", "ny", "nz")):
+        normals = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float64)
+    colors = None
+    for names in (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(k in v for k in names):
+            c = np.stack([v[k] for k in names], axis=1)
+            if c.dtype.kind == "f":  # float colours in [0, 1]
+                c = np.clip(c * 255.0 + 0.5, 0, 255)
+            colors = c.astype(np.uint8)
+            break
+    f = ply.get("face")
+    key = next((k for k in ("vertex_indices", "vertex_index") if f is not None and k in f), None)
+    if key is None:
+        raise PlyError(f"{path}: no 'face' element with vertex_indices (a model needs triangles)")
+    idx = f[key]
+    if isinstance(idx, np.ndarray) and idx.ndim == 2 and idx.shape[1] == 3:
+        faces = idx.astype(np.int64)
+    else:
+        polys = [np.asarray(p, dtype=np.int64) for p in idx]
+        tris = [np.stack([np.full(len(p) - 2, p[0]), p[1:-1], p[2:]], axis=1) for p in polys if len(p) >= 3]
+        faces = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+    if len(faces) == 0:
+        raise PlyError(f"{path}: mesh has no faces")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise PlyError(f"{path}: face index out of range [0, {len(vertices)})")
+    return vertices, faces.astype(np.int32), normals, colors
+
+
+def write_ply(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    binary: bool = True,
+) -> None:
+    """Write a triangle mesh as PLY in the caller's units (BOP model files are mm), with
+    optional vertex normals and uint8 colours; atomic (temporary file, then os.replace)."""
+    path = Path(path)
+    v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
+    cols: list[tuple[str, str, np.ndarray]] = [(n, "float", v[:, i]) for i, n in enumerate("xyz")]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
+        cols += [(n, "float", nrm[:, i]) for i, n in enumerate(("nx", "ny", "nz"))]
+    if colors is not None:
+        c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+        cols += [(n, "uchar", c[:, i]) for i, n in enumerate(("red", "green", "blue"))]
+    fmt = "binary_little_endian" if binary else "ascii"
+    header = ["ply", f"format {fmt} 1.0", "comment perception_config", f"element vertex {len(v)}"]
+    header += [f"property {t} {n}" for n, t, _ in cols]
+    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    head = ("\n".join(header) + "\n").encode("ascii")
+    if binary:
+        vdt = np.dtype([(n, "<f4" if t == "float" else "u1") for n, t, _ in cols])
+        vrec = np.empty(len(v), dtype=vdt)
+        for n, _, a in cols:
+            vrec[n] = a
+        frec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+        frec["n"], frec["idx"] = 3, f
+        body = vrec.tobytes() + frec.tobytes()
+    else:
+        vlines = [" ".join(repr(float(a[i])) if t == "float" else str(int(a[i])) for _, t, a in cols) for i in range(len(v))]
+        flines = [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
+        body = ("\n".join(vlines + flines) + "\n").encode("ascii")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(head + body)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- mesh helpers
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit face normals (M,3) (zero for degenerate faces) and face areas (M,)."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    area = 0.5 * norm
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.where(norm[:, None] > 0, n / norm[:, None], 0.0)
+    return n, area
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, for meshes whose file carries none."""
+    fn, area = face_normals(vertices, faces)
+    acc = np.zeros_like(vertices)
+    for i in range(3):
+        np.add.at(acc, faces[:, i], fn * area[:, None])
+    return _normalize(acc)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, v / n, 0.0)
+
+
+def sample_surface(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, n: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """n points uniform over the surface area, with barycentrically interpolated vertex normals
+    (smoother than face normals on scanned meshes). Deterministic for a given seed."""
+    rng = np.random.default_rng(seed)
+    fn, area = face_normals(vertices, faces)
+    if area.sum() <= 0:
+        raise ValueError("mesh has zero surface area")
+    fi = rng.choice(len(faces), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    w = np.stack([1.0 - s, s * (1.0 - r2), s * r2], axis=1)  # uniform barycentric weights
+    tri = faces[fi]
+    pts = np.einsum("nk,nkd->nd", w, vertices[tri])
+    nrm = _normalize(np.einsum("nk,nkd->nd", w, normals[tri]))
+    bad = np.linalg.norm(nrm, axis=1) < 0.5  # opposing vertex normals: use the face normal
+    nrm[bad] = fn[fi[bad]]
+    return pts, nrm
+
+
+def convex_hull_points(vertices: np.ndarray) -> np.ndarray:
+    """Vertices of the convex hull (falls back to all vertices for flat/degenerate meshes)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return vertices[ConvexHull(vertices).vertices]
+    except (QhullError, ValueError):
+        return vertices
+
+
+def max_pairwise_distance(points: np.ndarray) -> float:
+    """Largest distance between two points, in blocks to bound memory."""
+    from scipy.spatial.distance import cdist
+
+    best = 0.0
+    for i in range(0, len(points), 2048):
+        best = max(best, float(cdist(points[i:i + 2048], points, "sqeuclidean").max()))
+    return math.sqrt(best)
+
+
+def sharp_edges(
+    vertices: np.ndarray, faces: np.ndarray, angle_deg: float = DEFAULT_EDGE_ANGLE_DEG
+) -> np.ndarray:
+    """(K, 2) vertex index pairs of mesh edges whose dihedral angle exceeds angle_deg.
+
+    Boundary edges of open meshes (one adjacent face) count as sharp: they are outlines.
+    Edges with more than two faces are sharp when any adjacent pair exceeds the angle.
+    """
+    fn, _ = face_normals(vertices, faces)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    e.sort(axis=1)
+    face_of = np.tile(np.arange(len(faces)), 3)
+    key = e[:, 0] * len(vertices) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, e, face_of = key[order], e[order], face_of[order]
+    first = np.r_[True, key[1:] != key[:-1]]
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.r_[starts, len(key)])
+    cos_thr = math.cos(math.radians(angle_deg))
+    # Compare each half-edge's face with the first face of its group (covers 2-face edges exactly).
+    group = np.cumsum(first) - 1
+    cosang = np.einsum("ij,ij->i", fn[face_of], fn[face_of[starts[group]]])
+    sharp_member = (cosang < cos_thr) & ~first
+    sharp_group = np.zeros(len(starts), dtype=bool)
+    sharp_group[group[sharp_member]] = True
+    sharp_group |= counts == 1
+    return e[starts[sharp_group]]
+
+
+def sample_edges(
+    vertices: np.ndarray, edges: np.ndarray, spacing: float, max_points: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points evenly spaced (about `spacing`) along edges, with unit edge directions; at most
+    max_points (a seeded subset when more)."""
+    if len(edges) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    d = b - a
+    length = np.linalg.norm(d, axis=1)
+    keep = length > 0
+    a, d, length = a[keep], d[keep], length[keep]
+    total = float(length.sum())
+    if total <= 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    spacing = max(spacing, total / (4 * max_points))  # do not build a huge array first
+    k = np.maximum(1, np.round(length / spacing).astype(np.int64))
+    ei = np.repeat(np.arange(len(length)), k)
+    # position (i + 0.5) / k along each edge
+    offs = np.arange(len(ei)) - np.repeat(np.cumsum(k) - k, k)
+    s = (offs + 0.5) / k[ei]
+    pts = a[ei] + s[:, None] * d[ei]
+    dirs = d[ei] / length[ei, None]
+    if len(pts) > max_points:
+        sel = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
+        pts, dirs = pts[sel], dirs[sel]
+    return pts, dirs
+
+
+# --------------------------------------------------------------------------- symmetries
+
+
+def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by `angle` (rad) about the unit vector `axis`."""
+    from .geometry import exp_so3
+
+    axis = np.asarray(axis, dtype=np.float64)
+    return exp_so3(axis / np.linalg.norm(axis) * angle)
+
+
+def symmetries_from_info(info: Mapping[str, Any] | None, cont_step_deg: float = DEFAULT_CONT_STEP_DEG) -> list[Pose]:
+    """Symmetry transformations (model frame, metres) of a BOP models_info entry (mm).
+
+    As bop_toolkit's get_symmetry_transformations: the discrete ones (identity first) each
+    combined with every sample of the continuous ones, which are sampled every cont_step_deg.
+    """
+    disc = [Pose.identity()]
+    cont: list[Pose] = []
+    if info:
+        for sym in info.get("symmetries_discrete", []) or []:
+            T = np.asarray(sym, dtype=np.float64).reshape(4, 4)
+            disc.append(Pose(T[:3, :3], T[:3, 3] * MM))
+        steps = max(1, int(round(360.0 / cont_step_deg)))
+        for sym in info.get("symmetries_continuous", []) or []:
+            axis = np.asarray(sym["axis"], dtype=np.float64)
+            offset = np.asarray(sym["offset"], dtype=np.float64) * MM
+            for i in range(steps):  # i = 0 is the identity, kept so discrete ones survive alone
+                R = axis_angle_matrix(axis, 2.0 * np.pi * i / steps)
+                cont.append(Pose(R, offset - R @ offset))
+    if not cont:
+        return disc
+    return [c.compose(d) for d in disc for c in cont]
+
+
+# --------------------------------------------------------------------------- model preparation
+
+
+def make_model(
+    obj_id: int,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    info: Mapping[str, Any] | None = None,
+    symmetries: list[Pose] | None = None,
+    path: Path | None = None,
+    n_points: int = DEFAULT_N_POINTS,
+    cont_step_deg: float = DEFAULT_CONT_STEP_DEG,
+    edge_angle_deg: float = DEFAULT_EDGE_ANGLE_DEG,
+    max_edge_points: int = DEFAULT_MAX_EDGE_POINTS,
+    seed: int = 0,
+) -> ObjectModel:
+    """Prepare an ObjectModel from a mesh in metres (procedural parts use this directly).
+
+    `info` is a BOP models_info entry in mm: its diameter, extents and symmetries win over the
+    values computed from the mesh. `symmetries` (metres), when given, overrides the info ones.
+    """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
+    if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"model {obj_id}: faces are empty or index outside the {len(vertices)} vertices")
+    if normals is None or np.asarray(normals).shape != vertices.shape:
+        normals = vertex_normals(vertices, faces)
+    else:
+        normals = _normalize(np.asarray(normals, dtype=np.float64))
+        if np.any(np.linalg.norm(normals, axis=1) == 0):  # fill zero normals from the faces
+            computed = vertex_normals(vertices, faces)
+            zero = np.linalg.norm(normals, axis=1) == 0
+            normals[zero] = computed[zero]
+    hull = convex_hull_points(vertices)
+    if info and "diameter" in info:
+        diameter = float(info["diameter"]) * MM
+    else:
+        diameter = max_pairwise_distance(hull)
+    if info and all(k in info for k in ("min_x", "min_y", "min_z", "size_x", "size_y", "size_z")):
+        bbox_min = np.array([info["min_x"], info["min_y"], info["min_z"]], dtype=np.float64) * MM
+        bbox_size = np.array([info["size_x"], info["size_y"], info["size_z"]], dtype=np.float64) * MM
+    else:
+        bbox_min = vertices.min(axis=0)
+        bbox_size = vertices.max(axis=0) - bbox_min
+    pts, pn = sample_surface(vertices, faces, normals, n_points, seed=seed + int(obj_id))
+    edges = sharp_edges(vertices, faces, edge_angle_deg)
+    ep, ed = sample_edges(vertices, edges, spacing=diameter / 200.0, max_points=max_edge_points, seed=seed + int(obj_id))
+    if symmetries is None:
+        symmetries = symmetries_from_info(info, cont_step_deg)
+    if colors is not None:
+        colors = np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
+        if len(colors) != len(vertices):
+            raise ValueError(f"model {obj_id}: {len(colors)} colours for {len(vertices)} vertices")
+    arrays = [vertices, faces, normals, pts, pn, ep, ed, hull, bbox_min, bbox_size] + ([colors] if colors is not None else [])
+    for a in arrays:
+        a.flags.writeable = False  # shared through the cache
+    return ObjectModel(
+        obj_id=int(obj_id), vertices=vertices, faces=faces, normals=normals, diameter=diameter,
+        points=pts, point_normals=pn, symmetries=list(symmetries), edge_points=ep, edge_dirs=ed,
+        hull_points=hull, bbox_min=bbox_min, bbox_size=bbox_size, colors=colors, path=path,
+        info=dict(info) if info else None,
+    )
+
+
+def load_model(
+    ply_path: str | os.PathLike,
+    obj_id: int,
+    info: Mapping[str, Any] | None = None,
+    *,
+    n_points: int = DEFAULT_N_POINTS,
+    cont_step_deg: float = DEFAULT_CONT_STEP_DEG,
+    scale: float = MM,
+) -> ObjectModel:
+    """Load a PLY model (file units times `scale` = metres; BOP files are mm) and prepare it.
+
+    Cached by (path, mtime, size, obj_id, info, options): a model is prepared once per process
+    and the same instance is returned, until the file changes.
+    """
+    path = Path(ply_path).resolve()
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"model file not found: {path}") from None
+    info_key = json.dumps(info, sort_keys=True) if info else None
+    return _load_model_cached(str(path), st.st_mtime_ns, st.st_size, int(obj_id), info_key,
+                              int(n_points), float(cont_step_deg), float(scale))
+
+
+@lru_cache(maxsize=64)
+def _load_model_cached(
+    path: str, mtime_ns: int, size: int, obj_id: int, info_key: str | None,
+    n_points: int, cont_step_deg: float, scale: float,
+) -> ObjectModel:
+    vertices, faces, normals, colors = read_ply_mesh(path)
+    info = json.loads(info_key) if info_key else None
+    try:
+        return make_model(
+            obj_id, vertices * scale, faces, normals=normals, colors=colors, info=info,
+            path=Path(path), n_points=n_points, cont_step_deg=cont_step_deg,
+        )
+    except ValueError as e:
+        raise PlyError(f"{path}: {e}") from None
+
+
+def clear_model_cache() -> None:
+    """Forget prepared models (e.g. in long-running processes after replacing datasets)."""
+    _load_model_cached.cache_clear()
+
+
+__all__ = [
+    "ObjectModel", "PlyError", "read_ply", "read_ply_mesh", "write_ply", "load_model", "make_model",
+    "symmetries_from_info", "sample_surface", "sharp_edges", "sample_edges", "vertex_normals",
+    "face_normals", "convex_hull_points", "max_pairwise_distance", "clear_model_cache", "MM",
+]
