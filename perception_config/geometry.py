@@ -92,6 +92,15 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     return w * theta / (2.0 * np.sin(theta))
 
 
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation closest to R (Frobenius norm, SVD). Annotations such as BOP ground truth
+    are stored with a few digits, orthonormal only to ~1e-3; code downstream (quaternions,
+    validity checks, symmetric errors) needs a true rotation."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
 def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (rad) of the relative rotation between two rotation matrices."""
     cos = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0

@@ -86,7 +86,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 import numpy as np
 import yaml
 
-from ..geometry import Pose, matrix_from_quaternion, quaternion_from_matrix
+from ..geometry import Pose, matrix_from_quaternion, nearest_rotation, quaternion_from_matrix
 from ..scene import Frame, SceneObject
 from .ros2msg_schemas import SCHEMAS, TYPE_HASHES
 
@@ -258,15 +258,6 @@ def camera_info_fields(K: np.ndarray, width: int, height: int) -> dict:
         "p": P.flatten().tolist(), "binning_x": 0, "binning_y": 0,
         "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
     }
-
-
-def nearest_rotation(R: np.ndarray) -> np.ndarray:
-    """The rotation closest to R (Frobenius norm, SVD). BOP ground truth is stored with a few
-    digits, so its R is orthonormal only to ~1e-4; a quaternion can only carry a rotation, and this
-    is the one it should carry (quaternion_from_matrix alone would pick a different one)."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def _header(stamp_ns: int, frame_id: str = OPTICAL_FRAME) -> dict:

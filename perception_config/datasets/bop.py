@@ -33,7 +33,7 @@ from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
 import cv2
 import numpy as np
 
-from ..geometry import Pose
+from ..geometry import Pose, nearest_rotation
 from ..models import MM, ObjectModel, load_model
 from ..scene import Frame, SceneObject
 
@@ -272,7 +272,8 @@ def load_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, Pose]]]:
             obj_id = e["obj_id"]
             if not isinstance(obj_id, int) or isinstance(obj_id, bool):
                 raise BopFormatError(f"{path}: {where} obj_id must be an integer, got {obj_id!r}")
-            objs.append((obj_id, Pose(R, t)))
+            # Stored with a few digits: project onto SO(3) at the boundary (LM-O is off by 2e-3).
+            objs.append((obj_id, Pose(nearest_rotation(R), t)))
         out[im_id] = objs
     return out
 
