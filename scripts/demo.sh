@@ -9,7 +9,7 @@ source "$ROOT/scripts/setup_env.sh"
 cd "$ROOT"
 DATA="${PERCEPTION_CONFIG_DATA:-$ROOT/data/default}"
 
-if [ ! -f "$DATA/.complete" ]; then
+if [ ! -f "$DATA/models/models_info.json" ]; then  # written last: the generator renames a finished dataset into place
   say "synthesising the default dataset into $DATA"
   perception-config synth --out "$DATA" --scenes 4 --images-per-scene 10 --seed 0
 fi
