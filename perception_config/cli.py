@@ -51,6 +51,97 @@ def _cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _one_core() -> None:
+    """Benchmarks measure one core: pin the numeric libraries before they load."""
+    import os
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def _cmd_bench_blocks(args: argparse.Namespace) -> int:
+    _one_core()
+    from .bench import bench_blocks, format_blocks
+    from .blocks.pipeline import load_pipeline
+    from .datasets.bop import save_json
+
+    stats = bench_blocks(args.dataset, load_pipeline(args.pipeline), n_frames=args.frames, lam=args.noise_lambda,
+                         split=args.split, progress=not args.quiet)
+    save_json(args.out, stats)
+    print(format_blocks(stats))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_bench_convergence(args: argparse.Namespace) -> int:
+    _one_core()
+    from .bench import convergence_table, format_convergence
+    from .blocks.pipeline import load_pipeline
+    from .datasets.bop import save_json
+
+    lambdas = [float(x) for x in args.lambdas.split(",")]
+    table = convergence_table(args.dataset, load_pipeline(args.pipeline), lambdas, n_frames=args.frames,
+                              max_applications=args.applications, split=args.split, progress=not args.quiet)
+    save_json(args.out, table)
+    print(format_convergence(table))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_blocks(args: argparse.Namespace) -> int:
+    from .blocks import load_all
+
+    for name, cls in sorted(load_all().items()):
+        print(f"{name}  ({cls.kind.value}; inputs: {', '.join(cls.inputs)})")
+        doc = (cls.__doc__ or "").strip().splitlines()
+        if doc:
+            print(f"    {doc[0]}")
+        for p in cls.params:
+            rng = f" in {list(p.choices)}" if p.choices else (f" in [{p.low}, {p.high}]" if p.low is not None else "")
+            print(f"    {p.name} = {p.default!r}{rng}  {p.doc}")
+        if cls.score_names:
+            print(f"    scores: {', '.join(cls.score_names)}")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from .evaluation import DEFAULT_LAMBDAS, evaluate, format_table
+
+    lambdas = [float(x) for x in args.lambdas.split(",")] if args.lambdas else list(DEFAULT_LAMBDAS)
+    results = evaluate(
+        args.dataset, args.policy, lambdas, args.out, episodes_per_lambda=args.episodes, seed=args.seed,
+        pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
+        time_mode=args.time_mode, include_baselines=not args.no_baselines, progress=not args.quiet,
+        split=args.split, max_ops=args.max_ops, plots=not args.no_plots,
+    )
+    print(format_table(json.loads(results.read_text())))
+    print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
+    return 0
+
+
+def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
+    ev = sub.add_parser("evaluate", help="compare agents on the test images over noise levels (Fig. 5)")
+    ev.add_argument("--dataset", type=Path, required=True)
+    ev.add_argument("--out", type=Path, required=True, help="output folder (results.json, plots, BOP CSVs)")
+    ev.add_argument("--policy", action="append", default=[], metavar="FILE|AGENT",
+                    help="a policy file or an agent name (random, simple, ...); repeatable")
+    ev.add_argument("--lambdas", default=None, help="comma-separated noise levels (default 0.1,...,1.0)")
+    ev.add_argument("--episodes", type=int, default=None, help="episodes per lambda (default: every test episode)")
+    ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
+    ev.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the policy's, else shipped)")
+    ev.add_argument("--split-seed", type=int, default=None, help="train/test split seed (default: the policy's, else 0)")
+    ev.add_argument("--test-fraction", type=float, default=None, help="test share of the images (default: the policy's, else 0.3)")
+    ev.add_argument("--time-mode", choices=("measured", "cost_table"), default="measured")
+    ev.add_argument("--max-ops", type=int, default=None, help="operations per episode (default: the policy's, else 10)")
+    ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
+    ev.add_argument("--no-plots", action="store_true")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_cmd_evaluate)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="perception-config", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -84,6 +175,29 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--image", type=int, default=None, help="image id (default: the first)")
     sh.add_argument("--split", default="test")
     sh.set_defaults(func=_cmd_show)
+    bl = sub.add_parser("blocks", help="list the building blocks with their parameters")
+    bl.set_defaults(func=_cmd_blocks)
+
+    be = sub.add_parser("bench", help="benchmarks of the building blocks (one core)")
+    besub = be.add_subparsers(dest="bench_command", required=True)
+    for name, func, helptext in (
+        ("blocks", _cmd_bench_blocks, "median/p90 ms per call of every block"),
+        ("convergence", _cmd_bench_convergence, "share of successful picks per refiner and lambda"),
+    ):
+        c = besub.add_parser(name, help=helptext)
+        c.add_argument("--dataset", type=Path, required=True)
+        c.add_argument("--out", type=Path, required=True, help="JSON output file")
+        c.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
+        c.add_argument("--frames", type=int, default=10, help="number of images to use")
+        c.add_argument("--split", default="test")
+        c.add_argument("--quiet", action="store_true")
+        c.set_defaults(func=func)
+        if name == "blocks":
+            c.add_argument("--noise-lambda", type=float, default=0.2, help="noise of the benchmarked hypotheses")
+        else:
+            c.add_argument("--lambdas", default="0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
+            c.add_argument("--applications", type=int, default=5, help="max applications of the refiner")
+    _add_evaluate_parser(sub)
     return p
 
 

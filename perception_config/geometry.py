@@ -13,12 +13,22 @@ SIGMA_R = 0.35  # rad, rotation noise at lambda = 1
 SIGMA_T = 0.15  # share of the object diameter, translation noise at lambda = 1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Pose:
-    """Model-to-camera rigid transform: x_cam = R @ x_model + t (t in metres)."""
+    """Model-to-camera rigid transform: x_cam = R @ x_model + t (t in metres).
+
+    `==` is exact value equality of R and t (the generated dataclass `==` compared the arrays
+    with `==` and raised "truth value of an array is ambiguous"); poses are not hashable."""
 
     R: np.ndarray
     t: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Pose):
+            return NotImplemented
+        return bool(np.array_equal(self.R, other.R) and np.array_equal(self.t, other.t))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable arrays inside: no hash
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))

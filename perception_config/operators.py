@@ -1,0 +1,157 @@
+"""The operators behind the environment: one interface, two backends.
+
+An episode is one object in one frame. The backend holds the episode's current hypothesis and
+runs the pipeline's blocks on it: the generator at the start (and for a `regenerate` action),
+any action by name, and the scoring set after every action. `InProcessOperators` calls the
+blocks directly (training, evaluation); the ROS backend (perception_config/ros/) makes the
+same calls as service requests to the operator nodes. Same environment, same policy, either
+backend.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from .blocks.base import BlockInput, BlockResult, Kind
+from .blocks.pipeline import Pipeline
+from .geometry import Pose
+from .models import ObjectModel
+from .scene import Frame
+
+
+@dataclass
+class Episode:
+    """One (frame, object) episode. `ground_truth` is None in a robot cell."""
+
+    frame: Frame
+    model: ObjectModel
+    ground_truth: Pose | None
+    noise_lambda: float
+    seed: int
+    key: tuple[int, int, int] = (0, 0, 0)  # scene_id, im_id, obj_id
+
+
+@dataclass
+class StepOutcome:
+    """What one operator call did: the block's result, the scoring after it, the total time."""
+
+    action: str
+    result: BlockResult
+    scores: dict[str, float]
+    pose: Pose | None
+    elapsed: float  # seconds: the block plus the scoring after it
+    score_elapsed: float = 0.0
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+class Operators(Protocol):
+    """The backend interface the environment drives."""
+
+    pipeline: Pipeline
+
+    def start(self, episode: Episode) -> StepOutcome:
+        """Begin an episode: run the generator and the scoring; the hypothesis is set."""
+
+    def apply(self, action: str) -> StepOutcome:
+        """Run one action of the pipeline on the current hypothesis, then the scoring."""
+
+    def snapshot(self) -> Any:
+        """An opaque copy of the episode state (hypothesis, scores, rng), for hindsight search."""
+
+    def restore(self, state: Any) -> None:
+        """Return to a state from `snapshot`."""
+
+
+class InProcessOperators:
+    """Runs the pipeline's blocks in this process.
+
+    Per-frame precomputations (edge maps, point clouds) live in a small LRU keyed by the frame
+    identity, so consecutive episodes on the same frame share them.
+    """
+
+    def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4) -> None:
+        self.pipeline = pipeline
+        self._caches: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self._cache_size = frame_cache_size
+        self._generators: dict[float, Any] = {}
+        self.episode: Episode | None = None
+        self.pose: Pose | None = None
+        self.scores: dict[str, float] = {}
+        self.rng = np.random.default_rng(0)
+
+    # -- helpers -------------------------------------------------------------------------
+    def _frame_cache(self, frame: Frame) -> dict[str, Any]:
+        key = id(frame)
+        cache = self._caches.get(key)
+        if cache is None or cache.get("__frame__") is not frame:
+            cache = {"__frame__": frame}
+            self._caches[key] = cache
+        self._caches.move_to_end(key)
+        while len(self._caches) > self._cache_size:
+            self._caches.popitem(last=False)
+        return cache
+
+    def _input(self, pose: Pose | None) -> BlockInput:
+        ep = self.episode
+        assert ep is not None, "no episode started"
+        return BlockInput(
+            frame=ep.frame, model=ep.model, pose=pose, ground_truth=ep.ground_truth,
+            rng=self.rng, cache=self._frame_cache(ep.frame), scores=dict(self.scores),
+        )
+
+    def _generator(self, noise_lambda: float):
+        """The generator block with this episode's noise level, when it has one."""
+        gen = self.pipeline.generator
+        if "noise_lambda" not in gen.config:
+            return gen
+        block = self._generators.get(noise_lambda)
+        if block is None:
+            block = type(gen)(**{**gen.config, "noise_lambda": float(noise_lambda)})
+            self._generators[noise_lambda] = block
+        return block
+
+    def _score(self) -> tuple[dict[str, float], float]:
+        scores: dict[str, float] = {}
+        elapsed = 0.0
+        inp = self._input(self.pose)
+        for block in self.pipeline.scoring:
+            r = block(inp)
+            elapsed += r.elapsed
+            for name in block.score_names:
+                scores[name] = float(r.scores.get(name, np.nan)) if r.ok else np.nan
+        return scores, elapsed
+
+    def _outcome(self, action: str, result: BlockResult) -> StepOutcome:
+        if result.ok and result.pose is not None:
+            self.pose = result.pose
+        self.scores, score_elapsed = self._score()
+        return StepOutcome(action, result, dict(self.scores), self.pose, result.elapsed + score_elapsed, score_elapsed)
+
+    # -- the interface -------------------------------------------------------------------
+    def start(self, episode: Episode) -> StepOutcome:
+        self.episode = episode
+        self.rng = np.random.default_rng(episode.seed)
+        self.pose, self.scores = None, {}
+        result = self._generator(episode.noise_lambda)(self._input(None))
+        return self._outcome("generate", result)
+
+    def apply(self, action: str) -> StepOutcome:
+        act = self.pipeline.action(action)
+        block = act.block
+        if block.kind == Kind.GENERATION:
+            assert self.episode is not None
+            block = self._generator(self.episode.noise_lambda) if block.name == self.pipeline.generator.name else block
+        result = block(self._input(self.pose))
+        return self._outcome(action, result)
+
+    def snapshot(self) -> Any:
+        return (self.pose, dict(self.scores), self.rng.bit_generator.state)
+
+    def restore(self, state: Any) -> None:
+        self.pose, scores, rng_state = state
+        self.scores = dict(scores)
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = rng_state
