@@ -54,7 +54,7 @@ def directional_chamfer_tensor(
         sel = bins == b
         if sel.any():
             img[ys[sel], xs[sel]] = 0
-            dct[b] = cv2.distanceTransform(img, cv2.DIST_L2, 3)
+            dct[b] = cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_5)
         else:
             dct[b] = max_distance
     np.minimum(dct, max_distance, out=dct)
