@@ -1,0 +1,645 @@
+"""Evaluation: every agent on the same test episodes at every noise level (the paper's Fig. 5).
+
+`evaluate(...)` runs each agent (the given policies or agent names, plus the baselines: the
+oracle, a few fixed engineer pipelines, the untrained random agent) on the episodes of the
+TEST image ids only (the seeded split of `episodes.split_image_keys`, with the same seed and
+fraction as the training run), for each noise level lambda. The comparison is paired: at a
+given lambda every agent sees the same episodes with the same episode seeds, hence the same
+initial hypothesis. Episode seeds depend on the episode, not on lambda, so the hypotheses of
+one episode at growing lambda lie along the same random direction (common random numbers:
+smoother curves over lambda, and the Fig. 4 grid shows one hypothesis moving away).
+
+Success accounting. An episode succeeds when a pick succeeds within `max_ops` operations.
+`ops_to_success` and `time_to_success` are statistics over the SUCCESSFUL episodes only
+(operations counted up to and including the successful pick; time = the seconds the
+environment charged, failed picks included at their robot attempt cost); `success` is the
+share of episodes that succeeded, and must be read next to them: an agent that solves only
+the easy episodes looks fast. Over ALL episodes: `episode_time`, the seconds charged (a
+failed episode at the time it used up), and `episode_cost`, minus the return (episode_time
+plus the env's truncation penalty for giving up); the best fixed pipeline is the one with the
+lowest mean episode_cost. `first_pick_success` is the share of all episodes whose first
+attempted pick succeeded (an episode without any pick attempt counts as a miss).
+
+Outputs in `out/`:
+- results.json   list of records, one per (agent, lambda) (schema in `summarise`)
+- meta.json      settings: dataset, split, test image ids, pipeline, seeds, definitions
+- episodes.jsonl one line per (agent, lambda, episode): action trace, poses, errors
+- bop/<agent>-lam<x>_<dataset>-test.csv  BOP results (bop_toolkit: one method per file, no
+  underscore in the method name) of the final poses, one file per (agent, lambda)
+- fig5.png, lambda_grid.png, episode_*.png   plots (see plots.py)
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re as _re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Protocol, Sequence
+
+import numpy as np
+
+from .blocks.base import Kind
+from .blocks.pipeline import Pipeline, load_pipeline
+from .datasets.bop import BopDataset, BopResult, write_results_csv
+from .env import LAMBDA_MAX, PerceptionConfigEnv, normalise_score
+from .episodes import EpisodeSource, split_image_keys
+from .geometry import Pose
+from .metrics import average_recall_mspd, average_recall_mssd, pose_errors
+
+DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
+DEFAULT_TEST_FRACTION = 0.3
+DEFAULT_SPLIT_SEED = 0
+# Engineer pipelines evaluated as baselines; those naming actions the pipeline lacks are skipped.
+DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
+    ("icp_coarse", "icp_fine", "pick"),
+    ("icp_coarse", "pick"),
+    ("d2co", "icp_fine", "pick"),
+)
+RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, as the simulated pick
+MM = 1000.0
+
+DEFINITIONS = {
+    "ops_to_success": "operations up to and including the successful pick; successful episodes only",
+    "time_to_success": "seconds charged by the environment (failed picks at their robot cost); successful episodes only",
+    "episode_time": "seconds charged, all episodes (a failed episode at the time it used up)",
+    "episode_cost": "minus the return: episode_time plus the truncation penalty of failed episodes",
+    "success": "share of episodes with a successful pick within max_ops",
+    "first_pick_success": "share of all episodes whose first attempted pick succeeded",
+    "recall_mssd": f"share of final poses with MSSD <= {RECALL_MSSD_THRESHOLD} x diameter (no pose: miss)",
+    "errors": "BOP errors of the final poses, episodes with a pose: mm, degrees, px",
+}
+
+
+class Agent(Protocol):
+    """What evaluation needs of an agent: the next action from the observation and info."""
+
+    def act(self, obs: np.ndarray, info: dict[str, Any]) -> int: ...
+
+
+@dataclass
+class EvalAgent:
+    """An agent under evaluation: its report name, its kind (random, fixed, oracle, pg, ...)."""
+
+    name: str
+    kind: str
+    agent: Agent
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def episode_seed(seed: int, j: int) -> int:
+    """The seed of the j-th evaluation episode (the same at every lambda and for every agent)."""
+    return int(np.random.SeedSequence([int(seed), int(j)]).generate_state(1)[0] % 2**31)
+
+
+def _finite_or_none(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _stats(values: Sequence[float]) -> dict[str, float | None]:
+    """mean, q1, median, q3 of the finite values (None when there are none)."""
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    if v.size == 0:
+        return {"mean": None, "q1": None, "median": None, "q3": None}
+    q1, med, q3 = np.percentile(v, [25, 50, 75])
+    return {"mean": float(v.mean()), "q1": float(q1), "median": float(med), "q3": float(q3)}
+
+
+def _mean_median(values: Sequence[float | None]) -> dict[str, float | None]:
+    s = _stats([x for x in values if x is not None])
+    return {"mean": s["mean"], "median": s["median"]}
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _pose_json(pose: Pose | None) -> dict[str, list[float]] | None:
+    if pose is None:
+        return None
+    return {"R": [float(x) for x in pose.R.reshape(-1)], "t": [float(x) for x in pose.t]}
+
+
+def pose_from_json(d: dict[str, list[float]] | None) -> Pose | None:
+    """The inverse of the pose entries of episodes.jsonl (R row-major, t metres)."""
+    if d is None:
+        return None
+    return Pose(np.asarray(d["R"]).reshape(3, 3), np.asarray(d["t"]))
+
+
+def _errors(pose: Pose | None, gt: Pose, model: Any, K: np.ndarray) -> dict[str, float | None]:
+    """BOP errors of a hypothesis in report units (mm, degrees, px); None for no hypothesis."""
+    keys = ("add_mm", "adi_mm", "mssd_mm", "mspd_px", "re_deg", "te_mm")
+    if pose is None or not pose.is_valid():
+        return dict.fromkeys(keys)
+    e = pose_errors(pose, gt, model, K)
+    return {
+        "add_mm": _finite_or_none(e["add"] * MM), "adi_mm": _finite_or_none(e["adi"] * MM),
+        "mssd_mm": _finite_or_none(e["mssd"] * MM), "mspd_px": _finite_or_none(e["mspd"]),
+        "re_deg": _finite_or_none(math.degrees(e["re"])), "te_mm": _finite_or_none(e["te"] * MM),
+    }
+
+
+LOWER_IS_BETTER = frozenset({"icp_rmse"})
+
+
+def _confidence(scores: dict[str, float]) -> float:
+    """A BOP score in [0, 1] for a final hypothesis, from its own scores only (no ground
+    truth): the mean of the normalised scores, flipped where lower is better."""
+    vals = [1.0 - normalise_score(k, v) if k in LOWER_IS_BETTER else normalise_score(k, v)
+            for k, v in scores.items() if math.isfinite(v)]
+    return float(np.mean(vals)) if vals else 0.0
+
+
+def _slug(name: str) -> str:
+    """A file-name-safe method name without underscores (bop_toolkit splits on '_')."""
+    return _re.sub(r"[^A-Za-z0-9.+-]+", "-", name).strip("-") or "agent"
+
+
+# --------------------------------------------------------------------------- agents
+
+
+def _is_policy_file(spec: Any) -> bool:
+    return isinstance(spec, (str, os.PathLike)) and (Path(spec).suffix != "" or os.sep in str(spec)) \
+        and Path(spec).is_file()
+
+
+# Training settings a policy file records (perception_config.training: metadata "extra") that
+# evaluation takes over when not given: the split must be the training split (else the "test"
+# images may be training images), max_ops is part of the observation (step / max_ops).
+_RECORDED = ("split_seed", "test_fraction", "pipeline", "max_ops")
+
+
+def _same_setting(key: str, a: Any, b: Any) -> bool:
+    if key == "pipeline":
+        return Path(a).resolve() == Path(b).resolve()
+    if key == "test_fraction":
+        return math.isclose(float(a), float(b))
+    return int(a) == int(b)
+
+
+def policy_settings(policies: Sequence[Any], **given: Any) -> dict[str, Any]:
+    """Evaluation settings: split_seed, test_fraction, pipeline, max_ops. An explicit value
+    (not None) wins but must agree with what the policy files record; otherwise the files'
+    value (they must agree with each other); otherwise the defaults (0, 0.3, shipped, 10)."""
+    from .agents.policy_io import policy_info
+
+    out: dict[str, Any] = {k: given.get(k) for k in _RECORDED}
+    source: dict[str, str] = {k: "the arguments" for k, v in out.items() if v is not None}
+    for spec in policies:
+        if not _is_policy_file(spec):
+            continue
+        extra = policy_info(Path(spec)).get("extra") or {}
+        recorded = {
+            "split_seed": extra.get("split_seed"), "test_fraction": extra.get("test_fraction"),
+            "pipeline": extra.get("pipeline"), "max_ops": (extra.get("env_kwargs") or {}).get("max_ops"),
+        }
+        for key, value in recorded.items():
+            if value is None:
+                continue
+            if key == "pipeline" and isinstance(out[key], Pipeline):
+                continue  # a Pipeline object: the policy loader checks its action set
+            if out[key] is None:
+                out[key], source[key] = value, f"policy {spec}"
+            elif not _same_setting(key, out[key], value):
+                raise ValueError(
+                    f"policy {spec} was trained with {key}={value!r} but {source[key]} give {key}={out[key]!r}: "
+                    + ("evaluating on its training images would be meaningless" if key in ("split_seed", "test_fraction")
+                       else "evaluate each policy with the settings it was trained with"))
+    out["split_seed"] = DEFAULT_SPLIT_SEED if out["split_seed"] is None else int(out["split_seed"])
+    out["test_fraction"] = DEFAULT_TEST_FRACTION if out["test_fraction"] is None else float(out["test_fraction"])
+    out["max_ops"] = 10 if out["max_ops"] is None else int(out["max_ops"])
+    return out
+
+
+def fixed_sequences(pipeline: Pipeline, sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES) -> list[tuple[str, ...]]:
+    """The engineer sequences whose actions all exist in the pipeline."""
+    names = set(pipeline.action_names)
+    return [tuple(s) for s in sequences if set(s) <= names]
+
+
+def _policy_name(path: Path, kind: str) -> str:
+    """A report name for a policy file: kind:<file stem>, or kind:<folder> for training's
+    policy.* files (one run per folder)."""
+    label = path.parent.name if path.stem == "policy" and path.parent.name else path.stem
+    return kind if label == kind else f"{kind}:{label}"
+
+
+def build_agents(
+    env: PerceptionConfigEnv, policies: Sequence[Any], seed: int, include_baselines: bool = True,
+    sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES,
+) -> list[EvalAgent]:
+    """The agents to evaluate: policy files (checked against the env's action set), agent
+    names, or (name, agent) pairs / objects with `act`; then the baselines (oracle, the fixed
+    pipelines, random) unless already given."""
+    from . import agents
+
+    out: list[EvalAgent] = []
+    for spec in policies:
+        if isinstance(spec, tuple) and len(spec) == 2 and hasattr(spec[1], "act"):
+            out.append(EvalAgent(str(spec[0]), "custom", spec[1]))
+        elif hasattr(spec, "act"):
+            out.append(EvalAgent(str(getattr(spec, "name", type(spec).__name__)), "custom", spec))
+        elif _is_policy_file(spec):
+            agent = agents.load_agent(Path(spec), env)
+            out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent))
+        elif isinstance(spec, str):
+            if spec not in agents.AGENTS:
+                hint = f" and there is no file {spec}" if (os.sep in spec or "." in spec) else ""
+                raise ValueError(f"unknown agent {spec!r}{hint}; known agents: {', '.join(sorted(agents.AGENTS))}")
+            out.append(EvalAgent(spec, spec, agents.make_agent(spec, env=env, seed=seed)))
+        else:
+            raise ValueError(f"cannot evaluate {spec!r}: give a policy file, an agent name or an agent")
+    names = [a.name for a in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two agents under evaluation have the same name: {names}")
+    if include_baselines:
+        if "oracle" not in names:
+            out.append(EvalAgent("oracle", "oracle", agents.make_agent("oracle", env=env, seed=seed)))
+        for seq in fixed_sequences(env.pipeline, sequences):
+            name = "fixed:" + "+".join(seq)
+            if name not in names:
+                out.append(EvalAgent(name, "fixed", agents.make_agent("fixed", env=env, seed=seed, sequence=list(seq))))
+        if "random" not in names:
+            out.append(EvalAgent("random", "random", agents.make_agent("random", env=env, seed=seed)))
+    if not out:
+        raise ValueError("nothing to evaluate: no policies given and include_baselines is off")
+    return out
+
+
+# --------------------------------------------------------------------------- episodes
+
+
+def run_episode(env: PerceptionConfigEnv, agent: Agent, index: int, lam: float, ep_seed: int) -> dict[str, Any]:
+    """Run one episode to its end; the per-episode record (trace, poses, errors). The agent's
+    acting randomness is reseeded from the episode seed, so every agent's run of an episode is
+    reproducible whatever ran before it."""
+    obs, info = env.reset(options={"episode": int(index), "lambda": float(lam), "episode_seed": int(ep_seed)})
+    if hasattr(agent, "begin_episode"):  # acting randomness: its own stream, fixed by the episode
+        agent.begin_episode(int(np.random.SeedSequence([int(ep_seed), 1]).generate_state(1)[0]))  # type: ignore[attr-defined]
+    ep = env.episode
+    assert ep is not None
+    initial = info["pose"]
+    actions: list[str] = []
+    seconds: list[float] = []
+    oks: list[bool] = []
+    first_pick: bool | None = None
+    success = False
+    cost = 0.0
+    while True:
+        a = int(agent.act(obs, info))
+        obs, reward, terminated, truncated, info = env.step(a)
+        cost -= reward
+        if hasattr(agent, "observe"):
+            agent.observe(reward, obs, terminated, truncated, info)  # type: ignore[attr-defined]
+        actions.append(env.action_names[a])
+        seconds.append(float(info["seconds"]))
+        oks.append(bool(info["ok"]))
+        if env.pipeline.actions[a].kind == Kind.PICK and info["ok"] and first_pick is None:
+            first_pick = bool(info["picked"])
+        if terminated or truncated:
+            success = bool(terminated and info["picked"])
+            break
+    final = info["pose"]
+    model, gt, K = ep.model, ep.ground_truth, ep.frame.K
+    scene_id, im_id, obj_id = ep.key
+    rec: dict[str, Any] = {
+        "episode": int(index), "episode_seed": int(ep_seed), "lambda": float(lam),
+        "scene_id": int(scene_id), "im_id": int(im_id), "obj_id": int(obj_id),
+        "instance": int(env.source.episodes[int(index)].index),
+        "diameter_mm": float(model.diameter * MM), "image_width": int(ep.frame.width),
+        "actions": actions, "seconds": seconds, "ok": oks,
+        "success": success, "ops": len(actions), "time": float(env.episode_time), "cost": float(cost),
+        "first_pick_success": bool(first_pick),
+        "final_scores": {k: _finite_or_none(v) for k, v in info["scores"].items()},
+        "confidence": _confidence(info["scores"]),
+        "initial_pose": _pose_json(initial), "final_pose": _pose_json(final),
+    }
+    search = getattr(agent, "last_result", None)  # the oracle's search of this episode
+    if search is not None and hasattr(search, "exact"):
+        rec["search"] = {"found": bool(search.found), "exact": bool(search.exact), "evaluations": int(search.evaluations)}
+    if gt is not None:
+        rec["initial_errors"] = _errors(initial, gt, model, K)
+        rec["final_errors"] = _errors(final, gt, model, K)
+    return rec
+
+
+def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The record of one (agent, lambda):
+
+    agent, lambda, episodes (count), success (share within max_ops), n_success,
+    ops_to_success / time_to_success {mean, q1, median, q3} over the successful episodes
+    (seconds), episode_time and episode_cost (time + truncation penalty: minus the return)
+    {mean, q1, median, q3} over all episodes, first_pick_success
+    (share), and BOP errors of the final poses {mean, median}: mssd_mm, mspd_px, add_mm, adi_mm,
+    re_deg, te_mm (episodes without a pose are left out), recall_mssd (share with MSSD <= 0.1
+    diameter; no pose = miss), ar_mssd / ar_mspd (BOP average recalls), initial_recall_mssd.
+    """
+    n = len(episodes)
+    ok = [e for e in episodes if e["success"]]
+    rec: dict[str, Any] = {
+        "agent": agent, "lambda": float(lam), "episodes": n,
+        "success": len(ok) / n if n else 0.0, "n_success": len(ok),
+        "ops_to_success": _stats([e["ops"] for e in ok]),
+        "time_to_success": _stats([e["time"] for e in ok]),
+        "episode_time": _stats([e["time"] for e in episodes]),
+        "episode_cost": _stats([e["cost"] for e in episodes]),
+        "first_pick_success": float(np.mean([e["first_pick_success"] for e in episodes])) if n else 0.0,
+    }
+    with_err = [e for e in episodes if "final_errors" in e]
+    if with_err:
+        for key in ("mssd_mm", "mspd_px", "add_mm", "adi_mm", "re_deg", "te_mm"):
+            rec[key] = _mean_median([e["final_errors"][key] for e in with_err])
+
+        def err(e: dict[str, Any], which: str, key: str) -> float:
+            v = e[which][key]
+            return math.inf if v is None else float(v)
+
+        diam = np.array([e["diameter_mm"] for e in with_err])
+        final_mssd = np.array([err(e, "final_errors", "mssd_mm") for e in with_err])
+        init_mssd = np.array([err(e, "initial_errors", "mssd_mm") for e in with_err])
+        rec["recall_mssd"] = float(np.mean(final_mssd <= RECALL_MSSD_THRESHOLD * diam))
+        rec["initial_recall_mssd"] = float(np.mean(init_mssd <= RECALL_MSSD_THRESHOLD * diam))
+        rec["ar_mssd"] = average_recall_mssd(final_mssd, diam)
+        # BOP scales the MSPD thresholds with the image width (all frames of a dataset share it)
+        width = int(with_err[0].get("image_width", 640))
+        rec["ar_mspd"] = average_recall_mspd([err(e, "final_errors", "mspd_px") for e in with_err], width)
+    return rec
+
+
+def bop_results(episodes: Sequence[dict[str, Any]]) -> list[BopResult]:
+    """BOP results rows of the final poses. bop_toolkit wants one time per image: the time of an
+    image is the sum of the times of its episodes (the objects are handled one after another)."""
+    image_time: dict[tuple[int, int], float] = {}
+    for e in episodes:
+        key = (e["scene_id"], e["im_id"])
+        image_time[key] = image_time.get(key, 0.0) + e["time"]
+    rows = []
+    for e in episodes:
+        pose = pose_from_json(e["final_pose"])
+        if pose is None:
+            continue
+        rows.append(BopResult(e["scene_id"], e["im_id"], e["obj_id"], e["confidence"], pose,
+                              image_time[(e["scene_id"], e["im_id"])]))
+    return rows
+
+
+def bop_csv_name(agent: str, lam: float, dataset_name: str, split: str = "test") -> str:
+    """`<method>_<dataset>-<split>.csv` with method = agent-lam<x> (no underscores)."""
+    return f"{_slug(agent)}-lam{lam:g}_{_slug(dataset_name).replace('_', '-')}-{split}.csv"
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def _check_lambdas(lambdas: Iterable[float]) -> list[float]:
+    out = []
+    for lam in lambdas:
+        try:
+            x = float(lam)
+        except (TypeError, ValueError):
+            raise ValueError(f"lambda must be a number, got {lam!r}") from None
+        if not (math.isfinite(x) and 0.0 <= x <= LAMBDA_MAX):
+            raise ValueError(f"lambda must be in [0, {LAMBDA_MAX}], got {lam}")
+        out.append(x)
+    if not out:
+        raise ValueError("no lambda to evaluate")
+    return out
+
+
+def episode_plan(n_available: int, episodes_per_lambda: int | None, seed: int) -> list[tuple[int, int]]:
+    """(episode index, episode seed) of the evaluation episodes, the same at every lambda.
+    None = every test episode once; fewer = a seeded random subset; more = cycled (each pass
+    with fresh seeds, so the hypotheses differ)."""
+    if episodes_per_lambda is None:
+        n = n_available
+    else:
+        n = int(episodes_per_lambda)
+        if n < 1:
+            raise ValueError(f"episodes_per_lambda must be >= 1, got {episodes_per_lambda}")
+    order = np.random.default_rng(seed).permutation(n_available) if n < n_available else np.arange(n_available)
+    return [(int(order[j % n_available]), episode_seed(seed, j)) for j in range(n)]
+
+
+def evaluate(
+    dataset: str | Path | BopDataset,
+    policies: Sequence[Any] = (),
+    lambdas: Sequence[float] = DEFAULT_LAMBDAS,
+    out: str | Path = "evaluation",
+    episodes_per_lambda: int | None = None,
+    seed: int = 0,
+    pipeline: str | Path | Pipeline | None = None,
+    split_seed: int | None = None,
+    test_fraction: float | None = None,
+    time_mode: str = "measured",
+    include_baselines: bool = True,
+    progress: bool = True,
+    *,
+    split: str = "test",
+    max_ops: int | None = None,
+    failed_pick_cost: float = 2.0,
+    truncation_cost: float = 10.0,
+    cost_table: dict[str, float] | None = None,
+    min_visib_fract: float = 0.3,
+    fixed: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES,
+    plots: bool = True,
+    n_example_episodes: int = 2,
+) -> Path:
+    """Evaluate agents on the test images at each lambda; write the reports to `out`; return
+    the path of results.json. See the module docstring for the outputs and definitions.
+
+    policies: policy files, agent names of `perception_config.agents.AGENTS`, or agent objects
+    / (name, agent) pairs. split_seed, test_fraction, pipeline and max_ops default to what the
+    policy files record from training (they must agree with each other and with explicit
+    values), else 0, 0.3, the shipped pipeline, 10. `fixed`: the engineer sequences evaluated
+    as baselines (those naming actions the pipeline lacks are skipped).
+    """
+    lams = _check_lambdas(lambdas)
+    out = Path(out)
+    settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction,
+                               pipeline=pipeline, max_ops=max_ops)
+    ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
+    train_keys, test_keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])
+    pipe = settings["pipeline"] if isinstance(settings["pipeline"], Pipeline) else load_pipeline(settings["pipeline"])
+    source = EpisodeSource(ds, test_keys, min_visib_fract=min_visib_fract)
+    env = PerceptionConfigEnv(source, pipe, max_ops=settings["max_ops"], failed_pick_cost=failed_pick_cost,
+                              truncation_cost=truncation_cost, time_mode=time_mode, cost_table=cost_table,
+                              lambda_range=(0.0, LAMBDA_MAX))
+    agents = build_agents(env, policies, seed, include_baselines, fixed)
+    plan = episode_plan(len(source), episodes_per_lambda, seed)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(agents) * len(lams) * len(plan), desc="evaluate", unit="ep", dynamic_ncols=True)
+    records: list[dict[str, Any]] = []
+    per_episode: list[dict[str, Any]] = []
+    try:
+        for lam in lams:
+            for ea in agents:
+                if bar is not None:
+                    bar.set_postfix_str(f"{ea.name} lambda={lam:g}")
+                eps = []
+                for index, ep_seed in plan:
+                    eps.append({"agent": ea.name, **run_episode(env, ea.agent, index, lam, ep_seed)})
+                    if bar is not None:
+                        bar.update(1)
+                per_episode.extend(eps)
+                records.append({**summarise(ea.name, lam, eps), "kind": ea.kind})
+    finally:
+        if bar is not None:
+            bar.close()
+    _mark_best_fixed(records)
+
+    out.mkdir(parents=True, exist_ok=True)
+    _atomic_write(out / "results.json", json.dumps(records, indent=1, allow_nan=False) + "\n")
+    _atomic_write(out / "episodes.jsonl", "".join(json.dumps(e, allow_nan=False) + "\n" for e in per_episode))
+    meta = {
+        "dataset": str(ds.root), "split": split, "split_seed": settings["split_seed"],
+        "test_fraction": settings["test_fraction"], "test_images": [list(k) for k in test_keys],
+        "n_train_images": len(train_keys), "episodes_per_lambda": len(plan), "seed": seed, "lambdas": lams,
+        "time_mode": time_mode, "max_ops": env.max_ops, "failed_pick_cost": failed_pick_cost,
+        "truncation_cost": truncation_cost, "min_visib_fract": min_visib_fract, "pipeline": pipe.describe(),
+        "agents": [{"name": a.name, "kind": a.kind} for a in agents],
+        "definitions": DEFINITIONS,
+    }
+    _atomic_write(out / "meta.json", json.dumps(meta, indent=1, allow_nan=False) + "\n")
+    write_bop_csvs(out / "bop", per_episode, Path(ds.root).name)
+    if plots:
+        make_plots(out, records, per_episode, env, lams, plan, n_example_episodes)
+    return out / "results.json"
+
+
+def _mark_best_fixed(records: list[dict[str, Any]]) -> None:
+    """Flag the fixed pipeline with the lowest mean episode cost over all lambdas (time plus the
+    penalty of giving up: a pipeline that fails is not 'fast') as `best_fixed` in its records."""
+    fixed = {r["agent"] for r in records if r.get("kind") == "fixed"}
+    if not fixed:
+        return
+    def score(name: str) -> float:
+        return float(np.mean([r["episode_cost"]["mean"] for r in records if r["agent"] == name]))
+    best = min(sorted(fixed), key=score)
+    for r in records:
+        if r.get("kind") == "fixed":
+            r["best_fixed"] = r["agent"] == best
+
+
+def write_bop_csvs(folder: Path, per_episode: Sequence[dict[str, Any]], dataset_name: str) -> list[Path]:
+    """One BOP results CSV per (agent, lambda) of the final poses; returns the paths."""
+    groups: dict[tuple[str, float], list[dict[str, Any]]] = {}
+    for e in per_episode:
+        groups.setdefault((e["agent"], e["lambda"]), []).append(e)
+    paths = []
+    for (agent, lam), eps in groups.items():
+        path = folder / bop_csv_name(agent, lam, dataset_name)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_results_csv(path, bop_results(eps))
+        paths.append(path)
+    return paths
+
+
+def make_plots(
+    out: Path, records: list[dict[str, Any]], per_episode: list[dict[str, Any]], env: PerceptionConfigEnv,
+    lams: Sequence[float], plan: Sequence[tuple[int, int]], n_examples: int = 2,
+) -> list[Path]:
+    """fig5.png, lambda_grid.png (the first planned episode) and a few Fig. 2-style episodes."""
+    from . import plots
+
+    paths = [plots.plot_fig5(records, out / "fig5.png")]
+    index, ep_seed = plan[0]
+    hyps = []
+    for lam in lams:
+        _obs, info = env.reset(options={"episode": index, "lambda": lam, "episode_seed": ep_seed})
+        hyps.append((lam, info["pose"]))
+    ep = env.episode
+    assert ep is not None
+    if ep.ground_truth is not None:
+        paths.append(plots.plot_lambda_grid(ep.frame, ep.model, ep.ground_truth, hyps, out / "lambda_grid.png"))
+    for i, e in enumerate(example_episodes(per_episode, n_examples)):
+        frame = env.source.frame(e["scene_id"], e["im_id"])
+        obj = frame.objects[e["instance"]]
+        title = (f"{e['agent']}  lambda={e['lambda']:g}  scene {e['scene_id']} image {e['im_id']} obj {e['obj_id']}\n"
+                 f"{' > '.join(e['actions'])}  ({e['time']:.2f} s, {'picked' if e['success'] else 'not picked'})")
+        paths.append(plots.plot_episode(frame, obj.model, obj.gt, pose_from_json(e["initial_pose"]),
+                                        pose_from_json(e["final_pose"]), title, out / f"episode_{i}.png"))
+    return paths
+
+
+def example_episodes(per_episode: Sequence[dict[str, Any]], n: int = 2) -> list[dict[str, Any]]:
+    """Episodes worth a Fig. 2 picture, of the first agent under evaluation that is not a
+    baseline (else the oracle), at the middle lambda: the successful one that started furthest
+    from the ground truth (MSSD / diameter), then failures. Without a success there, the
+    success comes from the nearest lambda with one, else from the oracle."""
+    if n <= 0 or not per_episode:
+        return []
+    names = list(dict.fromkeys(e["agent"] for e in per_episode))
+    agent = next((a for a in names if a not in ("random", "oracle") and not a.startswith("fixed:")),
+                 "oracle" if "oracle" in names else names[0])
+    lams = sorted({e["lambda"] for e in per_episode})
+    mid = lams[len(lams) // 2]
+    drawable = [e for e in per_episode if e["initial_pose"] and e["final_pose"]]
+
+    def rel_init(e: dict[str, Any]) -> float:
+        v = (e.get("initial_errors") or {}).get("mssd_mm")
+        return -1.0 if v is None else v / e["diameter_mm"]
+
+    def successes(name: str) -> list[dict[str, Any]]:
+        by_lam = sorted(lams, key=lambda lam: abs(lam - mid))
+        for lam in by_lam:
+            ok = [e for e in drawable if e["agent"] == name and e["lambda"] == lam and e["success"]]
+            if ok:
+                return sorted(ok, key=rel_init, reverse=True)
+        return []
+
+    ok = successes(agent) or successes("oracle")
+    failed = [e for e in drawable if e["agent"] == agent and e["lambda"] == mid and not e["success"]]
+    chosen = ok[:1] + failed[: n - 1] if failed else ok[:n]
+    return (chosen + [e for e in ok if e not in chosen])[:n]
+
+
+# --------------------------------------------------------------------------- table
+
+
+def format_table(records: Sequence[dict[str, Any]]) -> str:
+    """A plain-text table, grouped by lambda: mean time and ops to success (successful episodes),
+    first-pick share, success share and mean episode time (all episodes). '*' marks the best
+    fixed pipeline."""
+    header = f"{'lambda':>6}  {'agent':<34} {'time s':>8} {'ops':>6} {'1st pick':>8} {'success':>8} {'ep. time':>9} {'n':>5}"
+    lines = [header, "-" * len(header)]
+
+    def num(x: float | None, fmt: str) -> str:
+        return format(x, fmt) if x is not None else "-".rjust(int(fmt.split(".")[0]))
+
+    last = None
+    for r in sorted(records, key=lambda r: (r["lambda"],)):
+        if last is not None and r["lambda"] != last:
+            lines.append("")
+        last = r["lambda"]
+        name = r["agent"] + (" *" if r.get("best_fixed") else "")
+        lines.append(
+            f"{r['lambda']:>6.2f}  {name[:34]:<34} {num(r['time_to_success']['mean'], '8.3f')} "
+            f"{num(r['ops_to_success']['mean'], '6.2f')} {100 * r['first_pick_success']:>7.1f}% "
+            f"{100 * r['success']:>7.1f}% {num(r['episode_time']['mean'], '9.3f')} {r['episodes']:>5d}"
+        )
+    lines.append("")
+    lines.append("time s / ops: means over successful episodes; ep. time: mean over all episodes; "
+                 "* best fixed pipeline")
+    return "\n".join(lines)
+
+
+__all__ = [
+    "evaluate", "format_table", "summarise", "run_episode", "build_agents", "policy_settings", "episode_plan",
+    "episode_seed", "bop_results", "bop_csv_name", "write_bop_csvs", "example_episodes", "fixed_sequences",
+    "pose_from_json", "EvalAgent", "DEFAULT_LAMBDAS", "DEFAULT_FIXED_SEQUENCES",
+]
