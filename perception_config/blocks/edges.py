@@ -1,11 +1,14 @@
 """Image edges and the model contour, for the edge-based refiners (D2CO, chamfer, chamfer-ICP).
 
-- `canny_edges`: the Canny edge map and each edge pixel's direction in [0, pi), once per frame.
+- `canny_edges`: the Canny edge map and each edge pixel's direction in [0, pi), once per frame;
+  `image_gradients`: gradient magnitude and angle (Sobel), once per frame.
 - `directional_chamfer_tensor`: D2CO's directional chamfer distance tensor on a crop
   (Liu et al., CVPR 2010; Imperoli & Pretto, ICVS 2015): edge pixels split into `n_bins`
   orientation bins over [0, pi), a distance transform per bin, then a forward/backward pass
   across bins (cyclic) adding `penalty` px per bin of orientation difference, so a model edge
   point pays for distance and for orientation mismatch. Truncated at `max_distance`.
+  `sample_tensor` interpolates it at (x, y, theta) with its spatial gradient; `TensorCache`
+  keeps tensors per frame and crop so repeated calls on a frame do not rebuild them.
 - `model_contour`: 3D model-frame points with 3D tangent directions on the contour visible from
   a hypothesis: visible sharp mesh edges plus the rendered silhouette back-projected (scanned
   meshes such as LM-O have few sharp edges, so the outline carries most of the signal).
@@ -41,31 +44,136 @@ def canny_edges(frame: Frame, cache: dict | None, low: float = 40.0, high: float
     return edges, direction
 
 
+def image_gradients(frame: Frame, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(magnitude, angle) float32 HxW of the grey image's gradient (Sobel after a sigma-1
+    Gaussian, grey levels per pixel); angle = atan2(gy, gx) in (-pi, pi], across the edge.
+    Shares the per-frame derivatives with the scores, so it costs nothing after the first call."""
+    key = "edges:gradients"
+    if cache is not None and key in cache and cache[key][0] is frame.rgb:
+        return cache[key][1]
+    gx, gy = image_derivatives(frame, cache)
+    value = (cv2.magnitude(gx, gy), np.arctan2(gy, gx).astype(np.float32))
+    if cache is not None:
+        cache[key] = (frame.rgb, value)
+    return value
+
+
 def directional_chamfer_tensor(
     edges: np.ndarray, direction: np.ndarray, n_bins: int = 60, penalty: float = 0.5, max_distance: float = 30.0,
 ) -> np.ndarray:
-    """The (n_bins, H, W) float32 directional chamfer tensor of an edge map crop (see above)."""
+    """The (n_bins, H, W) float32 directional chamfer tensor of an edge map crop (see above).
+
+    Cost is dominated by the n_bins distance transforms (pixel-bound, ~0.25 ms each for
+    224x224): bins without edges skip theirs and are filled by the orientation pass. That pass
+    runs 1.5 cycles forward and 1.5 backward: a cheapest path across bins goes at most half
+    the circle in one direction, and every such path lies inside 1.5 consecutive cycles."""
     h, w = edges.shape
     ys, xs = np.nonzero(edges)
-    bins = np.minimum((direction[ys, xs] / np.pi * n_bins).astype(np.intp), n_bins - 1)
-    dct = np.empty((n_bins, h, w), np.float32)
+    bins = np.minimum((direction[ys, xs] * (n_bins / np.pi)).astype(np.intp), n_bins - 1)
+    dct = np.full((n_bins, h, w), max_distance, np.float32)
+    img = np.full((h, w), 255, np.uint8)
+    order = np.argsort(bins, kind="stable")
+    bounds = np.searchsorted(bins[order], np.arange(n_bins + 1))
     for b in range(n_bins):
-        img = np.full((h, w), 255, np.uint8)
-        sel = bins == b
-        if sel.any():
-            img[ys[sel], xs[sel]] = 0
-            dct[b] = cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_5)
-        else:
-            dct[b] = max_distance
+        sel = order[bounds[b]:bounds[b + 1]]
+        if len(sel) == 0:
+            continue
+        img[ys[sel], xs[sel]] = 0
+        cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_5, dst=dct[b])
+        img[ys[sel], xs[sel]] = 255
     np.minimum(dct, max_distance, out=dct)
-    # Orientation propagation, cyclic over [0, pi): two rounds forward and backward suffice
-    # because the penalty accumulates past max_distance within n_bins steps.
-    for _ in range(2):
-        for b in range(n_bins):
-            np.minimum(dct[b], dct[b - 1] + penalty, out=dct[b])
-        for b in range(n_bins - 1, -1, -1):
-            np.minimum(dct[b], dct[(b + 1) % n_bins] + penalty, out=dct[b])
+    if penalty > 0:
+        steps = n_bins + (n_bins + 1) // 2
+        tmp = np.empty((h, w), np.float32)
+        for k in range(1, steps + 1):
+            b = k % n_bins
+            np.add(dct[b - 1], penalty, out=tmp)
+            np.minimum(dct[b], tmp, out=dct[b])
+        for k in range(steps - 1, -1, -1):
+            b = k % n_bins
+            np.add(dct[(b + 1) % n_bins], penalty, out=tmp)
+            np.minimum(dct[b], tmp, out=dct[b])
     return dct
+
+
+def sample_tensor(
+    dct: np.ndarray, x: np.ndarray, y: np.ndarray, angle: np.ndarray, outside: float, gradient: bool = False,
+):
+    """Tensor values at float pixels (x, y) of its crop and orientations `angle` in [0, pi):
+    bilinear in the pixel, linear between the two nearest orientation bins (cyclic). With
+    `gradient`, also the spatial derivatives (d/dx, d/dy) of that interpolant (0 outside the
+    crop and where the value is truncated, so such points do not pull the pose)."""
+    n, h, w = dct.shape
+    out = np.full(x.shape, float(outside), np.float64)
+    gx, gy = np.zeros(x.shape), np.zeros(x.shape)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(angle) & (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    if ok.any() and h > 1 and w > 1:
+        xs, ys = x[ok], y[ok]
+        x0 = np.minimum(xs.astype(np.intp), w - 2)
+        y0 = np.minimum(ys.astype(np.intp), h - 2)
+        fx, fy = xs - x0, ys - y0
+        tb = angle[ok] * (n / np.pi) - 0.5  # bin centres at (b + 0.5) pi / n
+        b0f = np.floor(tb)
+        ft = tb - b0f
+        b0 = b0f.astype(np.intp) % n
+        b1 = (b0 + 1) % n
+        flat = dct.reshape(-1)
+        i00 = y0 * w + x0
+
+        def corners(b: np.ndarray):
+            base = b * (h * w) + i00
+            return flat[base], flat[base + 1], flat[base + w], flat[base + w + 1]
+
+        a00, a01, a10, a11 = corners(b0)
+        c00, c01, c10, c11 = corners(b1)
+        wt0, wt1 = 1.0 - ft, ft
+        v00, v01 = wt0 * a00 + wt1 * c00, wt0 * a01 + wt1 * c01
+        v10, v11 = wt0 * a10 + wt1 * c10, wt0 * a11 + wt1 * c11
+        top, bottom = v00 + fx * (v01 - v00), v10 + fx * (v11 - v10)
+        out[ok] = top + fy * (bottom - top)
+        if gradient:
+            live = out[ok] < outside  # truncated (flat) region: no pull
+            gx[ok] = np.where(live, (1 - fy) * (v01 - v00) + fy * (v11 - v10), 0.0)
+            gy[ok] = np.where(live, bottom - top, 0.0)
+    return (out, gx, gy) if gradient else out
+
+
+class TensorCache:
+    """Directional chamfer tensors of one frame, by crop and parameters, in BlockInput.cache.
+
+    A request is served by any cached tensor whose crop contains the requested box plus
+    `reuse_margin` px, so the repeated calls of a refinement episode (the hypothesis moves a
+    few pixels) build the tensor once; otherwise a tensor is built on the box plus `margin`."""
+
+    KEY = "edges:dct"
+    SIZE = 6  # tensors kept per frame (a 224x224x60 tensor is 12 MB)
+
+    @staticmethod
+    def get(frame: Frame, cache: dict | None, box: Box, margin: int, reuse_margin: int, n_bins: int,
+            penalty: float, max_distance: float, low: float, high: float) -> tuple[np.ndarray, Box, int]:
+        """(tensor, crop box, edge pixels in the crop)."""
+        params = (n_bins, float(penalty), float(max_distance), float(low), float(high))
+        entries = cache.setdefault(TensorCache.KEY, []) if cache is not None else []
+        if entries and entries[0][0] is not frame.rgb:  # a new frame in an old cache
+            entries.clear()
+        x, y, w, h = box
+        need = (max(0, x - reuse_margin), max(0, y - reuse_margin),
+                min(frame.width, x + w + reuse_margin), min(frame.height, y + h + reuse_margin))
+        for _rgb, p, crop, dct, n_edges in reversed(entries):
+            cx, cy, cw, ch = crop
+            if p == params and cx <= need[0] and cy <= need[1] and cx + cw >= need[2] and cy + ch >= need[3]:
+                return dct, crop, n_edges
+        crop = crop_box(frame, box, margin, align=8)
+        edges, direction = canny_edges(frame, cache, low, high)
+        cx, cy, cw, ch = crop
+        e = edges[cy:cy + ch, cx:cx + cw]
+        n_edges = int(np.count_nonzero(e))
+        dct = directional_chamfer_tensor(e, direction[cy:cy + ch, cx:cx + cw], n_bins, penalty, max_distance) if n_edges else None
+        if n_edges:
+            entries.append((frame.rgb, params, crop, dct, n_edges))
+            del entries[:-TensorCache.SIZE]
+        return dct, crop, n_edges
 
 
 def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
@@ -79,10 +187,11 @@ def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
 
 
 def model_contour(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, max_points: int,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Model-frame contour points (N, 3) and unit tangent directions (N, 3) visible from `pose`."""
+                  rng: np.random.Generator, mesh_edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Model-frame contour points (N, 3) and unit tangent directions (N, 3) visible from `pose`;
+    `mesh_edges=False` keeps the silhouette only."""
     pts, dirs = [], []
-    edges = visible_edges(frame, model, pose, cache)
+    edges = visible_edges(frame, model, pose, cache) if mesh_edges else ()
     if len(edges):
         pts.append(model.edge_points[edges.index])
         dirs.append(model.edge_dirs[edges.index])
