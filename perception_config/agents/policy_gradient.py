@@ -1,0 +1,177 @@
+"""REINFORCE with a learned baseline (Williams 1992; Sutton & Barto 2018, sec. 13.4).
+
+Policy (as in the paper): two linear layers, tanh between them, softmax over the actions:
+    pi(a | s) = softmax(W2 tanh(W1 s + b1) + b2)
+Baseline: `baseline="value"` (default) is a separate value network of the same shape with one
+output, V(s), fitted by mean-squared error to the returns; it knows from the scores how much
+time an episode still needs, which a constant cannot. `baseline="mean"` uses instead a running
+(exponential, factor `mean_decay`) mean of the return-to-go per step index.
+
+One update per batch of `batch_episodes` complete episodes (sampled with the current policy):
+    G_t   = sum_{k >= t} gamma^(k-t) r_k                  (returns to go; r = minus seconds)
+    A_t   = G_t - b(s_t), then normalised over the batch   (advantage)
+    loss  = -mean_t[ log pi(a_t | s_t) A_t ] - entropy_coef * mean_t[ H(pi(. | s_t)) ]
+    Adam step on the policy; Adam step on the value network's MSE (value baseline).
+Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from .base import Agent, EnvSpec, Trajectory, returns_to_go
+
+
+class PolicyNet(nn.Module):
+    """obs -> hidden (tanh) -> one logit per action (softmax in the loss / when acting)."""
+
+    def __init__(self, obs_dim: int, n_out: int, hidden: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(obs_dim, hidden)
+        self.fc2 = nn.Linear(hidden, n_out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(torch.tanh(self.fc1(x)))
+
+
+def _optim_tensors(prefix: str, opt: torch.optim.Optimizer) -> dict[str, np.ndarray]:
+    out = {}
+    for pid, st in opt.state_dict()["state"].items():
+        for name, value in st.items():
+            out[f"train/{prefix}.{pid}.{name}"] = torch.as_tensor(value).detach().cpu().numpy().copy()
+    return out
+
+
+def _load_optim(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, np.ndarray]) -> None:
+    """Adam's moments and step counts; the parameter groups (lr, betas) come from hparams."""
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    head = f"train/{prefix}."
+    for key, value in tensors.items():
+        if key.startswith(head):
+            pid, name = key[len(head):].split(".", 1)
+            state.setdefault(int(pid), {})[name] = torch.from_numpy(np.array(value))
+    sd = opt.state_dict()
+    sd["state"] = state
+    opt.load_state_dict(sd)
+
+
+class PolicyGradientAgent(Agent):
+    kind = "pg"
+
+    def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
+                 gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
+                 baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, seed: int = 0) -> None:
+        super().__init__(spec, seed)
+        if baseline not in ("value", "mean"):
+            raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
+        if not (0.0 < gamma <= 1.0) or batch_episodes < 1 or hidden < 1:
+            raise ValueError(f"need 0 < gamma <= 1, batch_episodes >= 1, hidden >= 1; got {gamma}, {batch_episodes}, {hidden}")
+        torch.set_num_threads(1)  # tiny networks: threads only add overhead (and fight the workers)
+        self.hidden, self.lr, self.value_lr, self.gamma = int(hidden), float(lr), float(value_lr), float(gamma)
+        self.batch_episodes, self.entropy_coef = int(batch_episodes), float(entropy_coef)
+        self.baseline, self.mean_decay, self.grad_clip = baseline, float(mean_decay), float(grad_clip)
+        gen = torch.Generator().manual_seed(int(seed))
+        self.policy = PolicyNet(spec.obs_dim, spec.n_actions, self.hidden)
+        self.value = PolicyNet(spec.obs_dim, 1, self.hidden)
+        with torch.no_grad():  # seeded initialisation, independent of the global torch rng
+            for p in list(self.policy.parameters()) + list(self.value.parameters()):
+                bound = 1.0 / np.sqrt(p.shape[-1]) if p.dim() > 1 else 0.0
+                p.copy_(torch.empty(p.shape).uniform_(-bound, bound, generator=gen) if bound else torch.zeros(p.shape))
+        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=self.lr)
+        self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=self.value_lr)
+        self.mean_baseline = np.zeros(spec.max_ops)  # per step index ("mean" baseline)
+        self.updates = 0
+
+    # -- acting ---------------------------------------------------------------------------
+    def probabilities(self, obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            logits = self.policy(torch.as_tensor(np.asarray(obs, np.float32)))
+            return torch.softmax(logits, -1).double().numpy()
+
+    def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        p = self.probabilities(obs)
+        if self.explore:
+            return int(self.rng.choice(len(p), p=p / p.sum()))
+        return int(np.argmax(p))
+
+    # -- learning -------------------------------------------------------------------------
+    @property
+    def episodes_per_actor(self) -> int:
+        return self.batch_episodes
+
+    def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
+        trajs = [t for per_actor in trajectories for t in per_actor if t.steps > 0]
+        if not trajs:
+            return {}
+        obs = torch.as_tensor(np.concatenate([t.obs for t in trajs]), dtype=torch.float32)
+        actions = torch.as_tensor(np.concatenate([t.actions for t in trajs]))
+        g_np = np.concatenate([returns_to_go(t.rewards, self.gamma) for t in trajs])
+        returns = torch.as_tensor(g_np, dtype=torch.float32)
+        step_idx = np.concatenate([np.arange(t.steps) for t in trajs])
+
+        # Baseline b(s_t) and the advantage A_t = G_t - b(s_t).
+        value_loss = torch.zeros(())
+        if self.baseline == "value":
+            v = self.value(obs).squeeze(-1)
+            advantages = returns - v.detach()
+            value_loss = ((v - returns) ** 2).mean()
+            self.value_optimizer.zero_grad()
+            value_loss.backward()
+            nn.utils.clip_grad_norm_(self.value.parameters(), self.grad_clip * 10)
+            self.value_optimizer.step()
+        else:
+            b = self.mean_baseline[np.minimum(step_idx, len(self.mean_baseline) - 1)]
+            advantages = returns - torch.as_tensor(b, dtype=torch.float32)
+            for t in range(len(self.mean_baseline)):
+                at_t = g_np[step_idx == t]
+                if len(at_t):
+                    self.mean_baseline[t] = self.mean_decay * self.mean_baseline[t] + (1 - self.mean_decay) * at_t.mean()
+        if len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+        # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy.
+        logp_all = torch.log_softmax(self.policy(obs), -1)
+        logp = logp_all.gather(1, actions.view(-1, 1)).squeeze(1)
+        entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+        loss = -(logp * advantages).mean() - self.entropy_coef * entropy
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
+        self.optimizer.step()
+        self.updates += 1
+        return {"loss": loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item()}
+
+    # -- persistence ----------------------------------------------------------------------
+    def hparams(self) -> dict[str, Any]:
+        return {"hidden": self.hidden, "lr": self.lr, "value_lr": self.value_lr, "gamma": self.gamma,
+                "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
+                "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip, "seed": self.seed}
+
+    def tensors(self) -> dict[str, np.ndarray]:
+        return {f"policy.{k}": v.detach().numpy().copy() for k, v in self.policy.state_dict().items()}
+
+    def set_tensors(self, tensors: dict[str, np.ndarray]) -> None:
+        sd = self.policy.state_dict()
+        want = {f"policy.{k}": tuple(v.shape) for k, v in sd.items()}
+        got = {k: tuple(v.shape) for k, v in tensors.items()}
+        if want != got:
+            raise ValueError(f"policy tensors {got} do not match the network {want}")
+        self.policy.load_state_dict({k: torch.from_numpy(np.array(tensors[f"policy.{k}"])) for k in sd})
+
+    def checkpoint(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        tensors = {f"train/value.{k}": v.detach().numpy().copy() for k, v in self.value.state_dict().items()}
+        tensors.update(_optim_tensors("optim", self.optimizer))
+        tensors.update(_optim_tensors("value_optim", self.value_optimizer))
+        tensors["train/mean_baseline"] = self.mean_baseline.copy()
+        return tensors, {"updates": self.updates}
+
+    def load_checkpoint(self, tensors: dict[str, np.ndarray], state: dict[str, Any]) -> None:
+        """Value network, both optimizers' moments and the baseline from a checkpoint."""
+        self.value.load_state_dict({k: torch.from_numpy(np.array(tensors[f"train/value.{k}"])) for k in self.value.state_dict()})
+        _load_optim("optim", self.optimizer, tensors)
+        _load_optim("value_optim", self.value_optimizer, tensors)
+        self.mean_baseline = np.array(tensors["train/mean_baseline"], np.float64)
+        self.updates = int(state.get("updates", 0))

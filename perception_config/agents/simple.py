@@ -1,0 +1,113 @@
+"""The simple memory agent of the paper: random with probability xi, else follow the memory.
+
+What "memory" means here: a table over action histories. The key of a decision is the tuple
+of actions already taken in this episode (the prefix; at step 0 the empty tuple), optionally
+extended by the current scores binned into `score_bins` levels (score_bins=0, the default,
+ignores the observation: the paper's agent remembers sequences, not states). For each key
+and action a it holds n(key, a), how often a was taken there, and Q(key, a), the running
+average of the return that followed (the sum of the rewards from that step to the end of
+the episode: minus the seconds still spent until the episode ended). After every episode,
+for each step t:  n <- n + 1;  Q <- Q + (G_t - Q) / n.
+
+Acting: with probability xi a uniformly random action; otherwise the action with the
+highest Q among those tried at this key; a key never seen before gets a random action.
+xi decays per training episode: xi = max(xi_min, xi_start * xi_decay ** episodes).
+A loaded agent is greedy (explore=False: xi = 0, still random at unseen keys).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .base import Agent, EnvSpec, Trajectory, returns_to_go
+
+Key = tuple[int, ...]
+
+
+class SimpleAgent(Agent):
+    kind = "simple"
+
+    def __init__(self, spec: EnvSpec, xi_start: float = 1.0, xi_min: float = 0.05, xi_decay: float = 0.995,
+                 score_bins: int = 0, seed: int = 0) -> None:
+        super().__init__(spec, seed)
+        if not (0.0 <= xi_min <= 1.0 and 0.0 <= xi_start <= 1.0 and 0.0 < xi_decay <= 1.0):
+            raise ValueError(f"need 0 <= xi_min, xi_start <= 1 and 0 < xi_decay <= 1, got {xi_start}, {xi_min}, {xi_decay}")
+        if score_bins < 0:
+            raise ValueError(f"score_bins must be >= 0, got {score_bins}")
+        self.xi_start, self.xi_min, self.xi_decay = float(xi_start), float(xi_min), float(xi_decay)
+        self.score_bins = int(score_bins)
+        self._score_idx = [i for i, name in enumerate(spec.observation_layout) if name.startswith("score:")]
+        self.q: dict[Key, np.ndarray] = {}  # key -> Q per action
+        self.n: dict[Key, np.ndarray] = {}  # key -> visit count per action
+        self.episodes = 0
+        self._history: list[int] = []
+
+    @property
+    def xi(self) -> float:
+        return max(self.xi_min, self.xi_start * self.xi_decay ** self.episodes)
+
+    def key(self, history: list[int] | tuple[int, ...], obs: np.ndarray) -> Key:
+        k = tuple(int(a) for a in history)
+        if self.score_bins:
+            bins = np.minimum((np.asarray(obs)[self._score_idx] * self.score_bins).astype(int), self.score_bins - 1)
+            k = k + (-1,) + tuple(int(b) for b in bins)  # -1 separates actions from score bins
+        return k
+
+    def begin_episode(self, seed: int | None = None) -> None:
+        super().begin_episode(seed)
+        self._history = []
+
+    def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        if isinstance(info, dict) and info.get("steps", len(self._history)) == 0:
+            self._history = []  # a new episode even if begin_episode was not called
+        k = self.key(self._history, obs)
+        xi = self.xi if self.explore else 0.0
+        if k in self.n and self.rng.random() >= xi:
+            tried = self.n[k] > 0
+            q = np.where(tried, self.q[k], -np.inf)
+            best = np.flatnonzero(q == q.max())
+            a = int(self.rng.choice(best))
+        else:
+            a = int(self.rng.integers(self.spec.n_actions))
+        self._history.append(a)
+        return a
+
+    def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
+        """The running-average update of every (key, action) an episode visited."""
+        for per_actor in trajectories:
+            for traj in per_actor:
+                g = returns_to_go(traj.rewards)
+                for t, a in enumerate(traj.actions):
+                    k = self.key(traj.actions[:t].tolist(), traj.obs[t])
+                    if k not in self.n:
+                        self.q[k] = np.zeros(self.spec.n_actions)
+                        self.n[k] = np.zeros(self.spec.n_actions, np.int64)
+                    self.n[k][a] += 1
+                    self.q[k][a] += (g[t] - self.q[k][a]) / self.n[k][a]
+                self.episodes += 1
+        return {"xi": self.xi, "memory_keys": float(len(self.n))}
+
+    def hparams(self) -> dict[str, Any]:
+        return {"xi_start": self.xi_start, "xi_min": self.xi_min, "xi_decay": self.xi_decay,
+                "score_bins": self.score_bins, "seed": self.seed}
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "episodes": self.episodes,
+            "memory": [{"key": list(k), "q": self.q[k].tolist(), "n": self.n[k].tolist()} for k in self.n],
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        self.episodes = int(state.get("episodes", 0))
+        self.q, self.n = {}, {}
+        for entry in state.get("memory", []):
+            k = tuple(int(x) for x in entry["key"])
+            q = np.asarray(entry["q"], np.float64)
+            n = np.asarray(entry["n"], np.int64)
+            if q.shape != (self.spec.n_actions,) or n.shape != q.shape:
+                raise ValueError(f"memory entry {k} has {q.shape[0]} actions, the environment has {self.spec.n_actions}")
+            self.q[k], self.n[k] = q, n
+
+    def checkpoint(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return {}, {}  # the memory and the episode count (xi) are the policy state

@@ -1,0 +1,366 @@
+"""Training the learning agents: episodes on the train split, checkpoints, a learning curve.
+
+The loop is the same for every agent; the algorithms live in the agent files. One round:
+1. `agent.actors()`: the policies to run (the pg/simple agent itself; the ES population);
+2. draw `agent.episodes_per_actor` episodes from the TRAIN split: an object of a train image,
+   lambda ~ U(lambda_range), an episode seed; every actor plays the same episodes;
+3. play them, in this process or spread over `workers` spawned processes (each builds its
+   own env from an `EnvRecipe`, torch with one thread); actions are seeded per episode, so
+   results do not depend on the number of workers (except measured times);
+4. `agent.update(trajectories)`: the algorithm's learning step.
+Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
+held out (stored in the policy metadata with the split seed and fraction, for evaluation).
+
+Files in `out/`: policy.safetensors (or policy.json for agents without weights),
+checkpoint.safetensors (policy + optimizer/population + episode counter + rng states +
+history; written atomically every `checkpoint_every` episodes; `resume=True` continues from
+it), history.csv and learning_curve.png. Ctrl-C: the round in flight is dropped, the policy
+of the last completed round and a checkpoint are written, then KeyboardInterrupt propagates.
+Rounds are whole: the episode count may overshoot `episodes` by less than one round.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+import multiprocessing as mp
+import os
+import signal
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .agents import AGENTS, Agent, EnvRecipe, EnvSpec, Trajectory, make_agent, run_episode
+from .agents.policy_io import (PolicyError, agent_meta, atomic_write_bytes, build_agent, check_compatible,
+                               read_file, write_file)
+from .datasets.bop import BopDataset
+from .episodes import split_image_keys
+
+POLICY_STEM = "policy"
+CHECKPOINT = "checkpoint.safetensors"
+CURVE = "learning_curve.png"
+HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
+
+
+# -- worker processes -----------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(recipe: EnvRecipe) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    # Keep an error for the first task: it reaches the parent with its message.
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+        env = recipe.make()
+        _WORKER["env"] = env
+        _WORKER["spec"] = EnvSpec.from_env(env)
+    except Exception as exc:  # noqa: BLE001  (re-raised in the parent by _worker_run)
+        _WORKER["error"] = f"{type(exc).__name__}: {exc}"
+
+
+def _snapshot(agent: Agent) -> tuple[str, dict[str, Any], dict[str, np.ndarray], dict[str, Any], bool]:
+    """A picklable copy of an actor's policy."""
+    return agent.kind, agent.hparams(), agent.tensors(), agent.state(), agent.explore
+
+
+def _rebuild(snapshot: tuple, spec: EnvSpec) -> Agent:
+    kind, hparams, tensors, state, explore = snapshot
+    agent = AGENTS[kind](spec, **hparams)
+    agent.set_tensors(tensors)
+    agent.set_state(state)
+    agent.explore = explore
+    return agent
+
+
+def _worker_run(task: tuple[tuple, list[tuple[dict[str, Any], int]]]) -> list[Trajectory]:
+    snapshot, episodes = task
+    if "error" in _WORKER:
+        raise RuntimeError(f"a training worker could not build its environment: {_WORKER['error']}")
+    agent = _rebuild(snapshot, _WORKER["spec"])
+    return [run_episode(_WORKER["env"], agent, options, seed) for options, seed in episodes]
+
+
+def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], act_seeds: np.ndarray,
+               pool: Any = None, workers: int = 1) -> list[list[Trajectory]]:
+    """Every actor plays every episode: trajectories[actor][episode]."""
+    if pool is None:
+        return [[run_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
+                for i, actor in enumerate(actors)]
+    # Split each actor's episodes into chunks so that the workers stay busy.
+    n_chunks = min(len(episodes), max(1, math.ceil(2 * workers / len(actors))))
+    bounds = np.linspace(0, len(episodes), n_chunks + 1).astype(int)
+    tasks, owner = [], []
+    for i, actor in enumerate(actors):
+        snap = _snapshot(actor)
+        for lo, hi in zip(bounds[:-1], bounds[1:]):
+            tasks.append((snap, [(episodes[j], int(act_seeds[i, j])) for j in range(lo, hi)]))
+            owner.append(i)
+    out: list[list[Trajectory]] = [[] for _ in actors]
+    try:
+        for i, trajs in zip(owner, pool.map(_worker_run, tasks)):
+            out[i].extend(trajs)
+    except BrokenProcessPool as exc:
+        raise RuntimeError(
+            "a training worker process died. If train() is called from a script, guard the call with "
+            "`if __name__ == \"__main__\":` (workers are spawned and import the main module)") from exc
+    return out
+
+
+# -- helpers --------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _defer_sigint() -> Iterator[None]:
+    """Ctrl-C inside the block is delivered after it (a learning step is never half done)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            raise KeyboardInterrupt
+
+
+def moving_average(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over the last `window` finite values (NaN where there are none)."""
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x)
+    s = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    n = np.concatenate([[0], np.cumsum(ok)])
+    idx = np.arange(1, len(x) + 1)
+    lo = np.maximum(0, idx - window)
+    cnt = n[idx] - n[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, (s[idx] - s[lo]) / np.maximum(cnt, 1), np.nan)
+
+
+def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title: str = "") -> Path:
+    """Return, time to success and success rate (moving averages) per episode, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(history["return"])
+    ep = np.arange(1, n + 1)
+    window = int(max(1, min(100, n // 10)))
+    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(8, 8.5))
+    axes[0].plot(ep, history["return"], ".", ms=2, alpha=0.25, color="tab:blue")
+    axes[0].plot(ep, moving_average(history["return"], window), color="tab:blue")
+    axes[0].set_ylabel("return (-seconds)")
+    t_succ = np.where(history["success"] > 0, history["time"], np.nan)
+    axes[1].plot(ep, t_succ, ".", ms=2, alpha=0.25, color="tab:green")
+    axes[1].plot(ep, moving_average(t_succ, window), color="tab:green")
+    axes[1].set_ylabel("time to success (s)")
+    axes[2].plot(ep, moving_average(history["success"], window), label="success within max_ops")
+    axes[2].plot(ep, moving_average(history["first_pick"], window), label="first pick succeeds")
+    axes[2].set_ylim(-0.02, 1.02)
+    axes[2].set_ylabel("rate")
+    axes[2].set_xlabel("episode")
+    axes[2].legend(loc="lower right")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{title} (moving average over {window} episodes)")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def _write_history_csv(history: dict[str, np.ndarray], path: Path) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["episode", *HISTORY_FIELDS])
+    for i in range(len(history["return"])):
+        w.writerow([i + 1, *(f"{history[k][i]:.6g}" for k in HISTORY_FIELDS)])
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def _policy_path(out: Path, agent: Agent) -> Path:
+    return out / (f"{POLICY_STEM}.safetensors" if agent.tensors() else f"{POLICY_STEM}.json")
+
+
+# -- the training entry point ---------------------------------------------------------------
+def train(
+    dataset: str | Path,
+    agent: str | Agent,
+    out: str | Path,
+    episodes: int,
+    lambda_range: tuple[float, float] = (0.1, 1.0),
+    seed: int = 0,
+    pipeline: str | Path | None = None,
+    progress: bool = True,
+    resume: bool = False,
+    *,
+    agent_kwargs: dict[str, Any] | None = None,
+    time_mode: str = "measured",
+    max_ops: int = 10,
+    failed_pick_cost: float = 2.0,
+    truncation_cost: float = 10.0,
+    cost_table: dict[str, float] | None = None,
+    test_fraction: float = 0.3,
+    split_seed: int = 0,
+    split: str = "test",
+    min_visib_fract: float = 0.3,
+    checkpoint_every: int = 100,
+    workers: int | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Train `agent` ("pg", "es", "simple"; "random"/"fixed" just play) on the train split of
+    a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
+
+    Returns the policy file. `workers`: processes playing episodes (default: 2 for pg and es
+    on a machine with 2+ cores, else in-process). `resume=True` continues a run from out/checkpoint.safetensors up to
+    `episodes` in total, with the checkpoint's agent hyperparameters (`agent_kwargs` are
+    ignored); the dataset, split, pipeline and env settings must be the same (lambda_range may
+    change); without it an existing run in `out` is an error unless `overwrite`.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    name = agent if isinstance(agent, str) else agent.kind
+    if name == "oracle":
+        raise ValueError("the oracle is a hindsight search (a lower bound for evaluation), it cannot be trained")
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; agents: {', '.join(AGENTS)}")
+    out = Path(out)
+    ckpt_path = out / CHECKPOINT
+    if not resume and ckpt_path.exists() and not overwrite:
+        raise FileExistsError(f"{out} already holds a training run ({CHECKPOINT}): pass resume=True to continue it "
+                              "or overwrite=True to start again")
+    if resume and not ckpt_path.exists():
+        raise FileNotFoundError(f"cannot resume: no checkpoint {ckpt_path}")
+
+    # The split: train on the train image ids only.
+    ds = BopDataset(Path(dataset), split=split)
+    train_keys, test_keys = split_image_keys(ds.image_keys(), test_fraction, split_seed)
+    env_kwargs = {"lambda_range": tuple(float(x) for x in lambda_range), "max_ops": int(max_ops),
+                  "failed_pick_cost": float(failed_pick_cost),
+                  "truncation_cost": float(truncation_cost), "time_mode": time_mode,
+                  "cost_table": dict(cost_table) if cost_table else None, "min_visib_fract": float(min_visib_fract)}
+    recipe = EnvRecipe(str(Path(dataset).resolve()), str(Path(pipeline).resolve()) if pipeline else None,
+                       tuple(train_keys), split, env_kwargs)
+    env = recipe.make()
+    spec = EnvSpec.from_env(env)
+    training_info = {
+        "dataset": recipe.dataset, "bop_split": split, "split_seed": int(split_seed), "test_fraction": float(test_fraction),
+        "train_image_keys": [list(k) for k in train_keys], "test_image_keys": [list(k) for k in test_keys],
+        "train_episodes_available": len(env.source), "lambda_range": list(env_kwargs["lambda_range"]),
+        "env_kwargs": {k: v for k, v in env_kwargs.items() if k != "lambda_range"}, "pipeline": recipe.pipeline,
+        "seed": int(seed),
+    }
+
+    history: dict[str, list[float]] = {k: [] for k in HISTORY_FIELDS}
+    rng = np.random.default_rng(seed)
+    done = 0
+    if resume:
+        meta, tensors = read_file(ckpt_path)
+        check_compatible(meta, spec, ckpt_path)
+        if meta["agent"] != name:
+            raise PolicyError(f"checkpoint {ckpt_path} is a {meta['agent']!r} run, not {name!r}")
+        saved = meta.get("extra", {})
+        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "env_kwargs"):
+            now = json.loads(json.dumps(training_info[key]))
+            if saved.get(key) != now:
+                raise PolicyError(f"checkpoint {ckpt_path} was trained with {key}={saved.get(key)!r}, "
+                                  f"this run has {now!r}: resume with the same settings")
+        learner = build_agent(meta, tensors, spec, ckpt_path)
+        learner.load_checkpoint({k: v for k, v in tensors.items() if k.startswith("train/")}, meta.get("train_state", {}))
+        trainer = meta.get("trainer", {})
+        done = int(trainer.get("episodes_done", 0))
+        rng.bit_generator.state = trainer["rng"]
+        for k in HISTORY_FIELDS:
+            history[k] = np.asarray(tensors.get(f"history/{k}", np.zeros(0))).tolist()
+    elif isinstance(agent, Agent):
+        if agent.spec.action_names != spec.action_names or agent.spec.observation_layout != spec.observation_layout:
+            raise ValueError("the agent was built for a different action set or observation layout than this environment")
+        learner = agent
+    else:
+        kw = {"seed": seed, **(agent_kwargs or {})}
+        learner = make_agent(name, spec, **kw)
+    learner.explore = True
+    if workers is None:  # batch learners play their rounds in parallel; simple learns per episode
+        workers = min(2, os.cpu_count() or 1) if name in ("pg", "es") else 1
+    workers = max(1, int(workers))
+
+    policy_path = _policy_path(out, learner)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def arrays() -> dict[str, np.ndarray]:
+        return {k: np.asarray(v, np.float64) for k, v in history.items()}
+
+    def save_checkpoint() -> None:
+        tensors, state = learner.checkpoint()
+        tensors = {**learner.tensors(), **tensors, **{f"history/{k}": v for k, v in arrays().items()}}
+        meta = agent_meta(learner, {**training_info, "episodes": done})
+        meta["train_state"] = state
+        meta["trainer"] = {"episodes_done": done, "rng": rng.bit_generator.state}
+        write_file(ckpt_path, meta, tensors)
+
+    def save_outputs(interrupted: bool) -> None:
+        learner.save(policy_path, {**training_info, "episodes": done, "interrupted": interrupted})
+        if done:
+            plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}")
+            _write_history_csv(arrays(), out / "history.csv")
+
+    from tqdm import tqdm
+
+    pool = None
+    interrupted = False
+    lo, hi = env_kwargs["lambda_range"]
+    last_ckpt = done
+    bar = tqdm(total=episodes, initial=min(done, episodes), disable=not progress, unit="ep", desc=f"train {name}")
+    try:
+        if workers > 1 and done < episodes:
+            # An executor (not multiprocessing.Pool): a worker that dies breaks it with an error
+            # instead of being respawned forever.
+            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                                       initargs=(recipe,))
+        while done < episodes:
+            actors = learner.actors()
+            k = learner.episodes_per_actor
+            options = [{"episode": int(rng.integers(len(env.source))), "lambda": float(rng.uniform(lo, hi)),
+                        "episode_seed": int(rng.integers(2**31))} for _ in range(k)]
+            act_seeds = rng.integers(2**31, size=(len(actors), k))
+            trajectories = play_round(env, actors, options, act_seeds, pool, workers)
+            with _defer_sigint():
+                learner.update(trajectories)
+                for per_actor in trajectories:
+                    for t in per_actor:
+                        for key, value in zip(HISTORY_FIELDS, (t.ret, t.time, float(t.success), float(t.first_pick_success),
+                                                              t.steps, t.noise_lambda)):
+                            history[key].append(float(value))
+                n_new = sum(len(p) for p in trajectories)
+                done += n_new
+                bar.update(n_new)
+                recent = slice(-100, None)
+                bar.set_postfix(ret=f"{np.mean(history['return'][recent]):.2f}",
+                                success=f"{np.mean(history['success'][recent]):.2f}")
+                if done - last_ckpt >= checkpoint_every:
+                    save_checkpoint()
+                    last_ckpt = done
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)  # workers ignore SIGINT: let them finish
+    with _defer_sigint():
+        save_checkpoint()
+        save_outputs(interrupted)
+    if interrupted:
+        print(f"interrupted after {done} episodes: wrote {policy_path} and {ckpt_path}")
+        raise KeyboardInterrupt
+    return policy_path

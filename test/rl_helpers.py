@@ -1,0 +1,71 @@
+"""Shared setup of the environment/agent/training tests: a tiny synthetic dataset (2 scenes x
+2 images, generated once per session) and small pipeline YAMLs of fast blocks."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+_CACHE: dict[str, Path] = {}
+
+# Fast actions only (no D2CO): the tests exercise the environment and the agents, not blocks.
+# The blocks' wall-clock bounds (max_seconds) are lifted: a bound that cuts a block short on a
+# loaded machine (or on a frame's first, cache-building call) would make results depend on
+# timing, and the tests rely on the cost-table mode being deterministic.
+PIPELINE = """\
+generator: {block: simulated_init, params: {noise_lambda: 0.5}}
+actions:
+  - {name: icp_coarse, block: icp_point_to_plane, params: {max_correspondence_distance: 0.03, final_distance: 0.01, stages: 2, max_seconds: 10.0}}
+  - {name: icp_fine, block: icp_point_to_plane, params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
+  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}
+  - {name: regenerate, block: simulated_init}
+  - {name: pick, block: simulated_pick}
+scoring: [psi_d, psi_c, icp_fitness]
+"""
+
+# The same blocks, another action set (order and one action differ): policies must not load.
+OTHER_PIPELINE = PIPELINE.replace("  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}\n", "").replace(
+    "{name: icp_fine,", "{name: icp_finest,")
+
+# Without ICP: Open3D's ICP is not bitwise reproducible (run to run, its poses differ by ~1e-17 m,
+# which Gymnasium's check_env sees in the info's float64 scores); everything else is.
+BITWISE_PIPELINE = """\
+generator: {block: simulated_init, params: {noise_lambda: 0.5}}
+actions:
+  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}
+  - {name: regenerate, block: simulated_init}
+  - {name: pick, block: simulated_pick}
+scoring: [psi_d, psi_c, icp_fitness]
+"""
+
+# Same actions, other scores: a different observation layout.
+OTHER_SCORES_PIPELINE = PIPELINE.replace("scoring: [psi_d, psi_c, icp_fitness]", "scoring: [psi_d, icp_fitness]")
+
+
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """2 scenes x 2 images of the synthetic generator, once per test session."""
+    if "tiny" not in _CACHE:
+        from perception_config.datasets.synthetic import generate
+
+        out = tmp_path_factory.mktemp("rl_data") / "tiny"
+        generate(out, scenes=2, images_per_scene=2, seed=0, progress=False)
+        _CACHE["tiny"] = out
+    return _CACHE["tiny"]
+
+
+def pipeline_file(tmp_path_factory: pytest.TempPathFactory, text: str = PIPELINE, name: str = "pipeline.yaml") -> Path:
+    key = f"pipe:{name}"
+    if key not in _CACHE:
+        path = tmp_path_factory.mktemp("rl_pipe") / name
+        path.write_text(text)
+        _CACHE[key] = path
+    return _CACHE[key]
+
+
+def make_env(tmp_path_factory: pytest.TempPathFactory, text: str = PIPELINE, name: str = "pipeline.yaml", **kw: Any):
+    """A cost-table PerceptionConfigEnv over the tiny dataset (deterministic)."""
+    from perception_config.env import PerceptionConfigEnv
+
+    kw.setdefault("time_mode", "cost_table")
+    return PerceptionConfigEnv(tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory, text, name), **kw)

@@ -1,0 +1,132 @@
+"""Training: the pg agent learns, checkpoints resume exactly, Ctrl-C keeps the work, ES runs
+its generation in worker processes, the learning curve is a PNG."""
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from rl_helpers import make_env, pipeline_file, tiny_dataset
+
+from perception_config.agents import load_agent, make_agent, run_episode
+from perception_config.agents.policy_io import read_file
+from perception_config import training
+from perception_config.training import CHECKPOINT, CURVE, train
+
+FAST = dict(time_mode="cost_table", progress=False, lambda_range=(0.2, 0.8), max_ops=5)
+
+
+def _train(tmp_path_factory, out, agent="pg", episodes=16, **kw):
+    args = {**FAST, "workers": 1, **kw}
+    args.setdefault("agent_kwargs", {"batch_episodes": 8} if agent == "pg" else {})
+    return train(tiny_dataset(tmp_path_factory), agent, out, episodes, seed=args.pop("seed", 0),
+                 pipeline=pipeline_file(tmp_path_factory), **args)
+
+
+def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path):
+    path = _train(tmp_path_factory, tmp_path / "run", checkpoint_every=8)
+    assert path == tmp_path / "run" / "policy.safetensors"
+    env = make_env(tmp_path_factory)
+    agent = load_agent(path, env)
+    assert agent.kind == "pg" and not agent.explore
+    meta, _ = read_file(path)
+    extra = meta["extra"]
+    assert extra["episodes"] == 16 and extra["split_seed"] == 0 and extra["test_fraction"] == 0.3
+    train_keys = {tuple(k) for k in extra["train_image_keys"]}
+    test_keys = {tuple(k) for k in extra["test_image_keys"]}
+    assert train_keys and test_keys and not train_keys & test_keys and len(train_keys | test_keys) == 4
+    png = (tmp_path / "run" / CURVE).read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    import matplotlib.image
+
+    img = matplotlib.image.imread(tmp_path / "run" / CURVE)
+    assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 200
+    assert len((tmp_path / "run" / "history.csv").read_text().splitlines()) == 17
+    # The same `out` again is refused unless resumed or overwritten.
+    with pytest.raises(FileExistsError, match="resume=True"):
+        _train(tmp_path_factory, tmp_path / "run")
+    with pytest.raises(ValueError, match="oracle"):
+        _train(tmp_path_factory, tmp_path / "oracle", agent="oracle")
+
+
+def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        _train(tmp_path_factory, tmp_path / "none", resume=True)
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=32, checkpoint_every=8)
+    _train(tmp_path_factory, tmp_path / "split", episodes=16, checkpoint_every=8)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=32, checkpoint_every=8, resume=True)
+    meta, tensors = read_file(tmp_path / "split" / CHECKPOINT)
+    assert meta["trainer"]["episodes_done"] == 32
+    assert len(tensors["history/return"]) == 32
+    _, straight_tensors = read_file(tmp_path / "straight" / CHECKPOINT)
+    # Same rng, optimizer moments and episodes: the resumed run is the uninterrupted one.
+    np.testing.assert_allclose(tensors["history/return"], straight_tensors["history/return"])
+    _, a = read_file(straight)
+    _, b = read_file(resumed)
+    for k in a:
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
+    # A different split cannot be resumed.
+    with pytest.raises(ValueError, match="split_seed"):
+        _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, split_seed=1)
+
+
+def test_ctrl_c_keeps_the_last_completed_round(tmp_path_factory, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real = training.run_episode
+
+    def interrupting(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] == 20:  # in the third round of 8 episodes
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(training, "run_episode", interrupting)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        _train(tmp_path_factory, out, episodes=64, checkpoint_every=100)
+    meta, _ = read_file(out / CHECKPOINT)
+    assert meta["trainer"]["episodes_done"] == 16
+    policy_meta, _ = read_file(out / "policy.safetensors")
+    assert policy_meta["extra"]["interrupted"] is True and policy_meta["extra"]["episodes"] == 16
+    assert (out / CURVE).exists()
+    monkeypatch.setattr(training, "run_episode", real)
+    _train(tmp_path_factory, out, episodes=24, resume=True)
+    meta, _ = read_file(out / CHECKPOINT)
+    assert meta["trainer"]["episodes_done"] == 24
+
+
+def test_es_runs_a_generation_in_two_worker_processes(tmp_path_factory, tmp_path):
+    kw = {"population": 4, "episodes_per_generation": 2}
+    path = _train(tmp_path_factory, tmp_path / "es2", agent="es", episodes=8, agent_kwargs=kw, workers=2)
+    meta, tensors = read_file(tmp_path / "es2" / CHECKPOINT)
+    assert meta["train_state"]["generation"] == 1 and meta["trainer"]["episodes_done"] == 8
+    assert sum(k.startswith("train/pop.") for k in tensors) == 4 * 6
+    # The same generation in this process gives the same results: workers change nothing.
+    _train(tmp_path_factory, tmp_path / "es1", agent="es", episodes=8, agent_kwargs=kw, workers=1)
+    _, tensors1 = read_file(tmp_path / "es1" / CHECKPOINT)
+    np.testing.assert_allclose(tensors["history/return"], tensors1["history/return"])
+    assert load_agent(path, make_env(tmp_path_factory, max_ops=5)).kind == "es"
+
+
+def test_pg_learns_a_clear_best_action(tmp_path_factory, tmp_path):
+    """Nearly exact initial poses and expensive refinements: picking at once is clearly best.
+    The trained (greedy) policy must beat the random agent by a wide margin."""
+    costs = {"icp_point_to_plane": 0.3, "depth_refine": 0.3, "simulated_init": 0.3}
+    setting = dict(lambda_range=(0.0, 0.05), cost_table=costs, max_ops=5)
+    path = _train(tmp_path_factory, tmp_path / "pg", episodes=160, seed=1, checkpoint_every=1000,
+                  agent_kwargs={"batch_episodes": 8, "lr": 0.05}, **setting)
+    env = make_env(tmp_path_factory, time_mode="cost_table", cost_table=costs, max_ops=5, lambda_range=(0.0, 0.05))
+    episodes = [{"episode": i % len(env.source), "lambda": 0.03, "episode_seed": 500 + i} for i in range(20)]
+
+    def mean_return(agent) -> float:
+        return float(np.mean([run_episode(env, agent, o, act_seed=k).ret for k, o in enumerate(episodes)]))
+
+    untrained = make_agent("pg", env, seed=1)
+    untrained.explore = True  # the policy training starts from, as it acts while training
+    before, random_ret = mean_return(untrained), mean_return(make_agent("random", env, seed=1))
+    after = mean_return(load_agent(path, env))
+    best = -(0.5 + 0.008)  # one successful pick
+    assert after > 0.5 * random_ret and after > 0.5 * before, (after, random_ret, before)
+    assert after == pytest.approx(best, abs=0.1)
