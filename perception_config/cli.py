@@ -142,6 +142,41 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.set_defaults(func=_cmd_evaluate)
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .training import train
+
+    lo, hi = args.lambda_range
+    policy = train(
+        args.dataset, args.agent, args.out, args.episodes, lambda_range=(lo, hi), seed=args.seed,
+        pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, time_mode=args.time_mode,
+        max_ops=args.max_ops, test_fraction=args.test_fraction, split_seed=args.split_seed,
+        workers=args.workers, overwrite=args.overwrite,
+    )
+    print(f"policy: {policy}")
+    print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
+    return 0
+
+
+def _add_train_parser(sub: argparse._SubParsersAction) -> None:
+    tr = sub.add_parser("train", help="train a configuration agent on the train images of a BOP dataset")
+    tr.add_argument("--dataset", type=Path, required=True)
+    tr.add_argument("--agent", choices=("random", "simple", "pg", "es", "fixed"), default="pg")
+    tr.add_argument("--out", type=Path, required=True, help="run folder: policy, checkpoint, learning curve")
+    tr.add_argument("--episodes", type=int, default=1000)
+    tr.add_argument("--lambda-range", type=float, nargs=2, default=(0.1, 1.0), metavar=("A", "B"))
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
+    tr.add_argument("--time-mode", choices=("measured", "cost_table"), default="measured")
+    tr.add_argument("--max-ops", type=int, default=10)
+    tr.add_argument("--test-fraction", type=float, default=0.3, help="share of image ids held out for evaluation")
+    tr.add_argument("--split-seed", type=int, default=0)
+    tr.add_argument("--workers", type=int, default=None, help="processes playing episodes (default: 2 for pg/es)")
+    tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
+    tr.add_argument("--quiet", action="store_true")
+    tr.set_defaults(func=_cmd_train)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="perception-config", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -197,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             c.add_argument("--lambdas", default="0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
             c.add_argument("--applications", type=int, default=5, help="max applications of the refiner")
+    _add_train_parser(sub)
     _add_evaluate_parser(sub)
     return p
 
@@ -205,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (FileNotFoundError, ValueError, KeyError) as exc:
+    except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
         # Bad input: one clear line naming what was wrong, no traceback.
         print(f"perception-config {args.command}: error: {exc}", file=sys.stderr)
         return 2
