@@ -54,3 +54,14 @@ def synthetic_frame(
     rgb = np.clip(np.repeat(gray[..., None], 3, axis=2), 0, 255).astype(np.uint8)
     objects = [SceneObject(obj_id=m.obj_id, gt=p, model=m) for m, p in zip(models, poses)]
     return Frame(rgb=rgb, depth=depth.astype(np.float32), K=K, stamp=1.0, objects=objects)
+
+
+def perturbed_pose(gt: Pose, rng: np.random.Generator, deg: float = 5.0, mm: float = 5.0) -> Pose:
+    """`gt` rotated by exactly `deg` about a random axis and shifted by exactly `mm` in a random direction."""
+    w, d = rng.normal(size=3), rng.normal(size=3)
+    return Pose(exp_so3(w / np.linalg.norm(w) * np.radians(deg)) @ gt.R, gt.t + d / np.linalg.norm(d) * mm * 1e-3)
+
+
+def mean_point_distance(model: ObjectModel, a: Pose, b: Pose) -> float:
+    """ADD (m): mean distance of the model's points under the two poses."""
+    return float(np.mean(np.linalg.norm(a.transform(model.points) - b.transform(model.points), axis=1)))

@@ -4,21 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import K_LINEMOD, box_model, default_pose, synthetic_frame
+from frames import K_LINEMOD, box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.blocks.d2co import project_with_jacobian, update_pose
 from perception_config.blocks.edges import TensorCache
-from perception_config.geometry import Pose, exp_so3
+from perception_config.geometry import exp_so3
 
 
-def _perturbed(gt: Pose, rng: np.random.Generator, deg: float = 5.0, mm: float = 5.0) -> Pose:
-    w, d = rng.normal(size=3), rng.normal(size=3)
-    return Pose(exp_so3(w / np.linalg.norm(w) * np.radians(deg)) @ gt.R, gt.t + d / np.linalg.norm(d) * mm * 1e-3)
-
-
-def _add(model, a: Pose, b: Pose) -> float:
-    return float(np.mean(np.linalg.norm(a.transform(model.points) - b.transform(model.points), axis=1)))
+_perturbed, _add = perturbed_pose, mean_point_distance
 
 
 def test_projection_jacobian_matches_finite_differences():

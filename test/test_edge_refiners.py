@@ -6,18 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, default_pose, synthetic_frame
+from frames import box_model, default_pose, perturbed_pose as _perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.blocks.edges import crop_box, directional_chamfer_tensor
-from perception_config.geometry import Pose, exp_so3
+from perception_config.geometry import Pose
 from perception_config.render import project
-
-
-def _perturbed(gt: Pose, rng: np.random.Generator, deg: float = 5.0, mm: float = 5.0) -> Pose:
-    w = rng.normal(0, np.radians(deg) / np.sqrt(3), 3)
-    d = rng.normal(0, mm * 1e-3 / np.sqrt(3), 3)
-    return Pose(exp_so3(w) @ gt.R, gt.t + d)
 
 
 def _px_error(model, K, est: Pose, gt: Pose) -> float:
