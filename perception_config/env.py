@@ -55,7 +55,7 @@ SCORE_RANGES: dict[str, tuple[float, float]] = {
 # Default seconds for the deterministic cost-table mode (medians of benchmarks/ on one core).
 DEFAULT_COST_TABLE: dict[str, float] = {
     "simulated_init": 0.0005,
-    "global_registration": 1.0,
+    "global_registration": 2.0,
     "icp_point_to_point": 0.04,
     "icp_point_to_plane": 0.02,
     "d2co": 0.04,

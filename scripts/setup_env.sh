@@ -70,7 +70,7 @@ if [ ! -x "$PY" ] || ! "$PY" -c 'import sys' >/dev/null 2>&1; then
   say "creating virtual environment $VENV"
   rm -rf "$VENV"
   "$PYTHON_BIN" -m venv "$VENV"
-  "$PY" -m pip install -q --upgrade pip >/dev/null
+  quiet_pip install -q --upgrade pip >/dev/null
 fi
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 

@@ -216,7 +216,8 @@ def test_global_registration_finds_a_bracket_over_a_plane(parts):
     assert add_share(r.pose, gt, model) < 0.1
     assert r.scores["gen_verification"] > 0.7
     again = run(block, frame, model, seed=1)  # seeded: the same search, the same answer
-    assert np.array_equal(again.pose.R, r.pose.R) and np.array_equal(again.pose.t, r.pose.t)
+    # Seeded: the same pose again (Open3D ICP is reproducible to ~1e-16, not bit for bit).
+    assert np.allclose(again.pose.R, r.pose.R, atol=1e-9) and np.allclose(again.pose.t, r.pose.t, atol=1e-9)
 
 
 def test_global_registration_finds_the_right_object_among_others(parts):

@@ -842,6 +842,16 @@ class GlobalRegistration(Block):
     are the result's scores (`gen_verification`, ...). Everything stops at `max_seconds`,
     returning the best candidate so far. `info` reports the search (clusters tried,
     candidates verified, the list of (score, pose) of all polished candidates).
+
+    Measured (benchmarks/bench_generation.py, one core of a loaded 2-core machine; success =
+    symmetry-aware MSSD < 0.1 d): the real LM-O frame 4/8 objects with a 2 s budget, 5/8 with
+    10 s (median 4.6 s); synthetic bin/table scenes of the procedural parts 13/44 (the search
+    ends by itself in ~2 s). `min_verification` 0.6 is calibrated on those runs: about two
+    thirds of the poses returned with ok=True are right, and almost none below 0.6 is. Known
+    failures: parts lying flat within `plane_distance` of the table (the bracket) are removed
+    with the table; parts of a few cm (the 38 mm hexnut) give too few points for FPFH; a
+    distractor of similar shape and colour that is not in the model set (a white box for the
+    LM-O glue bottle) can win the verification.
     """
 
     kind = Kind.GENERATION
