@@ -34,8 +34,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..models import write_ply
+
 __all__ = [
-    "Part", "build_parts", "part_names", "write_models", "write_ply", "models_info_entry",
+    "Part", "build_parts", "part_names", "write_models", "models_info_entry",
     "check_closed_oriented", "signed_volume", "symmetry_transforms", "MATERIALS",
 ]
 
@@ -639,45 +641,6 @@ def models_info_entry(vertices: np.ndarray, diameter: float, sym_d=(), sym_c=())
     if sym_c:
         e["symmetries_continuous"] = [dict(s) for s in sym_c]
     return e
-
-
-def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
-              normals: np.ndarray | None = None, colors: np.ndarray | None = None) -> Path:
-    """Write a binary little-endian PLY (BOP style: x y z nx ny nz red green blue, triangles).
-
-    Written to a temporary file and renamed, so a reader never sees half a model."""
-    path = Path(path)
-    V = np.asarray(vertices, np.float32)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if normals is not None:
-        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-    if colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rec = np.zeros(len(V), dtype=fields)
-    rec["x"], rec["y"], rec["z"] = V[:, 0], V[:, 1], V[:, 2]
-    if normals is not None:
-        N = np.asarray(normals, np.float32)
-        rec["nx"], rec["ny"], rec["nz"] = N[:, 0], N[:, 1], N[:, 2]
-    if colors is not None:
-        C = np.asarray(colors, np.uint8)
-        rec["red"], rec["green"], rec["blue"] = C[:, 0], C[:, 1], C[:, 2]
-    frec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    frec["n"] = 3
-    frec["i"] = np.asarray(faces, np.int32)
-    names = {"<f4": "float", "u1": "uchar"}
-    header = ["ply", "format binary_little_endian 1.0", "comment perception_config procedural part (mm)",
-              f"element vertex {len(V)}"]
-    header += [f"property {names[t]} {n}" for n, t in fields]
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
-    data = ("\n".join(header) + "\n").encode("ascii") + rec.tobytes() + frec.tobytes()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def write_models(models_dir: str | os.PathLike, parts: Sequence[Part] | None = None) -> Path:
