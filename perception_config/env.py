@@ -1,7 +1,8 @@
 """PerceptionConfig-v0: choose the next pose-estimation operator until the robot can pick.
 
 Episode: one object in one frame of a BOP dataset, starting from the configured generator's
-hypothesis (simulated initialisation at a noise level lambda, or a real generator).
+hypothesis (simulated initialisation at a noise level lambda, or a real generator). Without a
+dataset (the ROS configurator) each reset is given its episode: options={"episode": Episode}.
 
 Action space: Discrete(n) over the pipeline's actions, in the YAML's order (refiners with their
 presets, regenerate, pick).
@@ -40,7 +41,7 @@ from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
 from .geometry import rotation_angle
-from .operators import InProcessOperators, Operators, StepOutcome
+from .operators import Episode, InProcessOperators, Operators, StepOutcome
 
 # Ranges that map a score to [0, 1]: (low, high) -> (x - low) / (high - low), clipped.
 SCORE_RANGES: dict[str, tuple[float, float]] = {
@@ -84,7 +85,7 @@ class PerceptionConfigEnv(gym.Env):
 
     def __init__(
         self,
-        dataset: str | Path | BopDataset | EpisodeSource,
+        dataset: str | Path | BopDataset | EpisodeSource | None,
         pipeline: str | Path | Pipeline | None = None,
         *,
         split: str = "test",
@@ -106,7 +107,10 @@ class PerceptionConfigEnv(gym.Env):
             raise ValueError(f"max_ops must be >= 1, got {max_ops}")
         if time_mode not in ("measured", "cost_table"):
             raise ValueError(f"time_mode must be 'measured' or 'cost_table', got {time_mode!r}")
-        if isinstance(dataset, EpisodeSource):
+        self.source: EpisodeSource | None
+        if dataset is None:  # episodes come with reset(options={"episode": Episode(...)})
+            self.source = None
+        elif isinstance(dataset, EpisodeSource):
             self.source = dataset
         else:
             ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
@@ -187,24 +191,30 @@ class PerceptionConfigEnv(gym.Env):
         super().reset(seed=seed)
         options = options or {}
         index = options.get("episode")
-        if index is None:
+        given = index if isinstance(index, Episode) else None
+        if given is None and self.source is None:
+            raise ValueError("this environment has no dataset: pass reset(options={'episode': Episode(...)})")
+        if given is None and index is None:
             index = int(self.np_random.integers(len(self.source)))
-        if not 0 <= int(index) < len(self.source):
+        if given is None and not 0 <= int(index) < len(self.source):
             raise ValueError(f"episode index {index} out of range 0..{len(self.source) - 1}")
-        lam = options.get("lambda")
+        lam = given.noise_lambda if given is not None else options.get("lambda")
         if lam is None:
             lam = float(self.np_random.uniform(*self.lambda_range))
         if not (math.isfinite(lam) and 0.0 <= lam <= LAMBDA_MAX):
             raise ValueError(f"lambda must be in [0, {LAMBDA_MAX}], got {lam}")
-        ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31)))
         self._reset_state()
-        self.episode = self.source.load(int(index), lam, ep_seed)
+        if given is not None:
+            self.episode = given
+        else:
+            ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31)))
+            self.episode = self.source.load(int(index), lam, ep_seed)
         outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
         seconds = self._seconds(outcome, self.pipeline.generator.name)
         self.episode_time = 0.0  # the initial hypothesis is common to all agents: not charged
         info = self._info(outcome, seconds)
-        info["episode_index"] = int(index)
+        info["episode_index"] = -1 if given is not None else int(index)
         info["generation_seconds"] = seconds
         return self._obs(), info
 

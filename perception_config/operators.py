@@ -24,14 +24,51 @@ from .scene import Frame
 
 @dataclass
 class Episode:
-    """One (frame, object) episode. `ground_truth` is None in a robot cell."""
+    """One (frame, object) episode. `ground_truth` is None in a robot cell.
 
-    frame: Frame
+    In-process the frame is here; through ROS the images stay in the operator nodes, `frame` is
+    None and `stamp_ns` names the camera frame (0 = the latest).
+    """
+
+    frame: Frame | None
     model: ObjectModel
     ground_truth: Pose | None
     noise_lambda: float
     seed: int
     key: tuple[int, int, int] = (0, 0, 0)  # scene_id, im_id, obj_id
+    stamp_ns: int = 0
+
+
+def draw_seed(rng: np.random.Generator) -> int:
+    """The seed of one generator call, drawn from the episode's stream (never 0: 0 = "draw one"
+    in GenerateHypothesis). Both backends draw generator seeds this way, so an episode with the
+    same seed starts from the same hypotheses in-process and through ROS."""
+    return int(rng.integers(1, 2**32))
+
+
+class FrameCaches:
+    """Per-frame precomputations (edge maps, point clouds) of the most recent frames, an LRU.
+
+    Keyed by the frame object's identity (checked, so a recycled id() cannot alias), so
+    consecutive operator calls on the same frame share them.
+    """
+
+    def __init__(self, size: int = 4) -> None:
+        self._caches: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self._size = size
+
+    def get(self, frame: Frame | None) -> dict[str, Any]:
+        if frame is None:
+            return {}
+        key = id(frame)
+        cache = self._caches.get(key)
+        if cache is None or cache.get("__frame__") is not frame:
+            cache = {"__frame__": frame}
+            self._caches[key] = cache
+        self._caches.move_to_end(key)
+        while len(self._caches) > self._size:
+            self._caches.popitem(last=False)
+        return cache
 
 
 @dataclass
@@ -74,8 +111,7 @@ class InProcessOperators:
 
     def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4) -> None:
         self.pipeline = pipeline
-        self._caches: OrderedDict[int, dict[str, Any]] = OrderedDict()
-        self._cache_size = frame_cache_size
+        self._caches = FrameCaches(frame_cache_size)
         self._generators: dict[float, Any] = {}
         self.episode: Episode | None = None
         self.pose: Pose | None = None
@@ -83,24 +119,17 @@ class InProcessOperators:
         self.rng = np.random.default_rng(0)
 
     # -- helpers -------------------------------------------------------------------------
-    def _frame_cache(self, frame: Frame) -> dict[str, Any]:
-        key = id(frame)
-        cache = self._caches.get(key)
-        if cache is None or cache.get("__frame__") is not frame:
-            cache = {"__frame__": frame}
-            self._caches[key] = cache
-        self._caches.move_to_end(key)
-        while len(self._caches) > self._cache_size:
-            self._caches.popitem(last=False)
-        return cache
-
-    def _input(self, pose: Pose | None) -> BlockInput:
+    def _input(self, pose: Pose | None, rng: np.random.Generator | None = None) -> BlockInput:
         ep = self.episode
         assert ep is not None, "no episode started"
         return BlockInput(
             frame=ep.frame, model=ep.model, pose=pose, ground_truth=ep.ground_truth,
-            rng=self.rng, cache=self._frame_cache(ep.frame), scores=dict(self.scores),
+            rng=self.rng if rng is None else rng, cache=self._caches.get(ep.frame), scores=dict(self.scores),
         )
+
+    def _generate(self, block) -> BlockResult:
+        """A generator call with its own seed from the episode's stream (see `draw_seed`)."""
+        return block(self._input(self.pose, np.random.default_rng(draw_seed(self.rng))))
 
     def _generator(self, noise_lambda: float):
         """The generator block with this episode's noise level, when it has one."""
@@ -135,7 +164,7 @@ class InProcessOperators:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
         self.pose, self.scores = None, {}
-        result = self._generator(episode.noise_lambda)(self._input(None))
+        result = self._generate(self._generator(episode.noise_lambda))
         return self._outcome("generate", result)
 
     def apply(self, action: str) -> StepOutcome:
@@ -144,6 +173,7 @@ class InProcessOperators:
         if block.kind == Kind.GENERATION:
             assert self.episode is not None
             block = self._generator(self.episode.noise_lambda) if block.name == self.pipeline.generator.name else block
+            return self._outcome(action, self._generate(block))
         result = block(self._input(self.pose))
         return self._outcome(action, result)
 

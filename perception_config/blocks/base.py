@@ -72,11 +72,12 @@ class BlockInput:
     """What a block call sees: the frame, the object's model, the current hypothesis.
 
     `ground_truth` is given only to blocks that declare it (simulated initialisation, simulated
-    pick). `cache` holds per-frame precomputations (edge maps, point clouds) that several blocks
+    pick). `frame` may be None for blocks that use no image (an operator node that has the
+    ground truth but no camera frame yet can still run simulated_init). `cache` holds per-frame precomputations (edge maps, point clouds) that several blocks
     share; it belongs to the frame and is dropped with it. `rng` makes stochastic blocks seeded.
     """
 
-    frame: Frame
+    frame: Frame | None
     model: ObjectModel
     pose: Pose | None = None
     ground_truth: Pose | None = None
@@ -141,6 +142,8 @@ class Block(ABC):
 
     def _check_inputs(self, inp: BlockInput) -> str:
         """A reason the inputs are unusable for this block, or '' when they are fine."""
+        if (RGB in self.inputs or DEPTH in self.inputs) and inp.frame is None:
+            return "this block needs the camera frame, which is not there"
         if DEPTH in self.inputs and not np.any(np.isfinite(inp.frame.depth)):
             return "the depth image has no valid pixel"
         if POSE in self.inputs:
