@@ -284,9 +284,11 @@ def run_episode(env: PerceptionConfigEnv, agent: Agent, index: int, lam: float, 
     """Run one episode to its end; the per-episode record (trace, poses, errors). The agent's
     acting randomness is reseeded from the episode seed, so every agent's run of an episode is
     reproducible whatever ran before it."""
+    from .agents.base import acting_seed
+
     obs, info = env.reset(options={"episode": int(index), "lambda": float(lam), "episode_seed": int(ep_seed)})
     if hasattr(agent, "begin_episode"):  # acting randomness: its own stream, fixed by the episode
-        agent.begin_episode(int(np.random.SeedSequence([int(ep_seed), 1]).generate_state(1)[0]))  # type: ignore[attr-defined]
+        agent.begin_episode(acting_seed(ep_seed))  # type: ignore[attr-defined]
     ep = env.episode
     assert ep is not None
     initial = info["pose"]

@@ -29,10 +29,13 @@ def pick_domain_id() -> int:
 class NodeProcess:
     """A node started from its console script; stopped with SIGINT, then SIGKILL."""
 
-    def __init__(self, script: str, params: dict[str, object] | None = None, log_dir: Path | None = None) -> None:
+    def __init__(self, script: str, params: dict[str, object] | None = None, log_dir: Path | None = None,
+                 remap: dict[str, str] | None = None) -> None:
         args = [str(VENV_BIN / script), "--ros-args"]
         for key, value in (params or {}).items():
             args += ["-p", f"{key}:={value}"]
+        for old, new in (remap or {}).items():
+            args += ["-r", f"{old}:={new}"]
         self.log = (log_dir or Path("/tmp")) / f"{script}-{os.getpid()}-{time.time_ns()}.log"
         self._log_file = open(self.log, "w")
         self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT)
@@ -65,6 +68,19 @@ def wait_for_service(node, client, timeout: float = 20.0, process: NodeProcess |
             raise AssertionError(f"{process.log.name} died (exit {process.proc.returncode}):\n{process.output()}")
         if time.monotonic() > deadline:
             raise AssertionError(f"service {client.srv_name} did not appear within {timeout} s")
+
+
+def publish_when_matched(node, publisher, msg, subscribers: int = 1, timeout: float = 20.0) -> None:
+    """Publish once `subscribers` subscriptions have matched (a message sent before is lost)."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while publisher.get_subscription_count() < subscribers:
+        if time.monotonic() > deadline:
+            raise AssertionError(f"only {publisher.get_subscription_count()} of {subscribers} subscribers matched "
+                                 f"{publisher.topic_name} within {timeout} s")
+        rclpy.spin_once(node, timeout_sec=0.05)
+    publisher.publish(msg)
 
 
 def call(node, client, request, timeout: float = 10.0):

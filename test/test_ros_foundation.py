@@ -44,8 +44,17 @@ def test_environment_defaults_are_loopback_and_respect_the_user():
 
 @pytest.fixture(scope="module")
 def generation_node(tmp_path_factory):
+    from frames import box_mesh
+
+    from perception_config.models import write_ply
+
     models = tmp_path_factory.mktemp("models")
-    (models / "models_info.json").write_text(json.dumps({"3": {"diameter": 120.0}, "7": {"diameter": 80.0}}))
+    info = {}
+    for obj_id, diameter in ((3, 120.0), (7, 80.0)):  # cubes (mm) with these diameters
+        v, f = box_mesh((diameter / math.sqrt(3),) * 3)
+        write_ply(models / f"obj_{obj_id:06d}.ply", v, f)
+        info[str(obj_id)] = {"diameter": diameter}
+    (models / "models_info.json").write_text(json.dumps(info))
     node = NodeProcess("generation_node", {"models_dir": str(models), "frame_timeout": 0.5}, tmp_path_factory.mktemp("logs"))
     yield node
     code = node.stop()
@@ -120,11 +129,11 @@ def test_generate_hypothesis_across_processes(ros_node, generation_node):
 @pytest.mark.parametrize(
     "kwargs, expected",
     [
-        ({"obj": "99", "lam": 0.3}, "not in that frame"),
+        ({"obj": "99", "lam": 0.3}, "unknown object id"),
         ({"obj": "3", "lam": 0.3, "method": "magic"}, "unknown method"),
         ({"obj": "3", "lam": math.nan}, "noise_lambda"),
         ({"obj": "3", "lam": 50.0}, "noise_lambda"),
-        ({"obj": "3", "lam": 0.3, "sec": 12345}, "within frame_timeout"),
+        ({"obj": "3", "lam": 0.3, "sec": 12345}, "no ground truth for the frame at 12345"),
     ],
 )
 def test_bad_requests_answer_false_and_the_node_keeps_serving(ros_node, generation_node, kwargs, expected):

@@ -187,6 +187,12 @@ class Trajectory:
         return float(self.rewards.sum())
 
 
+def acting_seed(episode_seed: int) -> int:
+    """The seed of an agent's acting randomness in the episode with this seed: evaluation and
+    the ROS configurator act the same way on the same episode."""
+    return int(np.random.SeedSequence([int(episode_seed), 1]).generate_state(1)[0])
+
+
 def run_episode(env: Any, agent: Agent, options: dict[str, Any] | None = None, act_seed: int | None = None) -> Trajectory:
     """Play one episode of `env` with `agent` (reset options: episode, lambda, episode_seed)."""
     obs, info = env.reset(options=options)

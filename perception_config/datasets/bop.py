@@ -213,6 +213,39 @@ def model_path(models_dir: str | os.PathLike, obj_id: int) -> Path:
     return Path(models_dir) / f"obj_{int(obj_id):06d}.ply"
 
 
+class ModelFolder:
+    """The object models of a BOP models folder, for a service: object ids as strings (as on the
+    wire), models_info.json read up front (a bad folder fails at start, naming the file), each
+    PLY loaded and prepared on first use and cached."""
+
+    def __init__(self, models_dir: str | os.PathLike) -> None:
+        self.dir = Path(models_dir)
+        if not self.dir.is_dir():
+            raise BopFormatError(f"models folder {self.dir} does not exist")
+        self.info = load_models_info(self.dir)
+
+    def obj_id(self, object_id: str) -> int:
+        """The integer id of a known object; ValueError naming the id and the known ones."""
+        try:
+            obj_id = int(str(object_id).strip())
+        except ValueError:
+            obj_id = None
+        if obj_id is None or obj_id not in self.info:
+            raise ValueError(f"unknown object id {object_id!r}; {self.dir} has {_short(sorted(self.info))}")
+        return obj_id
+
+    def diameter(self, object_id: str) -> float:
+        """Metres."""
+        return float(self.info[self.obj_id(object_id)]["diameter"]) / 1000.0
+
+    def model(self, object_id: str) -> ObjectModel:
+        obj_id = self.obj_id(object_id)
+        path = model_path(self.dir, obj_id)
+        if not path.exists():
+            raise ValueError(f"object {object_id!r} has no model file {path}")
+        return load_model(path, obj_id, self.info[obj_id])
+
+
 # --------------------------------------------------------------------------- scene JSON files
 
 

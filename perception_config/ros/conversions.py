@@ -2,12 +2,16 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose as PoseMsg
 
 from ..geometry import Pose, matrix_from_quaternion, quaternion_from_matrix
+
+if TYPE_CHECKING:
+    from ..scene import Frame
 
 
 def pose_to_msg(pose: Pose) -> PoseMsg:
@@ -44,3 +48,22 @@ def seconds_to_stamp(seconds: float) -> Time:
 
 def stamp_to_nanoseconds(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def frame_to_msgs(frame: "Frame", stamp_ns: int, frame_id: str = "camera_color_optical_frame"):
+    """A Frame as the (colour rgb8, depth 16UC1 mm, CameraInfo) messages a camera driver publishes."""
+    from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
+
+    from ..datasets.bag import camera_info_fields, depth_to_image_fields, rgb_to_image_fields
+
+    def header(msg):
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        msg.header.frame_id = frame_id
+        return msg
+
+    color = header(Image(**rgb_to_image_fields(frame.rgb)))
+    depth = header(Image(**depth_to_image_fields(frame.depth)))
+    fields = camera_info_fields(frame.K, frame.width, frame.height)
+    fields["roi"] = RegionOfInterest(**fields["roi"])
+    info = header(CameraInfo(**fields))
+    return color, depth, info

@@ -1,0 +1,167 @@
+"""The camera frames an operator node works on: colour, depth and camera_info assembled by stamp.
+
+Subscribes to `camera/color/image_raw`, `camera/depth/image_raw` and `camera/camera_info`
+(relative names: remap them, or push the node into the camera's namespace). A colour and a depth
+image with the same header stamp make a frame (or the nearest depth within `sync_tolerance`
+seconds, for drivers that stamp them apart); K comes from the camera_info of that stamp, or the
+latest one (camera_info rarely changes). Frames are converted once, on arrival, and kept in a
+bounded `StampCache`, so a service request names its frame by stamp and large images cross the
+middleware once, not at every operator call.
+
+A frame that cannot be used (unsupported encoding, a step or data size that contradicts the
+image size, colour and depth of different sizes, a camera_info of another size or with a
+degenerate K) is cached as the error, so the request that names it gets a message saying what
+was wrong with which image.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+from ..datasets.bag import image_msg_to_depth, image_msg_to_rgb
+from ..scene import Frame
+from .conversions import stamp_to_nanoseconds
+from .stamp_cache import StampCache
+
+MAX_PENDING = 16  # half-assembled frames kept (a colour image waiting for its depth, ...)
+
+
+@dataclass
+class CameraFrame:
+    """A usable frame with the header it came with."""
+
+    stamp_ns: int
+    frame_id: str
+    frame: Frame
+
+
+@dataclass
+class FrameError:
+    """A frame that arrived but cannot be used, and why."""
+
+    stamp_ns: int
+    problem: str
+
+
+def camera_qos(name: str) -> QoSProfile:
+    """`reliable` (default: matches rosbag2 play, our replay node and most drivers) or
+    `sensor_data` (best effort: also matches drivers that publish best effort)."""
+    if name == "reliable":
+        return QoSProfile(depth=10)
+    if name == "sensor_data":
+        return qos_profile_sensor_data
+    raise ValueError(f"camera_qos must be 'reliable' or 'sensor_data', got {name!r}")
+
+
+def stamp_text(stamp_ns: int) -> str:
+    return f"{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d} s"
+
+
+def assemble_frame(color: Any, depth: Any, info: Any) -> Frame:
+    """Colour + depth + camera_info messages -> Frame; ValueError naming what is wrong."""
+    try:
+        rgb = image_msg_to_rgb(color)
+    except ValueError as exc:
+        raise ValueError(f"colour image: {exc}") from None
+    try:
+        depth_m = image_msg_to_depth(depth)
+    except ValueError as exc:
+        raise ValueError(f"depth image: {exc}") from None
+    if rgb.shape[:2] != depth_m.shape:
+        raise ValueError(f"colour {rgb.shape[1]}x{rgb.shape[0]} and depth {depth_m.shape[1]}x{depth_m.shape[0]} "
+                         "differ in size (depth must be registered to colour)")
+    h, w = depth_m.shape
+    if (info.width, info.height) != (0, 0) and (info.width, info.height) != (w, h):
+        raise ValueError(f"camera_info is {info.width}x{info.height} but the images are {w}x{h}")
+    K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1.0):
+        raise ValueError(f"camera_info has a degenerate K {K.flatten().tolist()}")
+    return Frame(rgb=rgb, depth=depth_m, K=K)
+
+
+class CameraFrames:
+    """Subscriptions and the frame cache of one camera (thread-safe: the subscriptions fill it
+    from one executor thread while service callbacks read it from another)."""
+
+    def __init__(self, node: Node, capacity: int, qos: str = "reliable", sync_tolerance: float = 0.0,
+                 callback_group: Any = None) -> None:
+        if not (math.isfinite(sync_tolerance) and sync_tolerance >= 0):
+            raise ValueError(f"sync_tolerance must be >= 0 seconds, got {sync_tolerance}")
+        self.frames: StampCache[CameraFrame | FrameError] = StampCache(capacity)
+        self._tolerance_ns = int(round(sync_tolerance * 1e9))
+        self._pending: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self._infos: OrderedDict[int, Any] = OrderedDict()
+        self._lock = threading.Lock()
+        self._logger = node.get_logger()
+        profile = camera_qos(qos)
+        node.create_subscription(Image, "camera/color/image_raw", lambda m: self._add("color", m), profile,
+                                 callback_group=callback_group)
+        node.create_subscription(Image, "camera/depth/image_raw", lambda m: self._add("depth", m), profile,
+                                 callback_group=callback_group)
+        node.create_subscription(CameraInfo, "camera/camera_info", self._on_info, profile,
+                                 callback_group=callback_group)
+
+    # -- arrival ---------------------------------------------------------------------------
+    def _on_info(self, msg: CameraInfo) -> None:
+        with self._lock:
+            self._infos[stamp_to_nanoseconds(msg.header.stamp)] = msg
+            while len(self._infos) > MAX_PENDING:
+                self._infos.popitem(last=False)
+            ready = [s for s, parts in self._pending.items() if "color" in parts and "depth" in parts]
+        for stamp in ready:  # images that were waiting for a first camera_info
+            self._try(stamp)
+
+    def _add(self, role: str, msg: Image) -> None:
+        stamp = stamp_to_nanoseconds(msg.header.stamp)
+        with self._lock:
+            if role == "depth" and self._tolerance_ns and stamp not in self._pending:
+                near = [s for s in self._pending if abs(s - stamp) <= self._tolerance_ns and "depth" not in self._pending[s]]
+                if near:  # file the depth under the colour image's stamp
+                    stamp = min(near, key=lambda s: abs(s - stamp))
+            self._pending.setdefault(stamp, {})[role] = msg
+            while len(self._pending) > MAX_PENDING:
+                old, parts = self._pending.popitem(last=False)
+                missing = "depth" if "color" in parts else "colour"
+                self._logger.warning(f"dropped the frame at {stamp_text(old)}: its {missing} image never arrived")
+        self._try(stamp)
+
+    def _try(self, stamp: int) -> None:
+        with self._lock:
+            parts = self._pending.get(stamp)
+            if parts is None or "color" not in parts or "depth" not in parts:
+                return
+            info = self._infos.get(stamp) or (next(reversed(self._infos.values())) if self._infos else None)
+            if info is None:
+                return  # wait for a camera_info
+            del self._pending[stamp]
+        color = parts["color"]
+        try:
+            item: CameraFrame | FrameError = CameraFrame(stamp, color.header.frame_id, assemble_frame(color, parts["depth"], info))
+            item.frame.stamp = stamp * 1e-9
+        except ValueError as exc:
+            item = FrameError(stamp, str(exc))
+            self._logger.warning(f"unusable camera frame at {stamp_text(stamp)}: {exc}")
+        self.frames.put(stamp, item)
+
+    # -- requests ----------------------------------------------------------------------------
+    def get(self, stamp_ns: int, timeout: float) -> CameraFrame:
+        """The frame with this stamp (0 = the latest), waiting up to `timeout` s for it to arrive.
+        ValueError when it does not arrive in time or arrived unusable."""
+        item = self.frames.get(stamp_ns, timeout)
+        if item is None:
+            which = "no camera frame" if stamp_ns == 0 else f"no camera frame stamped {stamp_text(stamp_ns)}"
+            cached = self.frames.stamps()
+            have = (f"{len(cached)} cached, {stamp_text(cached[0])} .. {stamp_text(cached[-1])}" if cached
+                    else "none received yet: check the camera topics, their remapping and camera_qos")
+            raise ValueError(f"{which} arrived within {timeout:g} s ({have})")
+        if isinstance(item, FrameError):
+            raise ValueError(f"the camera frame at {stamp_text(item.stamp_ns)} is unusable: {item.problem}")
+        return item

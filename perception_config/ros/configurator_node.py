@@ -1,0 +1,232 @@
+"""configurator_node: serves `estimate_pose` (EstimatePose.srv) by running a trained agent.
+
+For each request the agent chooses operators from the current scores until a pick succeeds
+or `max_ops` operators have run: the same PerceptionConfigEnv as in training, with the ROS
+backend (ros_operators.RosOperators) whose operator calls are service requests to
+generation_node, refinement_node, scoring_node and pick_node. The answer holds the final
+hypothesis with its scores, whether the pick succeeded, the operator trace and the time.
+Each estimate is also published: the pose as geometry_msgs/PoseStamped on `perception/pose`
+(when there is one) and the trace as OperatorTrace on `perception/trace`.
+
+With `auto` set it estimates every new camera frame (seen on `camera/camera_info`): the
+objects in `auto_objects`, or, when that is empty, every object of the frame's replayed ground
+truth (a test bench). Frames that arrive while an estimate runs are skipped, except the latest.
+
+Parameters:
+  policy            policy file (.safetensors) from `perception-config train` ("" = the fixed
+                    pipeline `fixed_sequence`)
+  fixed_sequence    the engineer's sequence used without a policy (icp_coarse, icp_fine, pick)
+  pipeline          pipeline YAML ("" = the policy's, else the built-in default); must be the
+                    operator nodes' pipeline
+  models_dir        BOP models folder (the object's diameter is part of the agent's state)
+  max_ops           operators per estimate (0 = the policy's training value, else 10)
+  noise_lambda      lambda of simulated initialisation when a request does not give one (0.5)
+  operator_timeout  seconds to wait for one operator call (10.0)
+  auto, auto_objects, camera_qos   see above
+A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import Header
+
+from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
+from perception_config_interfaces.srv import EstimatePose
+
+from ..agents import load_agent, make_agent
+from ..agents.base import acting_seed
+from ..agents.fixed import DEFAULT_SEQUENCE
+from ..blocks.pipeline import load_pipeline
+from ..datasets.bop import ModelFolder
+from ..env import LAMBDA_MAX, PerceptionConfigEnv
+from ..evaluation import policy_settings
+from ..operators import Episode
+from .camera_frames import camera_qos, stamp_text
+from .conversions import stamp_to_nanoseconds
+from .operator_node import make_hypothesis, spin
+from .ros_operators import OperatorCallError, RosOperators
+
+
+class ConfiguratorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("configurator_node")
+        self.declare_parameter("policy", "")
+        self.declare_parameter("fixed_sequence", list(DEFAULT_SEQUENCE))
+        self.declare_parameter("pipeline", "")
+        self.declare_parameter("models_dir", "")
+        self.declare_parameter("max_ops", 0)
+        self.declare_parameter("noise_lambda", 0.5)
+        self.declare_parameter("operator_timeout", 10.0)
+        self.declare_parameter("auto", False)
+        self.declare_parameter("auto_objects", [""])
+        self.declare_parameter("camera_qos", "reliable")
+        p = {name: self.get_parameter(name).value for name in (
+            "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
+            "auto", "auto_objects", "camera_qos")}
+
+        if not p["models_dir"]:
+            raise ValueError("models_dir is not set: give the BOP models folder the operator nodes use")
+        self.models = ModelFolder(p["models_dir"])
+        policy = p["policy"]
+        if policy and not Path(policy).is_file():
+            raise ValueError(f"policy file {policy} does not exist")
+        settings = policy_settings([policy] if policy else [], pipeline=p["pipeline"] or None,
+                                   max_ops=p["max_ops"] or None)
+        pipeline = load_pipeline(settings["pipeline"])
+        self.default_lambda = float(p["noise_lambda"])
+        if not (math.isfinite(self.default_lambda) and 0 <= self.default_lambda <= LAMBDA_MAX):
+            raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}], got {self.default_lambda}")
+        self.operators = RosOperators(self, pipeline, timeout=float(p["operator_timeout"]))
+        self.env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=self.operators)
+        if policy:
+            self.agent = load_agent(policy, self.env)
+            self.agent_name = f"{self.agent.kind} policy {policy}"
+        else:
+            self.agent = make_agent("fixed", self.env, sequence=[s for s in p["fixed_sequence"] if s])
+            self.agent_name = "fixed pipeline " + " -> ".join(s for s in p["fixed_sequence"] if s)
+        self._rng = np.random.default_rng()
+        self._busy = threading.Lock()
+
+        self.pose_pub = self.create_publisher(PoseStamped, "perception/pose", 10)
+        self.trace_pub = self.create_publisher(OperatorTrace, "perception/trace", 10)
+        self.create_service(EstimatePose, "estimate_pose", self._on_estimate, callback_group=MutuallyExclusiveCallbackGroup())
+
+        self.auto_objects = [o for o in p["auto_objects"] if o]
+        self._auto_wake = threading.Event()
+        self._auto_latest: int | None = None
+        self._auto_gt: dict[int, list[str]] = {}
+        if p["auto"]:  # a new frame is seen on camera_info, or on the ground truth that names its objects
+            topics = MutuallyExclusiveCallbackGroup()
+            if self.auto_objects:
+                self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, camera_qos(p["camera_qos"]),
+                                         callback_group=topics)
+            else:
+                self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10, callback_group=topics)
+            self._auto_thread = threading.Thread(target=self._auto_loop, name="auto", daemon=True)
+            self._auto_thread.start()
+        self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops {self.env.max_ops}"
+                               + (", estimating every new frame" if p["auto"] else ""))
+
+    # -- one estimate --------------------------------------------------------------------------
+    def estimate(self, stamp_ns: int, object_id: str, max_operations: int = 0, noise_lambda: float = -1.0,
+                 seed: int = 0) -> EstimatePose.Response:
+        """Run the agent on one object in one frame; the response (never raises)."""
+        response = EstimatePose.Response()
+        start = time.perf_counter()
+        oks: list[bool] = []
+        try:
+            with self._busy:
+                oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed)
+        except (ValueError, OperatorCallError) as exc:
+            response.success = False
+            response.message = str(exc)
+        except Exception as exc:  # answer, log, keep serving
+            self.get_logger().error(f"estimate_pose failed: {exc!r}")
+            response.success, response.message = False, f"internal error: {exc!r}"
+        response.elapsed = time.perf_counter() - start
+        self._publish(response, object_id, oks)
+        return response
+
+    def _run(self, response: EstimatePose.Response, stamp_ns: int, object_id: str, max_operations: int,
+             noise_lambda: float, seed: int) -> list[bool]:
+        """Fill the response; returns the ok flag of each operation."""
+        lam = self.default_lambda if (math.isfinite(noise_lambda) and noise_lambda < 0) else float(noise_lambda)
+        if not (math.isfinite(lam) and 0 <= lam <= LAMBDA_MAX):
+            raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}] (negative = the configurator's), got {noise_lambda}")
+        model = self.models.model(object_id)
+        seed = int(seed) if seed else int(self._rng.integers(1, 2**31))
+        episode = Episode(frame=None, model=model, ground_truth=None, noise_lambda=lam, seed=seed,
+                          key=(0, 0, model.obj_id), stamp_ns=stamp_ns)
+        limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
+        obs, info = self.env.reset(options={"episode": episode})
+        if not info["ok"]:
+            raise ValueError(f"no first hypothesis: {info['reason']}")
+        self.agent.begin_episode(acting_seed(seed))
+        names, seconds, oks = [], [], []
+        while True:
+            a = int(self.agent.act(obs, info))
+            obs, reward, terminated, truncated, info = self.env.step(a)
+            self.agent.observe(reward, obs, terminated, truncated, info)
+            names.append(self.env.action_names[a])
+            seconds.append(float(self.env.last_outcome.elapsed))  # measured (info["seconds"] adds charges)
+            oks.append(bool(info["ok"]))
+            if terminated or truncated or len(names) >= limit:
+                break
+        picked = bool(terminated and info["picked"])
+        header = Header(frame_id=self.operators.frame_id)
+        if self.operators.stamp is not None:
+            header.stamp = self.operators.stamp
+        response.hypothesis = make_hypothesis(header, object_id, info["pose"], info["scores"])
+        response.picked = picked
+        response.operations = names
+        response.operation_elapsed = seconds
+        response.success = True
+        response.message = "picked" if picked else f"no successful pick within {len(names)} operations"
+        return oks
+
+    def _publish(self, response: EstimatePose.Response, object_id: str, oks: list[bool]) -> None:
+        trace = OperatorTrace()
+        trace.header = response.hypothesis.header
+        trace.object_id = object_id
+        trace.operations = list(response.operations)
+        trace.elapsed = list(response.operation_elapsed)
+        trace.ok = oks
+        trace.picked = bool(response.picked)
+        self.trace_pub.publish(trace)
+        if response.success:
+            msg = PoseStamped()
+            msg.header = response.hypothesis.header
+            msg.pose = response.hypothesis.pose
+            self.pose_pub.publish(msg)
+
+    def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
+        return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
+                             request.noise_lambda, request.seed)
+
+    # -- auto mode -------------------------------------------------------------------------------
+    def _on_ground_truth(self, msg: ObjectPoses) -> None:
+        stamp = stamp_to_nanoseconds(msg.header.stamp)
+        self._auto_gt[stamp] = list(msg.object_ids)
+        while len(self._auto_gt) > 64:
+            self._auto_gt.pop(next(iter(self._auto_gt)))
+        self._auto_latest = stamp
+        self._auto_wake.set()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self._auto_latest = stamp_to_nanoseconds(msg.header.stamp)
+        self._auto_wake.set()
+
+    def _auto_loop(self) -> None:
+        done: int | None = None
+        while True:
+            self._auto_wake.wait()
+            self._auto_wake.clear()
+            stamp = self._auto_latest
+            if stamp is None or stamp == done:
+                continue
+            done = stamp
+            objects = self.auto_objects or self._auto_gt.get(stamp, [])
+            if not objects:
+                self.get_logger().warning(f"auto: no objects to estimate in the frame at {stamp_text(stamp)} "
+                                          "(set auto_objects, or replay ground truth)")
+            for object_id in objects:
+                r = self.estimate(stamp, object_id)
+                self.get_logger().info(f"auto {stamp_text(stamp)} object {object_id}: "
+                                       f"{'picked' if r.picked else r.message} after {', '.join(r.operations)} ({r.elapsed:.3f} s)")
+
+
+def main(args: list[str] | None = None) -> None:
+    spin(ConfiguratorNode, args)
+
+
+if __name__ == "__main__":
+    main()

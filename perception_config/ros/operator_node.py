@@ -1,0 +1,218 @@
+"""What the four operator nodes share: parameters, models, camera frames, ground truth, answering.
+
+Every operator node declares these parameters (and its own):
+  models_dir     BOP models folder (models_info.json + obj_XXXXXX.ply); required to serve
+  pipeline       pipeline YAML: its actions are served by name (empty = the built-in default)
+  cache_size     camera frames (and ground-truth messages) kept, by stamp (30)
+  frame_timeout  seconds a request waits for a frame that has not arrived yet (1.0)
+  camera_qos     reliable | sensor_data (best effort), for the camera subscriptions
+  sync_tolerance seconds between colour and depth stamps still paired (0 = equal stamps)
+
+A request names its frame by stamp (a hypothesis' header.stamp; zero = the latest frame). The
+blocks run in the service callback; their per-frame precomputations are kept per cached frame.
+Services run one at a time (one mutually exclusive callback group) while the subscriptions
+fill the caches from another executor thread, so a request can wait for its frame.
+
+Every service answers: a bad request or a failed operator gives success=false and a message,
+an unexpected exception is logged and answered the same way, and the node keeps serving.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import Header
+
+from perception_config_interfaces.msg import Hypothesis, ObjectPoses
+
+from ..blocks.base import DEPTH, GROUND_TRUTH, RGB, Block, BlockInput, BlockResult, Kind, create
+from ..blocks.pipeline import load_pipeline
+from ..datasets.bop import ModelFolder
+from ..geometry import Pose
+from ..models import ObjectModel
+from ..operators import FrameCaches
+from .camera_frames import CameraFrames, stamp_text
+from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+from .stamp_cache import StampCache
+
+
+class OperatorNode(Node):
+    def __init__(self, name: str, *, ground_truth: bool = False) -> None:
+        super().__init__(name)
+        self.declare_parameter("models_dir", "")
+        self.declare_parameter("pipeline", "")
+        self.declare_parameter("cache_size", 30)
+        self.declare_parameter("frame_timeout", 1.0)
+        self.declare_parameter("camera_qos", "reliable")
+        self.declare_parameter("sync_tolerance", 0.0)
+
+        self.pipeline = load_pipeline(self.param("pipeline") or None)
+        models_dir = self.param("models_dir")
+        self.models = ModelFolder(models_dir) if models_dir else None
+        if self.models is None:
+            self.get_logger().warning("models_dir is not set: every request will be refused")
+        cache_size = int(self.param("cache_size"))
+        self._block_caches = FrameCaches(cache_size)
+        self._blocks: dict[tuple[str, float | None], Block] = {}
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        topics = MutuallyExclusiveCallbackGroup()
+        self.camera = CameraFrames(self, cache_size, self.param("camera_qos"), float(self.param("sync_tolerance")), topics)
+        self.ground_truth: StampCache[dict[str, Any]] | None = None
+        if ground_truth:
+            self.ground_truth = StampCache(cache_size)
+            self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10, callback_group=topics)
+
+    def param(self, name: str) -> Any:
+        return self.get_parameter(name).value
+
+    # -- services ------------------------------------------------------------------------------
+    def serve(self, srv_type: Any, name: str, handler: Callable[[Any, Any], None]) -> None:
+        """A service whose handler fills the response or raises ValueError (a bad request, a
+        failed operator); success, message and elapsed are set here, whatever happens."""
+
+        def callback(request: Any, response: Any) -> Any:
+            start = time.perf_counter()
+            try:
+                handler(request, response)
+                response.success = True
+                response.message = response.message or "ok"
+            except ValueError as exc:
+                response.success = False
+                response.message = str(exc)
+            except Exception as exc:  # answer, log, keep serving
+                self.get_logger().error(f"{name} failed: {exc!r}")
+                response.success = False
+                response.message = f"internal error: {exc!r}"
+            response.elapsed = time.perf_counter() - start
+            return response
+
+        self.create_service(srv_type, name, callback, callback_group=self._service_group)
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def model(self, object_id: str) -> ObjectModel:
+        if self.models is None:
+            raise ValueError("this node has no models: set its models_dir parameter to a BOP models folder")
+        return self.models.model(object_id)
+
+    def _on_ground_truth(self, msg: ObjectPoses) -> None:
+        assert self.ground_truth is not None
+        poses = dict(zip(msg.object_ids, msg.poses))
+        self.ground_truth.put(stamp_to_nanoseconds(msg.header.stamp), {"header": msg.header, "poses": poses})
+
+    def ground_truth_pose(self, stamp_ns: int, object_id: str) -> tuple[Pose, Header]:
+        assert self.ground_truth is not None
+        timeout = float(self.param("frame_timeout"))
+        item = self.ground_truth.get(stamp_ns, timeout)
+        if item is None:
+            which = "any frame" if stamp_ns == 0 else f"the frame at {stamp_text(stamp_ns)}"
+            raise ValueError(f"no ground truth for {which} arrived on perception/ground_truth within {timeout:g} s")
+        if object_id not in item["poses"]:
+            raise ValueError(f"object {object_id!r} is not in the ground truth of that frame (objects: {sorted(item['poses'])})")
+        try:
+            return msg_to_pose(item["poses"][object_id]), item["header"]
+        except ValueError as exc:
+            raise ValueError(f"the ground truth of object {object_id!r} is unusable: {exc}") from None
+
+    def block(self, method: str, kinds: tuple[Kind, ...], noise_lambda: float | None = None) -> tuple[str, Block]:
+        """The block serving `method`: a pipeline action of one of `kinds` (with its preset), the
+        pipeline's generator, or a registered block with its defaults. `noise_lambda` overrides
+        a generator's noise level."""
+        pipe = self.pipeline
+        served = [a.name for a in pipe.actions if a.kind in kinds]
+        if Kind.GENERATION in kinds:
+            served.insert(0, pipe.generator.name)
+        key = (method, noise_lambda)
+        if key not in self._blocks:
+            base: Block | None = None
+            if method == pipe.generator.name and Kind.GENERATION in kinds:
+                base = pipe.generator
+            elif method in pipe.action_names and pipe.action(method).kind in kinds:
+                base = pipe.action(method).block
+            else:
+                try:
+                    base = create(method)
+                except ValueError:
+                    base = None
+                if base is not None and base.kind not in kinds:
+                    base = None
+            if base is None:
+                raise ValueError(f"unknown method {method!r}; this node serves {', '.join(dict.fromkeys(served))} "
+                                 f"and the registered {'/'.join(k.value for k in kinds)} blocks")
+            config = dict(base.config)
+            if noise_lambda is not None and "noise_lambda" in config:
+                config["noise_lambda"] = noise_lambda
+            self._blocks[key] = type(base)(**config)
+        return method, self._blocks[key]
+
+    def run_block(self, block: Block, stamp_ns: int, object_id: str, pose: Pose | None,
+                  rng: np.random.Generator | None = None) -> tuple[BlockResult, Header]:
+        """Run a block on the frame named by stamp (fetched only when the block uses images) and
+        the ground truth (only when it declares it). Returns the result and the frame's header."""
+        model = self.model(object_id)
+        header = Header()
+        frame = None
+        if RGB in block.inputs or DEPTH in block.inputs:
+            cam = self.camera.get(stamp_ns, float(self.param("frame_timeout")))
+            frame = cam.frame
+            header.stamp.sec, header.stamp.nanosec = divmod(cam.stamp_ns, 1_000_000_000)
+            header.frame_id = cam.frame_id
+        gt = None
+        if GROUND_TRUTH in block.inputs:
+            gt, gt_header = self.ground_truth_pose(stamp_ns if frame is None else stamp_to_nanoseconds(header.stamp), object_id)
+            if frame is None:
+                header = gt_header
+        inp = BlockInput(frame=frame, model=model, pose=pose, ground_truth=gt,
+                         rng=rng if rng is not None else np.random.default_rng(), cache=self._block_caches.get(frame))
+        return block(inp), header
+
+
+def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:
+    """(stamp_ns, object_id, pose) of a hypothesis in a request; ValueError for a NaN/degenerate pose."""
+    try:
+        pose = msg_to_pose(msg.pose)
+    except ValueError as exc:
+        raise ValueError(f"the hypothesis is unusable: {exc}") from None
+    if not msg.object_id:
+        raise ValueError("the hypothesis has no object_id")
+    return stamp_to_nanoseconds(msg.header.stamp), msg.object_id, pose
+
+
+def make_hypothesis(header: Header, object_id: str, pose: Pose | None, scores: dict[str, float] | None = None) -> Hypothesis:
+    hyp = Hypothesis()
+    hyp.header = header
+    hyp.object_id = object_id
+    if pose is not None:
+        hyp.pose = pose_to_msg(pose)
+    scores = scores or {}
+    hyp.score_names = list(scores)
+    hyp.scores = [float(v) for v in scores.values()]
+    return hyp
+
+
+def spin(node_factory: Callable[[], Node], args: list[str] | None = None) -> None:
+    """main() of a node: init, spin a multi-threaded executor until Ctrl-C, shut down.
+
+    A node that cannot start (bad parameters, an unreadable models folder) logs why and exits 2.
+    """
+    rclpy.init(args=args)
+    try:
+        node = node_factory()
+    except (ValueError, OSError) as exc:
+        rclpy.logging.get_logger("perception_config").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        raise SystemExit(2) from None
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()

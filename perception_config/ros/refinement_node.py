@@ -1,0 +1,43 @@
+"""refinement_node: serves `refine_hypothesis` (RefineHypothesis.srv), one refinement step.
+
+`method` is a refinement action of the pipeline (e.g. `icp_coarse`, with its parameter preset)
+or a registered refinement block with its defaults (`icp_point_to_plane`, `d2co`, ...). The
+hypothesis' header.stamp names the camera frame (zero = the latest). A refiner that fails (no
+depth where the model is, diverged) answers success=false with its reason; the hypothesis is
+then the one sent.
+
+Parameters: those of every operator node (operator_node.py).
+"""
+from __future__ import annotations
+
+from perception_config_interfaces.srv import RefineHypothesis
+
+from ..blocks.base import Kind
+from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
+
+
+class RefinementNode(OperatorNode):
+    def __init__(self) -> None:
+        super().__init__("refinement_node")
+        self.serve(RefineHypothesis, "refine_hypothesis", self._on_refine)
+        actions = [a.name for a in self.pipeline.actions if a.kind == Kind.REFINEMENT]
+        self.get_logger().info(f"serving refine_hypothesis ({', '.join(actions)})")
+
+    def _on_refine(self, request: RefineHypothesis.Request, response: RefineHypothesis.Response) -> None:
+        stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
+        if not request.method:
+            raise ValueError("method is empty: name a refinement action of the pipeline or a refinement block")
+        method, block = self.block(request.method, (Kind.REFINEMENT,))
+        result, header = self.run_block(block, stamp_ns, object_id, pose)
+        response.hypothesis = make_hypothesis(header, object_id, pose)
+        if not result.ok:
+            raise ValueError(f"{method}: {result.reason}")
+        response.hypothesis = make_hypothesis(header, object_id, result.pose)
+
+
+def main(args: list[str] | None = None) -> None:
+    spin(RefinementNode, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,175 @@
+"""The ROS backend of the environment's Operators interface (perception_config/operators.py).
+
+The same calls InProcessOperators makes, as service requests to the operator nodes: the
+generator at the start and for a generation action (generate_hypothesis, with a seed drawn
+from the episode's stream exactly as in-process), a refinement action (refine_hypothesis with
+the action's name), the pick (pick), and the scoring set after each (score_hypothesis). The
+hypothesis lives here and travels with each request; the images stay in the operator nodes,
+named by the frame's stamp (the generator resolves "latest" and every later call uses the
+stamp it answered with).
+
+Time: `StepOutcome.elapsed` is the wall time of the round trips (what the robot cell waits),
+`result.elapsed` the node's own compute time.
+
+An operator that fails (success=false: a refiner diverged, the frame has no depth there) is an
+`ok=False` outcome, as in-process. A node that is not there or does not answer within
+`timeout` raises `OperatorCallError`: the episode cannot go on.
+
+Calls block the calling thread; the node's executor must spin in another thread (the
+configurator serves estimate_pose from a MultiThreadedExecutor, these clients in their own
+callback group).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+
+from perception_config_interfaces.msg import Hypothesis
+from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+
+from ..blocks.base import BlockResult, Kind
+from ..blocks.pipeline import Pipeline
+from ..geometry import Pose
+from ..operators import Episode, StepOutcome, draw_seed
+from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+
+SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis", "pick": "pick"}
+NODES = {"generate": "generation_node", "refine": "refinement_node", "score": "scoring_node", "pick": "pick_node"}
+
+
+class OperatorCallError(RuntimeError):
+    """An operator node is not available or did not answer in time."""
+
+
+class RosOperators:
+    def __init__(self, node: Node, pipeline: Pipeline, timeout: float = 10.0,
+                 services: dict[str, str] | None = None) -> None:
+        if not (math.isfinite(timeout) and timeout > 0):
+            raise ValueError(f"operator timeout must be > 0 seconds, got {timeout}")
+        self.pipeline = pipeline
+        self.timeout = float(timeout)
+        names = {**SERVICES, **(services or {})}
+        group = ReentrantCallbackGroup()
+        types = {"generate": GenerateHypothesis, "refine": RefineHypothesis, "score": ScoreHypothesis, "pick": Pick}
+        self.clients = {k: node.create_client(types[k], names[k], callback_group=group) for k in types}
+        self.episode: Episode | None = None
+        self.pose: Pose | None = None
+        self.scores: dict[str, float] = {}
+        self.stamp = None  # builtin_interfaces/Time of the episode's frame, once resolved
+        self.frame_id = ""
+        self.rng = np.random.default_rng(0)
+        self.round_trips: list[tuple[str, float]] = []  # (service, seconds) of every call, for benchmarks
+
+    # -- calls -------------------------------------------------------------------------------
+    def _call(self, which: str, request: Any) -> Any:
+        client = self.clients[which]
+        # A node that has just started may not be discovered yet: wait a little for it.
+        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=min(self.timeout, 2.0)):
+            raise OperatorCallError(f"service {client.srv_name} is not available: is {NODES[which]} running?")
+        start = time.perf_counter()
+        try:
+            response = client.call(request, timeout_sec=self.timeout)
+        except TimeoutError:
+            raise OperatorCallError(f"{client.srv_name} did not answer within {self.timeout:g} s "
+                                    f"({NODES[which]} busy or died)") from None
+        if response is None:
+            raise OperatorCallError(f"{client.srv_name} gave no answer (shutting down?)")
+        self.round_trips.append((which, time.perf_counter() - start))
+        return response
+
+    def _hypothesis(self) -> Hypothesis:
+        assert self.episode is not None and self.pose is not None
+        hyp = Hypothesis()
+        if self.stamp is not None:
+            hyp.header.stamp = self.stamp
+        hyp.header.frame_id = self.frame_id
+        hyp.object_id = str(self.episode.model.obj_id)
+        hyp.pose = pose_to_msg(self.pose)
+        return hyp
+
+    def _result(self, response: Any, pose_from: Hypothesis | None) -> BlockResult:
+        if not response.success:
+            return BlockResult(ok=False, reason=response.message, elapsed=float(response.elapsed))
+        pose = None
+        if pose_from is not None:
+            try:
+                pose = msg_to_pose(pose_from.pose)
+            except ValueError as exc:
+                return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
+        return BlockResult(ok=True, pose=pose, elapsed=float(response.elapsed))
+
+    def _generate(self, method: str) -> BlockResult:
+        assert self.episode is not None
+        req = GenerateHypothesis.Request(object_id=str(self.episode.model.obj_id), method=method,
+                                         noise_lambda=float(self.episode.noise_lambda), seed=draw_seed(self.rng))
+        if self.stamp is not None:
+            req.frame.stamp = self.stamp
+        else:
+            req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(int(self.episode.stamp_ns), 1_000_000_000)
+        res = self._call("generate", req)
+        if res.success and self.stamp is None:  # "latest" is resolved once, by the first answer
+            self.stamp = res.hypothesis.header.stamp
+            self.frame_id = res.hypothesis.header.frame_id
+        return self._result(res, res.hypothesis if res.success else None)
+
+    def _score(self) -> dict[str, float]:
+        names = self.pipeline.score_names
+        if self.pose is None:
+            return {n: math.nan for n in names}
+        res = self._call("score", ScoreHypothesis.Request(hypothesis=self._hypothesis()))
+        if not res.success:
+            return {n: math.nan for n in names}
+        got = dict(zip(res.hypothesis.score_names, res.hypothesis.scores))
+        return {n: float(got.get(n, math.nan)) for n in names}
+
+    def _outcome(self, action: str, result: BlockResult, started: float) -> StepOutcome:
+        if result.ok and result.pose is not None:
+            self.pose = result.pose
+        t_score = time.perf_counter()
+        self.scores = self._score()
+        now = time.perf_counter()
+        return StepOutcome(action, result, dict(self.scores), self.pose, now - started, now - t_score)
+
+    # -- the interface -------------------------------------------------------------------
+    def start(self, episode: Episode) -> StepOutcome:
+        self.episode = episode
+        self.rng = np.random.default_rng(episode.seed)
+        self.pose, self.scores = None, {}
+        self.stamp, self.frame_id = None, ""
+        started = time.perf_counter()
+        return self._outcome("generate", self._generate(self.pipeline.generator.name), started)
+
+    def apply(self, action: str) -> StepOutcome:
+        act = self.pipeline.action(action)
+        started = time.perf_counter()
+        if act.kind == Kind.GENERATION:
+            return self._outcome(action, self._generate(action), started)
+        if self.pose is None:
+            return self._outcome(action, BlockResult.fail("no hypothesis to work on"), started)
+        if act.kind == Kind.REFINEMENT:
+            res = self._call("refine", RefineHypothesis.Request(hypothesis=self._hypothesis(), method=action))
+            return self._outcome(action, self._result(res, res.hypothesis if res.success else None), started)
+        if act.kind == Kind.PICK:
+            res = self._call("pick", Pick.Request(hypothesis=self._hypothesis()))
+            result = self._result(res, None)
+            result.picked = bool(res.picked) if res.success else None
+            return self._outcome(action, result, started)
+        raise ValueError(f"action {action!r} is a {act.kind.value} block, which is not an action")
+
+    def snapshot(self) -> Any:
+        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.stamp, self.frame_id)
+
+    def restore(self, state: Any) -> None:
+        self.pose, scores, rng_state, self.stamp, self.frame_id = state
+        self.scores = dict(scores)
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = rng_state
+
+    @property
+    def stamp_ns(self) -> int:
+        return 0 if self.stamp is None else stamp_to_nanoseconds(self.stamp)

@@ -1,0 +1,47 @@
+"""scoring_node: serves `score_hypothesis` (ScoreHypothesis.srv), the scores an agent decides on.
+
+`methods` are scoring blocks (empty = the pipeline's scoring set); the answer is the hypothesis
+with `scores` / `score_names` filled, in the order of the blocks' score names. A block that
+cannot score this hypothesis (e.g. it projects outside the image) gives NaN for its scores,
+as in-process, and is named in the message; the request still succeeds.
+
+Parameters: those of every operator node (operator_node.py).
+"""
+from __future__ import annotations
+
+import math
+
+from perception_config_interfaces.srv import ScoreHypothesis
+
+from ..blocks.base import Kind
+from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
+
+
+class ScoringNode(OperatorNode):
+    def __init__(self) -> None:
+        super().__init__("scoring_node")
+        self.serve(ScoreHypothesis, "score_hypothesis", self._on_score)
+        self.get_logger().info(f"serving score_hypothesis ({', '.join(self.pipeline.score_names)})")
+
+    def _on_score(self, request: ScoreHypothesis.Request, response: ScoreHypothesis.Response) -> None:
+        stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
+        blocks = list(self.pipeline.scoring) if not request.methods else [self.block(m, (Kind.SCORING,))[1] for m in request.methods]
+        scores: dict[str, float] = {}
+        failed: list[str] = []
+        header = request.hypothesis.header
+        for block in blocks:
+            result, header = self.run_block(block, stamp_ns, object_id, pose)
+            for name in block.score_names:
+                scores[name] = float(result.scores.get(name, math.nan)) if result.ok else math.nan
+            if not result.ok:
+                failed.append(f"{block.name}: {result.reason}")
+        response.hypothesis = make_hypothesis(header, object_id, pose, scores)
+        response.message = "ok" if not failed else "scored; NaN from " + "; ".join(failed)
+
+
+def main(args: list[str] | None = None) -> None:
+    spin(ScoringNode, args)
+
+
+if __name__ == "__main__":
+    main()
