@@ -177,6 +177,40 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.set_defaults(func=_cmd_train)
 
 
+def _cmd_launch(args: argparse.Namespace) -> int:
+    from .launch import parse_nodes, resolve_nodes, run
+
+    specs = resolve_nodes(
+        parse_nodes(args.nodes) if args.nodes else None, models=args.models, pipeline=args.pipeline,
+        policy=args.policy, bag=args.bag, rate=args.rate, params_file=args.params_file,
+        say=lambda text: print(f"[launch] {text}", flush=True),
+    )
+    return run(specs, log_dir=args.log_dir)
+
+
+def _add_launch_parser(sub: argparse._SubParsersAction) -> None:
+    la = sub.add_parser(
+        "launch", help="start the ROS 2 nodes as processes, stream their logs, stop them on Ctrl-C",
+        description="Start the nodes as separate processes with the loopback ROS defaults; their output is "
+                    "printed as [node_name] lines. Ctrl-C or SIGTERM stops them all (SIGINT, then SIGKILL after "
+                    "10 s; exit 0 if all stopped cleanly). A node that dies stops the others (exit 1).",
+    )
+    la.add_argument("--nodes", default=None, metavar="LIST",
+                    help="comma-separated, from: generation, refinement, scoring, pick, configurator, bag_replay "
+                         "(default: generation,refinement,scoring,pick,configurator)")
+    la.add_argument("--models", type=Path, default=None, metavar="DIR",
+                    help="BOP models folder (default: data/default/models, else the procedural parts in data/parts_models)")
+    la.add_argument("--pipeline", type=Path, default=None, metavar="YAML", help="pipeline YAML (default: the built-in one)")
+    la.add_argument("--policy", default=None, metavar="FILE|none",
+                    help="configurator policy (default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")
+    la.add_argument("--bag", type=Path, default=None, metavar="FILE", help="also start bag_replay_node on this MCAP bag")
+    la.add_argument("--rate", type=float, default=None, metavar="R", help="bag_replay_node's replay rate")
+    la.add_argument("--params-file", type=Path, default=None, metavar="YAML",
+                    help="ROS params file passed to every node; the options above win over it")
+    la.add_argument("--log-dir", type=Path, default=None, metavar="DIR", help="also write each node's output to DIR/<node>.log")
+    la.set_defaults(func=_cmd_launch)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="perception-config", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -234,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
             c.add_argument("--applications", type=int, default=5, help="max applications of the refiner")
     _add_train_parser(sub)
     _add_evaluate_parser(sub)
+    _add_launch_parser(sub)
     return p
 
 

@@ -40,10 +40,16 @@ class Episode:
 
 
 def draw_seed(rng: np.random.Generator) -> int:
-    """The seed of one generator call, drawn from the episode's stream (never 0: 0 = "draw one"
-    in GenerateHypothesis). Both backends draw generator seeds this way, so an episode with the
-    same seed starts from the same hypotheses in-process and through ROS."""
+    """The seed of one stochastic block call, drawn from an episode stream (never 0: 0 = "draw
+    one" in the services). Both backends seed every generator call from the episode's stream
+    and every refiner call (D2CO samples contour points) from a second stream of the episode
+    (`refiner_stream`), so an episode with the same seed computes the same hypotheses in-process
+    and through ROS, and refiners do not shift the generator's draws."""
     return int(rng.integers(1, 2**32))
+
+
+def refiner_stream(episode_seed: int) -> np.random.Generator:
+    return np.random.default_rng([int(episode_seed), 1])
 
 
 class FrameCaches:
@@ -117,6 +123,7 @@ class InProcessOperators:
         self.pose: Pose | None = None
         self.scores: dict[str, float] = {}
         self.rng = np.random.default_rng(0)
+        self.refiner_rng = refiner_stream(0)
 
     # -- helpers -------------------------------------------------------------------------
     def _input(self, pose: Pose | None, rng: np.random.Generator | None = None) -> BlockInput:
@@ -163,6 +170,7 @@ class InProcessOperators:
     def start(self, episode: Episode) -> StepOutcome:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
+        self.refiner_rng = refiner_stream(episode.seed)
         self.pose, self.scores = None, {}
         result = self._generate(self._generator(episode.noise_lambda))
         return self._outcome("generate", result)
@@ -174,14 +182,17 @@ class InProcessOperators:
             assert self.episode is not None
             block = self._generator(self.episode.noise_lambda) if block.name == self.pipeline.generator.name else block
             return self._outcome(action, self._generate(block))
-        result = block(self._input(self.pose))
+        rng = np.random.default_rng(draw_seed(self.refiner_rng)) if block.kind == Kind.REFINEMENT else None
+        result = block(self._input(self.pose, rng))
         return self._outcome(action, result)
 
     def snapshot(self) -> Any:
-        return (self.pose, dict(self.scores), self.rng.bit_generator.state)
+        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state)
 
     def restore(self, state: Any) -> None:
-        self.pose, scores, rng_state = state
+        self.pose, scores, rng_state, refiner_state = state
         self.scores = dict(scores)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = rng_state
+        self.refiner_rng = np.random.default_rng()
+        self.refiner_rng.bit_generator.state = refiner_state

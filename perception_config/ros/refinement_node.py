@@ -4,11 +4,14 @@
 or a registered refinement block with its defaults (`icp_point_to_plane`, `d2co`, ...). The
 hypothesis' header.stamp names the camera frame (zero = the latest). A refiner that fails (no
 depth where the model is, diverged) answers success=false with its reason; the hypothesis is
-then the one sent.
+then the one sent. `seed` seeds a stochastic refiner (D2CO samples model contour points;
+0 = draw one).
 
 Parameters: those of every operator node (operator_node.py).
 """
 from __future__ import annotations
+
+import numpy as np
 
 from perception_config_interfaces.srv import RefineHypothesis
 
@@ -28,7 +31,8 @@ class RefinementNode(OperatorNode):
         if not request.method:
             raise ValueError("method is empty: name a refinement action of the pipeline or a refinement block")
         method, block = self.block(request.method, (Kind.REFINEMENT,))
-        result, header = self.run_block(block, stamp_ns, object_id, pose)
+        rng = np.random.default_rng(request.seed if request.seed else None)
+        result, header = self.run_block(block, stamp_ns, object_id, pose, rng)
         response.hypothesis = make_hypothesis(header, object_id, pose)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")

@@ -1,9 +1,8 @@
 """The ROS backend of the environment's Operators interface (perception_config/operators.py).
 
 The same calls InProcessOperators makes, as service requests to the operator nodes: the
-generator at the start and for a generation action (generate_hypothesis, with a seed drawn
-from the episode's stream exactly as in-process), a refinement action (refine_hypothesis with
-the action's name), the pick (pick), and the scoring set after each (score_hypothesis). The
+generator at the start and for a generation action (generate_hypothesis), a refinement action (refine_hypothesis with
+the action's name), each with a seed drawn from the episode's streams exactly as in-process, the pick (pick), and the scoring set after each (score_hypothesis). The
 hypothesis lives here and travels with each request; the images stay in the operator nodes,
 named by the frame's stamp (the generator resolves "latest" and every later call uses the
 stamp it answered with).
@@ -35,7 +34,7 @@ from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHyp
 from ..blocks.base import BlockResult, Kind
 from ..blocks.pipeline import Pipeline
 from ..geometry import Pose
-from ..operators import Episode, StepOutcome, draw_seed
+from ..operators import Episode, StepOutcome, draw_seed, refiner_stream
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 
 SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis", "pick": "pick"}
@@ -63,6 +62,7 @@ class RosOperators:
         self.stamp = None  # builtin_interfaces/Time of the episode's frame, once resolved
         self.frame_id = ""
         self.rng = np.random.default_rng(0)
+        self.refiner_rng = refiner_stream(0)
         self.round_trips: list[tuple[str, float]] = []  # (service, seconds) of every call, for benchmarks
 
     # -- calls -------------------------------------------------------------------------------
@@ -139,6 +139,7 @@ class RosOperators:
     def start(self, episode: Episode) -> StepOutcome:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
+        self.refiner_rng = refiner_stream(episode.seed)
         self.pose, self.scores = None, {}
         self.stamp, self.frame_id = None, ""
         started = time.perf_counter()
@@ -152,7 +153,8 @@ class RosOperators:
         if self.pose is None:
             return self._outcome(action, BlockResult.fail("no hypothesis to work on"), started)
         if act.kind == Kind.REFINEMENT:
-            res = self._call("refine", RefineHypothesis.Request(hypothesis=self._hypothesis(), method=action))
+            res = self._call("refine", RefineHypothesis.Request(hypothesis=self._hypothesis(), method=action,
+                                                                 seed=draw_seed(self.refiner_rng)))
             return self._outcome(action, self._result(res, res.hypothesis if res.success else None), started)
         if act.kind == Kind.PICK:
             res = self._call("pick", Pick.Request(hypothesis=self._hypothesis()))
@@ -162,13 +164,16 @@ class RosOperators:
         raise ValueError(f"action {action!r} is a {act.kind.value} block, which is not an action")
 
     def snapshot(self) -> Any:
-        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.stamp, self.frame_id)
+        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state,
+                self.stamp, self.frame_id)
 
     def restore(self, state: Any) -> None:
-        self.pose, scores, rng_state, self.stamp, self.frame_id = state
+        self.pose, scores, rng_state, refiner_state, self.stamp, self.frame_id = state
         self.scores = dict(scores)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = rng_state
+        self.refiner_rng = np.random.default_rng()
+        self.refiner_rng.bit_generator.state = refiner_state
 
     @property
     def stamp_ns(self) -> int:

@@ -1,0 +1,329 @@
+"""perception-config launch: real node processes (generation_node) started by the Launcher class
+and by the CLI, prefixed log streaming, clean SIGINT shutdown, a dead node reported, a missing
+console script refused, and the defaults of the full node set resolved without spawning it."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from perception_config import cli
+from perception_config import launch
+from perception_config.launch import Launcher, NodeSpec, param_value, resolve_nodes
+from ros_helpers import call, wait_for_service
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _models(folder: Path, n: int) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "models_info.json").write_text(json.dumps({str(i + 1): {"diameter": 100.0} for i in range(n)}))
+    return folder
+
+
+def _script(path: Path, body: str) -> str:
+    path.write_text("#!/bin/sh\n" + body)
+    path.chmod(0o755)
+    return str(path)
+
+
+# -- the Launcher class with a real generation_node ------------------------------------------
+@pytest.fixture(scope="module")
+def parts_models(tmp_path_factory) -> Path:
+    from perception_config.datasets.parts import write_models
+
+    return write_models(tmp_path_factory.mktemp("parts") / "models")
+
+
+def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(ros_node, parts_models, tmp_path,
+                                                                                 monkeypatch):
+    from perception_config_interfaces.srv import GenerateHypothesis
+    from rcl_interfaces.srv import GetParameters
+
+    monkeypatch.delenv("PYTHONUNBUFFERED", raising=False)  # the launcher must set it itself
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text(
+        f"generation_node:\n  ros__parameters:\n    models_dir: '{_models(tmp_path / 'other', 1)}'\n"
+        "/**:\n  ros__parameters:\n    frame_timeout: 0.25\n"
+    )
+    out = io.StringIO()
+    launcher = Launcher([NodeSpec("generation_node", params={"models_dir": str(parts_models)}, params_file=params_file)],
+                        log_dir=tmp_path / "logs", out=out)
+    with launcher:
+        launcher.wait_for_line("generation_node", "serving generate_hypothesis", timeout=30)
+        pid = launcher.pid("generation_node")
+        environ = dict(kv.split("=", 1) for kv in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in kv)
+        assert environ["ROS_DOMAIN_ID"] == os.environ["ROS_DOMAIN_ID"]
+        assert environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+        assert environ["FASTDDS_DEFAULT_PROFILES_FILE"].endswith("fastdds_profile.xml")
+        assert environ["PYTHONUNBUFFERED"] == "1"
+        assert os.getsid(pid) != os.getsid(0), "a child must run in its own session"
+
+        service = ros_node.create_client(GenerateHypothesis, "generate_hypothesis")
+        params = ros_node.create_client(GetParameters, "generation_node/get_parameters")
+        try:
+            wait_for_service(ros_node, service, timeout=20)
+            answer = call(ros_node, service, GenerateHypothesis.Request(object_id="no_such_object", noise_lambda=0.1))
+            assert not answer.success and answer.message  # it answers (and refuses an unknown object)
+            wait_for_service(ros_node, params, timeout=20)
+            values = call(ros_node, params, GetParameters.Request(names=["models_dir", "frame_timeout"])).values
+        finally:
+            ros_node.destroy_client(service)
+            ros_node.destroy_client(params)
+        assert values[0].string_value == str(parts_models), "-p must win over the params file"
+        assert values[1].double_value == pytest.approx(0.25), "the params file must reach the node"
+        assert launcher.running() == ["generation_node"]
+    assert launcher.returncode("generation_node") == 0
+    text = out.getvalue()
+    assert re.search(r"^\[generation_node\] \[INFO\] .*serving generate_hypothesis", text, re.M), text
+    assert "[launch] started generation_node (pid " in text
+    assert "[launch] generation_node exited (exit code 0)" in text
+    log = (tmp_path / "logs" / "generation_node.log").read_text()
+    assert "serving generate_hypothesis" in log and "[generation_node] [INFO]" not in log  # unprefixed in the file
+
+
+# -- supervision logic with small stand-in executables (fast, no ROS) --------------------------
+def test_a_dead_node_stops_the_others_and_a_finished_bag_replay_does_not(tmp_path):
+    polite = _script(tmp_path / "polite", "trap 'echo got SIGINT; exit 0' INT\necho up\nwhile true; do sleep 0.05; done\n")
+    stubborn = _script(tmp_path / "stubborn", "trap '' INT\necho up\nwhile true; do sleep 0.05; done\n")
+    bag = _script(tmp_path / "bag_replay_node", "echo replayed 3 frames\n")
+    crash = _script(tmp_path / "crash", "sleep 0.3\necho boom\nexit 3\n")
+
+    out = io.StringIO()
+    launcher = Launcher([NodeSpec("polite", polite), NodeSpec("bag_replay_node", bag)], out=out)
+    launcher.start()
+    try:
+        assert launcher.wait(timeout=1.5) is None, out.getvalue()  # the bag finished, the other keeps running
+        assert launcher.running() == ["polite"]
+        assert "[launch] bag_replay_node finished (exit code 0)" in out.getvalue()
+        assert "[bag_replay_node] replayed 3 frames" in out.getvalue()
+        launcher.request_stop()
+        assert launcher.wait() == 0
+    finally:
+        launcher.stop()
+    assert "[polite] got SIGINT" in out.getvalue() and "[launch] polite exited (exit code 0)" in out.getvalue()
+
+    out = io.StringIO()
+    launcher = Launcher([NodeSpec("polite", polite), NodeSpec("stubborn", stubborn), NodeSpec("crash", crash)],
+                        out=out, stop_timeout=1.0)
+    launcher.start()
+    try:
+        launcher.wait_for_line("stubborn", "up", timeout=10)
+        assert launcher.wait(timeout=20) == 1
+        assert launcher.running() == [], "a death must stop the other nodes"
+    finally:
+        launcher.stop()
+    text = out.getvalue()
+    assert text.index("[crash] boom") < text.index("[launch] crash died (exit code 3)"), text
+    assert "[launch] polite exited (exit code 0)" in text
+    assert "[launch] stubborn: killed with SIGKILL after not stopping on SIGINT" in text
+    assert launcher.returncode("stubborn") == -signal.SIGKILL
+
+    # Exit code 0 is "finished" only for bag_replay_node: any other node exiting is a death.
+    out = io.StringIO()
+    launcher = Launcher([NodeSpec("quitter", _script(tmp_path / "quitter", "exit 0\n"))], out=out)
+    launcher.start()
+    try:
+        assert launcher.wait(timeout=20) == 1
+    finally:
+        launcher.stop()
+    assert "[launch] quitter died (exit code 0)" in out.getvalue()
+
+
+def test_missing_console_script_exits_2_before_starting_anything(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(launch.NODE_EXECUTABLES, "pick", "no_such_pick_node")
+    models = _models(tmp_path / "models", 1)
+    code = cli.main(["launch", "--nodes", "generation,pick", "--models", str(models)])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert "no_such_pick_node" in captured.err and "./scripts/test.sh" in captured.err
+    assert "[launch] started" not in captured.out  # generation_node was not started either
+
+
+# -- the CLI as a process ----------------------------------------------------------------------
+class _Cli:
+    """`python -m perception_config.cli launch ...` (this checkout's code) with its output collected."""
+
+    def __init__(self, args: list[str], cwd: Path) -> None:
+        env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        # Its own process group, like a shell job: killpg below is a terminal's Ctrl-C.
+        self.proc = subprocess.Popen([sys.executable, "-m", "perception_config.cli", "launch", *args], cwd=cwd, env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True)
+        self._reader.start()
+
+    def wait_for(self, pattern: str, timeout: float = 30.0) -> re.Match:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in list(self.lines):
+                if m := re.search(pattern, line):
+                    return m
+            if self.proc.poll() is not None and not self._reader.is_alive():
+                break
+            time.sleep(0.05)
+        raise AssertionError(f"no line matching {pattern!r}:\n{self.output()}")
+
+    def finish(self, timeout: float = 30.0) -> int:
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"the launcher did not exit within {timeout} s:\n{self.output()}")
+        self._reader.join(5)
+        return code
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+
+def _gone(pid: int) -> bool:
+    """Exited (a zombie counts: in a container nobody may reap an orphan)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+
+
+def _cleanup(launcher: "_Cli", pid: int | None) -> None:
+    """After a failed assertion: Ctrl-C the launcher, then kill it and its node."""
+    if launcher.proc.poll() is None:
+        os.killpg(launcher.proc.pid, signal.SIGINT)
+        try:
+            launcher.proc.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(launcher.proc.pid, signal.SIGKILL)
+    if pid is not None and not _gone(pid):
+        os.kill(pid, signal.SIGKILL)
+
+
+def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
+    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models), "--log-dir", str(tmp_path / "logs")], tmp_path)
+    pid = None
+    try:
+        pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
+        launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
+        os.killpg(launcher.proc.pid, signal.SIGINT)  # a terminal's Ctrl-C: the launcher's group only
+        code = launcher.finish()
+    finally:
+        _cleanup(launcher, pid)
+    text = launcher.output()
+    assert code == 0, text
+    assert "[launch] stopping all nodes" in text and "[launch] generation_node exited (exit code 0)" in text
+    assert _gone(pid)
+    assert "serving generate_hypothesis" in (tmp_path / "logs" / "generation_node.log").read_text()
+
+
+def test_cli_reports_a_killed_node_as_died_and_exits_1(parts_models, tmp_path):
+    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
+    pid = None
+    try:
+        pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
+        launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
+        os.kill(pid, signal.SIGKILL)
+        code = launcher.finish()
+    finally:
+        _cleanup(launcher, pid)
+    assert code == 1, launcher.output()
+    assert "[launch] generation_node died (exit code -9: killed by SIGKILL)" in launcher.output()
+
+
+def test_nodes_do_not_outlive_a_killed_launcher(parts_models, tmp_path):
+    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
+    pid = None
+    try:
+        pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
+        launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
+        os.killpg(launcher.proc.pid, signal.SIGKILL)  # the launcher's group: not the node's session
+        launcher.finish()
+        deadline = time.monotonic() + 10
+        while not _gone(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _gone(pid), "the node outlived its launcher"
+    finally:
+        _cleanup(launcher, pid)
+
+
+# -- default resolution of the full node set (command lines only; nothing is spawned) -----------
+def _p(spec: NodeSpec) -> dict[str, str]:
+    cmd = spec.command()
+    return dict(cmd[i + 1].split(":=", 1) for i, a in enumerate(cmd) if a == "-p")
+
+
+def test_defaults_full_set_newest_policy_and_absolute_paths(tmp_path):
+    models = _models(tmp_path / "data" / "default" / "models", 2)
+    for run, age in (("old", 100), ("new", 10), ("older", 200)):
+        policy = tmp_path / "runs" / run / "policy.safetensors"
+        policy.parent.mkdir(parents=True)
+        policy.write_bytes(b"x")
+        os.utime(policy, (time.time() - age, time.time() - age))
+    (tmp_path / "replay.mcap").write_bytes(b"")
+    said: list[str] = []
+    specs = resolve_nodes(cwd=tmp_path, bag="replay.mcap", rate=2, say=said.append)
+
+    assert [s.name for s in specs] == ["generation_node", "refinement_node", "scoring_node", "pick_node",
+                                       "configurator_node", "bag_replay_node"]
+    assert [s.executable for s in specs] == [s.name for s in specs]
+    for spec in specs[:5]:
+        assert spec.command()[:2] == [spec.name, "--ros-args"]
+        assert _p(spec)["models_dir"] == str(models.resolve())
+    assert "policy" not in _p(specs[0])
+    assert _p(specs[4])["policy"] == str((tmp_path / "runs" / "new" / "policy.safetensors").resolve())
+    assert any("runs/new/policy.safetensors" in s for s in said), said
+    assert _p(specs[5]) == {"bag": str((tmp_path / "replay.mcap").resolve()), "rate": "2.0"}
+    assert specs[5].may_finish and not specs[0].may_finish
+
+
+def test_defaults_no_policy_none_and_models_fallback(tmp_path):
+    said: list[str] = []
+    specs = resolve_nodes(["configurator"], cwd=tmp_path, say=said.append)
+    assert _p(specs[0])["policy"] == "''"  # empty string: the fixed pipeline
+    assert any("policy: none" in s for s in said), said
+    # models fallback: the procedural parts written into data/parts_models, and said so
+    fallback = (tmp_path / "data" / "parts_models").resolve()
+    assert _p(specs[0])["models_dir"] == str(fallback)
+    assert (fallback / "models_info.json").is_file() and len(list(fallback.glob("obj_*.ply"))) == 6
+    assert any("data/default/models not found" in s for s in said), said
+
+    policy = tmp_path / "runs" / "a" / "policy.safetensors"
+    policy.parent.mkdir(parents=True)
+    policy.write_bytes(b"x")
+    specs = resolve_nodes(["configurator"], cwd=tmp_path, policy="none", say=said.append)
+    assert _p(specs[0])["policy"] == "''"
+    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+        resolve_nodes(["configurator"], cwd=tmp_path, policy="missing.safetensors", say=said.append)
+
+
+def test_params_file_wins_over_defaults_and_explicit_options_win_over_it(tmp_path):
+    _models(tmp_path / "data" / "default" / "models", 1)
+    explicit = _models(tmp_path / "mine", 1)
+    (tmp_path / "pipe.yaml").write_text("actions: []\n")
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    models_dir: /elsewhere\n"
+                      "configurator_node:\n  ros__parameters:\n    policy: /p.safetensors\n")
+    specs = resolve_nodes(["generation", "configurator"], cwd=tmp_path, params_file="params.yaml", say=lambda _: None)
+    for spec in specs:
+        assert spec.command()[2:4] == ["--params-file", str(params.resolve())]
+        assert "models_dir" not in _p(spec) and "policy" not in _p(spec)  # the file's values stand
+
+    specs = resolve_nodes(["generation", "configurator"], cwd=tmp_path, params_file=params, models="mine",
+                          pipeline="pipe.yaml", policy="none", say=lambda _: None)
+    cmd = specs[1].command()
+    assert cmd.index("--params-file") < cmd.index("-p")  # -p after the file: the options win
+    assert _p(specs[1]) == {"models_dir": str(explicit.resolve()), "pipeline": str((tmp_path / "pipe.yaml").resolve()),
+                            "policy": "''"}
+
+
+def test_parameter_values_keep_their_types():
+    assert param_value("") == "''" and param_value("123") == "'123'" and param_value("true") == "'true'"
+    assert param_value("/a b/c.yaml") == "/a b/c.yaml"
+    assert param_value(2.0) == "2.0" and param_value(3) == "3" and param_value(True) == "true"
+    assert param_value(Path("/x")) == "/x"
