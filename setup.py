@@ -132,6 +132,11 @@ setup(
         "console_scripts": [
             "perception-config = perception_config.cli:main",
             "generation_node = perception_config.ros.generation_node:main",
+            "refinement_node = perception_config.ros.refinement_node:main",
+            "scoring_node = perception_config.ros.scoring_node:main",
+            "pick_node = perception_config.ros.pick_node:main",
+            "configurator_node = perception_config.ros.configurator_node:main",
+            "bag_replay_node = perception_config.ros.bag_replay_node:main",
         ],
     },
 )

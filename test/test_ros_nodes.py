@@ -70,7 +70,7 @@ def cell(data, tmp_path_factory, ros_node):
     finally:
         for name, node in nodes.items():
             code = node.stop()
-            if name != "scoring_node":  # killed on purpose by the last test
+            if name != "refinement_node":  # killed on purpose by the last test
                 assert code == 0, f"{name} did not stop cleanly (exit {code}):\n{node.output()}"
 
 
@@ -318,14 +318,14 @@ def test_a_node_that_dies_fails_the_estimate_and_the_configurator_keeps_serving(
     from perception_config_interfaces.srv import EstimatePose
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
-    cell["nodes"]["scoring_node"].proc.kill()  # SIGKILL: no goodbye to the other participants
-    cell["nodes"]["scoring_node"].proc.wait(5)
+    cell["nodes"]["refinement_node"].proc.kill()  # SIGKILL: no goodbye to the other participants
+    cell["nodes"]["refinement_node"].proc.wait(5)
     obj = cell["frames"][stamp_ns(0)].objects[0]
     for _ in range(2):
         req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4)
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
         t0 = time.monotonic()
         res = call(ros_node, est, req, timeout=30)
-        assert not res.success and "score_hypothesis" in res.message and "scoring_node" in res.message, res.message
+        assert not res.success and "refine_hypothesis" in res.message and "refinement_node" in res.message, res.message
         assert time.monotonic() - t0 < 5.0 + 3.0  # operator_timeout + margin
     assert cell["nodes"]["configurator_node"].alive()

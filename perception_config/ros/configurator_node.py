@@ -22,6 +22,9 @@ Parameters:
   max_ops           operators per estimate (0 = the policy's training value, else 10)
   noise_lambda      lambda of simulated initialisation when a request does not give one (0.5)
   operator_timeout  seconds to wait for one operator call (10.0)
+  fused_scoring     the generation and refinement nodes score their own result in the same call
+                    (true: one round trip per action); false: every scoring is a call to
+                    scoring_node (ros_operators.py)
   auto, auto_objects, camera_qos   see above
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 """
@@ -66,12 +69,13 @@ class ConfiguratorNode(Node):
         self.declare_parameter("max_ops", 0)
         self.declare_parameter("noise_lambda", 0.5)
         self.declare_parameter("operator_timeout", 10.0)
+        self.declare_parameter("fused_scoring", True)
         self.declare_parameter("auto", False)
         self.declare_parameter("auto_objects", [""])
         self.declare_parameter("camera_qos", "reliable")
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
-            "auto", "auto_objects", "camera_qos")}
+            "fused_scoring", "auto", "auto_objects", "camera_qos")}
 
         if not p["models_dir"]:
             raise ValueError("models_dir is not set: give the BOP models folder the operator nodes use")
@@ -85,7 +89,7 @@ class ConfiguratorNode(Node):
         self.default_lambda = float(p["noise_lambda"])
         if not (math.isfinite(self.default_lambda) and 0 <= self.default_lambda <= LAMBDA_MAX):
             raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}], got {self.default_lambda}")
-        self.operators = RosOperators(self, pipeline, timeout=float(p["operator_timeout"]))
+        self.operators = RosOperators(self, pipeline, timeout=float(p["operator_timeout"]), fused_scoring=bool(p["fused_scoring"]))
         self.env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=self.operators)
         if policy:
             self.agent = load_agent(policy, self.env)

@@ -9,7 +9,8 @@ object in the camera frame named by `frame.stamp` (zero = the latest).
 Parameters (besides those of every operator node, see operator_node.py):
   default_method  generator used when a request's method is empty (the pipeline's generator)
   default_lambda  noise level of simulated_init when a request's noise_lambda is negative (0.5)
-A request's seed makes simulated_init reproducible (0 = draw one).
+A request's seed makes simulated_init reproducible (0 = draw one); with `score` the hypothesis
+comes back scored by the pipeline's scoring set (the camera frame is then needed too).
 """
 from __future__ import annotations
 
@@ -47,7 +48,10 @@ class GenerationNode(OperatorNode):
         result, header = self.run_block(block, stamp_to_nanoseconds(request.frame.stamp), request.object_id, None, rng)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
-        response.hypothesis = make_hypothesis(header, request.object_id, result.pose)
+        scores = None
+        if request.score:
+            scores = self.score(stamp_to_nanoseconds(header.stamp), request.object_id, result.pose)[0]
+        response.hypothesis = make_hypothesis(header, request.object_id, result.pose, scores)
 
 
 def main(args: list[str] | None = None) -> None:

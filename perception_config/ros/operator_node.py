@@ -18,6 +18,7 @@ an unexpected exception is logged and answered the same way, and the node keeps 
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, Callable
 
@@ -54,6 +55,7 @@ class OperatorNode(Node):
         self.pipeline = load_pipeline(self.param("pipeline") or None)
         models_dir = self.param("models_dir")
         self.models = ModelFolder(models_dir) if models_dir else None
+        self._models: dict[str, ObjectModel] = {}  # by object id, for the node's lifetime
         if self.models is None:
             self.get_logger().warning("models_dir is not set: every request will be refused")
         cache_size = int(self.param("cache_size"))
@@ -95,9 +97,12 @@ class OperatorNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------
     def model(self, object_id: str) -> ObjectModel:
-        if self.models is None:
-            raise ValueError("this node has no models: set its models_dir parameter to a BOP models folder")
-        return self.models.model(object_id)
+        model = self._models.get(object_id)
+        if model is None:
+            if self.models is None:
+                raise ValueError("this node has no models: set its models_dir parameter to a BOP models folder")
+            model = self._models[object_id] = self.models.model(object_id)  # load_model checks the file's mtime
+        return model
 
     def _on_ground_truth(self, msg: ObjectPoses) -> None:
         assert self.ground_truth is not None
@@ -169,6 +174,21 @@ class OperatorNode(Node):
         inp = BlockInput(frame=frame, model=model, pose=pose, ground_truth=gt,
                          rng=rng if rng is not None else np.random.default_rng(), cache=self._block_caches.get(frame))
         return block(inp), header
+
+    def score(self, stamp_ns: int, object_id: str, pose: Pose, blocks: list[Block] | None = None
+              ) -> tuple[dict[str, float], list[str], Header]:
+        """The scores of a hypothesis (the pipeline's scoring set unless `blocks`), NaN for a block
+        that cannot score it (as in-process); the failures; the frame's header."""
+        scores: dict[str, float] = {}
+        failed: list[str] = []
+        header = Header()
+        for block in (self.pipeline.scoring if blocks is None else blocks):
+            result, header = self.run_block(block, stamp_ns, object_id, pose)
+            for name in block.score_names:
+                scores[name] = float(result.scores.get(name, math.nan)) if result.ok else math.nan
+            if not result.ok:
+                failed.append(f"{block.name}: {result.reason}")
+        return scores, failed, header
 
 
 def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:

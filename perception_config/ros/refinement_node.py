@@ -5,7 +5,7 @@ or a registered refinement block with its defaults (`icp_point_to_plane`, `d2co`
 hypothesis' header.stamp names the camera frame (zero = the latest). A refiner that fails (no
 depth where the model is, diverged) answers success=false with its reason; the hypothesis is
 then the one sent. `seed` seeds a stochastic refiner (D2CO samples model contour points;
-0 = draw one).
+0 = draw one). With `score` the result comes back scored by the pipeline's scoring set.
 
 Parameters: those of every operator node (operator_node.py).
 """
@@ -36,7 +36,8 @@ class RefinementNode(OperatorNode):
         response.hypothesis = make_hypothesis(header, object_id, pose)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
-        response.hypothesis = make_hypothesis(header, object_id, result.pose)
+        scores = self.score(stamp_ns, object_id, result.pose)[0] if request.score else None
+        response.hypothesis = make_hypothesis(header, object_id, result.pose, scores)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -7,6 +7,12 @@ hypothesis lives here and travels with each request; the images stay in the oper
 named by the frame's stamp (the generator resolves "latest" and every later call uses the
 stamp it answered with).
 
+Scoring: by default the generation and refinement nodes score their result in the same call
+(`score` in the request: same scoring set, same per-frame caches, one round trip per action
+instead of two); with `fused_scoring=False` every scoring is a score_hypothesis call to the
+scoring node. After a pick or a failed operator the hypothesis is unchanged, and so are its
+scores (scoring is deterministic): no call.
+
 Time: `StepOutcome.elapsed` is the wall time of the round trips (what the robot cell waits),
 `result.elapsed` the node's own compute time.
 
@@ -21,6 +27,7 @@ callback group).
 from __future__ import annotations
 
 import math
+from collections import deque
 import time
 from typing import Any
 
@@ -47,11 +54,12 @@ class OperatorCallError(RuntimeError):
 
 class RosOperators:
     def __init__(self, node: Node, pipeline: Pipeline, timeout: float = 10.0,
-                 services: dict[str, str] | None = None) -> None:
+                 services: dict[str, str] | None = None, fused_scoring: bool = True) -> None:
         if not (math.isfinite(timeout) and timeout > 0):
             raise ValueError(f"operator timeout must be > 0 seconds, got {timeout}")
         self.pipeline = pipeline
         self.timeout = float(timeout)
+        self.fused_scoring = bool(fused_scoring)
         names = {**SERVICES, **(services or {})}
         group = ReentrantCallbackGroup()
         types = {"generate": GenerateHypothesis, "refine": RefineHypothesis, "score": ScoreHypothesis, "pick": Pick}
@@ -63,7 +71,8 @@ class RosOperators:
         self.frame_id = ""
         self.rng = np.random.default_rng(0)
         self.refiner_rng = refiner_stream(0)
-        self.round_trips: list[tuple[str, float]] = []  # (service, seconds) of every call, for benchmarks
+        # (service, round trip s, the node's own s) of every call, for benchmarks and diagnostics
+        self.round_trips: deque[tuple[str, float, float]] = deque(maxlen=10_000)
 
     # -- calls -------------------------------------------------------------------------------
     def _call(self, which: str, request: Any) -> Any:
@@ -79,7 +88,7 @@ class RosOperators:
                                     f"({NODES[which]} busy or died)") from None
         if response is None:
             raise OperatorCallError(f"{client.srv_name} gave no answer (shutting down?)")
-        self.round_trips.append((which, time.perf_counter() - start))
+        self.round_trips.append((which, time.perf_counter() - start, float(response.elapsed)))
         return response
 
     def _hypothesis(self) -> Hypothesis:
@@ -96,17 +105,20 @@ class RosOperators:
         if not response.success:
             return BlockResult(ok=False, reason=response.message, elapsed=float(response.elapsed))
         pose = None
+        scores: dict[str, float] = {}
         if pose_from is not None:
             try:
                 pose = msg_to_pose(pose_from.pose)
             except ValueError as exc:
                 return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
-        return BlockResult(ok=True, pose=pose, elapsed=float(response.elapsed))
+            scores = dict(zip(pose_from.score_names, pose_from.scores))  # when asked for (fused scoring)
+        return BlockResult(ok=True, pose=pose, scores=scores, elapsed=float(response.elapsed))
 
     def _generate(self, method: str) -> BlockResult:
         assert self.episode is not None
         req = GenerateHypothesis.Request(object_id=str(self.episode.model.obj_id), method=method,
-                                         noise_lambda=float(self.episode.noise_lambda), seed=draw_seed(self.rng))
+                                         noise_lambda=float(self.episode.noise_lambda), seed=draw_seed(self.rng),
+                                         score=self.fused_scoring)
         if self.stamp is not None:
             req.frame.stamp = self.stamp
         else:
@@ -128,10 +140,18 @@ class RosOperators:
         return {n: float(got.get(n, math.nan)) for n in names}
 
     def _outcome(self, action: str, result: BlockResult, started: float) -> StepOutcome:
+        t_score = time.perf_counter()
+        names = self.pipeline.score_names
         if result.ok and result.pose is not None:
             self.pose = result.pose
-        t_score = time.perf_counter()
-        self.scores = self._score()
+            if self.fused_scoring and set(names) <= set(result.scores):  # scored by the operator's node
+                self.scores = {n: float(result.scores[n]) for n in names}
+            else:
+                self.scores = self._score()
+        elif not self.scores:
+            self.scores = self._score()
+        # else: the hypothesis did not change (a pick, a failed operator): scoring is deterministic,
+        # so the scores are the ones it already has, and a round trip is saved.
         now = time.perf_counter()
         return StepOutcome(action, result, dict(self.scores), self.pose, now - started, now - t_score)
 
@@ -154,7 +174,7 @@ class RosOperators:
             return self._outcome(action, BlockResult.fail("no hypothesis to work on"), started)
         if act.kind == Kind.REFINEMENT:
             res = self._call("refine", RefineHypothesis.Request(hypothesis=self._hypothesis(), method=action,
-                                                                 seed=draw_seed(self.refiner_rng)))
+                                                                 seed=draw_seed(self.refiner_rng), score=self.fused_scoring))
             return self._outcome(action, self._result(res, res.hypothesis if res.success else None), started)
         if act.kind == Kind.PICK:
             res = self._call("pick", Pick.Request(hypothesis=self._hypothesis()))

@@ -9,8 +9,6 @@ Parameters: those of every operator node (operator_node.py).
 """
 from __future__ import annotations
 
-import math
-
 from perception_config_interfaces.srv import ScoreHypothesis
 
 from ..blocks.base import Kind
@@ -25,19 +23,10 @@ class ScoringNode(OperatorNode):
 
     def _on_score(self, request: ScoreHypothesis.Request, response: ScoreHypothesis.Response) -> None:
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
-        blocks = list(self.pipeline.scoring) if not request.methods else [self.block(m, (Kind.SCORING,))[1] for m in request.methods]
-        scores: dict[str, float] = {}
-        failed: list[str] = []
-        header = request.hypothesis.header
-        for block in blocks:
-            result, header = self.run_block(block, stamp_ns, object_id, pose)
-            for name in block.score_names:
-                scores[name] = float(result.scores.get(name, math.nan)) if result.ok else math.nan
-            if not result.ok:
-                failed.append(f"{block.name}: {result.reason}")
+        blocks = None if not request.methods else [self.block(m, (Kind.SCORING,))[1] for m in request.methods]
+        scores, failed, header = self.score(stamp_ns, object_id, pose, blocks)
         response.hypothesis = make_hypothesis(header, object_id, pose, scores)
         response.message = "ok" if not failed else "scored; NaN from " + "; ".join(failed)
-
 
 def main(args: list[str] | None = None) -> None:
     spin(ScoringNode, args)

@@ -1,0 +1,201 @@
+"""The same episodes through ROS services and in-process, and the round trip of each operator call.
+
+    .venv/bin/python benchmarks/bench_ros.py [--dataset data/default] [--policy FILE] [--images 6] [--out FILE.json]
+
+The four operator nodes run as separate processes (started with the launcher); this process
+publishes the dataset's test images (camera topics + ground truth) once, then runs every episode
+(object with visib_fract >= 0.3, lambda 0.5, seeded) twice, interleaved so machine noise hits both
+alike: in-process (InProcessOperators) and through ROS (RosOperators: every operator call a
+service request, an executor spinning in a second thread, as in configurator_node). The agent is
+the policy (default: the newest runs/*/policy.safetensors) or the fixed pipeline.
+
+Reported: the operator time of the whole set (each action plus the scoring after it), ROS over
+in-process (target <= 1.10x); per action the median seconds on both sides; per service the
+median round trip, the node's own time and the difference (middleware + rclpy). Writes JSON.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/open3d start their thread pools
+
+import argparse
+import json
+import platform
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import perception_config.ros  # noqa: E402,F401  (loopback defaults before rclpy)
+import rclpy  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+
+
+def newest_policy() -> Path | None:
+    found = sorted((REPO / "runs").glob("*/policy.safetensors"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
+
+
+def publish_frames(node, ds, keys) -> dict:
+    from perception_config_interfaces.msg import ObjectPoses
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
+
+    pubs = [node.create_publisher(t, n, 10) for t, n in (
+        (ObjectPoses, "perception/ground_truth"), (CameraInfo, "camera/camera_info"),
+        (Image, "camera/depth/image_raw"), (Image, "camera/color/image_raw"))]
+    deadline = time.monotonic() + 30
+    while any(p.get_subscription_count() < (2 if i == 0 else 4) for i, p in enumerate(pubs)):
+        if time.monotonic() > deadline:
+            raise RuntimeError("the operator nodes' subscriptions did not match within 30 s")
+        time.sleep(0.05)
+    stamps = {}
+    for i, key in enumerate(keys):
+        frame = ds.load_frame(*key)
+        stamp = (1_700_000_000 + i) * 1_000_000_000
+        color, depth, info = frame_to_msgs(frame, stamp)
+        gt = ObjectPoses(header=color.header, object_ids=[str(o.obj_id) for o in frame.objects],
+                         poses=[pose_to_msg(o.gt) for o in frame.objects])
+        for pub, msg in zip(pubs, (gt, info, depth, color)):
+            pub.publish(msg)
+        stamps[key] = stamp
+        time.sleep(0.05)
+    time.sleep(0.5)
+    return stamps
+
+
+def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], bool]:
+    from perception_config.agents.base import acting_seed
+
+    obs, info = env.reset(options={"episode": episode, "lambda": lam, "episode_seed": seed})
+    agent.begin_episode(acting_seed(seed))
+    names, seconds, terminated, truncated = [], [], False, False
+    while not (terminated or truncated):
+        a = int(agent.act(obs, info))
+        obs, reward, terminated, truncated, info = env.step(a)
+        names.append(env.action_names[a])
+        seconds.append(float(env.last_outcome.elapsed))
+    return names, seconds, bool(terminated and info["picked"])
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataset", default=str(REPO / "data" / "default"))
+    p.add_argument("--policy", default=None, help="policy file (default: the newest runs/*/policy.safetensors; 'none' = fixed)")
+    p.add_argument("--images", type=int, default=6)
+    p.add_argument("--lambda", dest="lam", type=float, default=0.5)
+    p.add_argument("--separate-scoring", action="store_true", help="every scoring a call to scoring_node (no fused scoring)")
+    p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "ros.json"))
+    args = p.parse_args()
+
+    from perception_config.agents import load_agent, make_agent
+    from perception_config.blocks.pipeline import load_pipeline
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.env import PerceptionConfigEnv
+    from perception_config.episodes import EpisodeSource, split_image_keys
+    from perception_config.evaluation import episode_seed, policy_settings
+    from perception_config.launch import Launcher, NodeSpec
+    from perception_config.operators import Episode
+    from perception_config.ros.ros_operators import RosOperators
+
+    policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())
+    settings = policy_settings([policy] if policy else [])
+    pipeline = load_pipeline(settings["pipeline"])
+    ds = BopDataset(Path(args.dataset), split="test")
+    keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])[1][: args.images]
+    source = EpisodeSource(ds, keys)
+    local_env = PerceptionConfigEnv(source, pipeline, max_ops=settings["max_ops"])
+
+    common = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": len(keys) + 10}
+    if settings["pipeline"]:
+        common["pipeline"] = str(Path(settings["pipeline"]).resolve())
+    logs = Path(args.out).with_suffix(".logs")
+    rclpy.init()
+    node = rclpy.create_node("bench_ros")
+    executor = MultiThreadedExecutor(num_threads=4)  # as in configurator_node
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    ops = RosOperators(node, pipeline, timeout=30.0, fused_scoring=not args.separate_scoring)
+    ros_env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=ops)
+    local_agent = load_agent(policy, local_env) if policy else make_agent("fixed", local_env)
+    ros_agent = load_agent(policy, ros_env) if policy else make_agent("fixed", ros_env)
+
+    with open(os.devnull, "w") as quiet, Launcher([NodeSpec(n, params=common) for n in
+                                                    ("generation_node", "refinement_node", "scoring_node", "pick_node")],
+                                                   log_dir=logs, out=quiet) as launcher:
+        for name in ("generation_node", "refinement_node", "scoring_node", "pick_node"):
+            launcher.wait_for_line(name, "serving", timeout=60)
+        stamps = publish_frames(node, ds, keys)
+        per_action: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"ros": [], "in_process": []})
+        totals = {"ros": 0.0, "in_process": 0.0}
+        same = 0
+        n = len(source)
+        for j in range(n):
+            ek = source.episodes[j]
+            seed = episode_seed(0, j)
+            l_names, l_sec, l_ok = run(local_env, local_agent, j, seed, args.lam)
+            ep = source.load(j, args.lam, seed)
+            ros_ep = Episode(frame=None, model=ep.model, ground_truth=None, noise_lambda=args.lam, seed=seed,
+                             key=ep.key, stamp_ns=stamps[(ek.scene_id, ek.im_id)])
+            r_names, r_sec, r_ok = run(ros_env, ros_agent, ros_ep, seed, args.lam)
+            same += (l_names, l_ok) == (r_names, r_ok)
+            if l_names == r_names:  # per-action figures only where both ran the same operators
+                for a, x, y in zip(l_names, l_sec, r_sec):
+                    per_action[a]["in_process"].append(x)
+                    per_action[a]["ros"].append(y)
+                totals["in_process"] += sum(l_sec)
+                totals["ros"] += sum(r_sec)
+            print(f"\r{j + 1}/{n} episodes", end="", flush=True)
+        print()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+    services: dict[str, dict[str, float]] = {}
+    by_service: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    for which, rt, own in ops.round_trips:
+        by_service[which].append((rt, own))
+    for which, rows in by_service.items():
+        rt = np.array([r for r, _ in rows]) * 1000
+        own = np.array([o for _, o in rows]) * 1000
+        services[which] = {"calls": len(rows), "round_trip_ms": float(np.median(rt)), "node_ms": float(np.median(own)),
+                           "overhead_ms": float(np.median(rt - own))}
+    actions = {a: {"n": len(v["ros"]), "ros_ms": float(np.median(v["ros"]) * 1000),
+                   "in_process_ms": float(np.median(v["in_process"]) * 1000)} for a, v in per_action.items()}
+    ratio = totals["ros"] / totals["in_process"] if totals["in_process"] else None
+    result = {
+        "machine": platform.node(), "policy": str(policy) if policy else "fixed pipeline", "images": len(keys),
+        "fused_scoring": not args.separate_scoring, "episodes": n, "identical_episodes": same, "operator_seconds": totals, "ros_over_in_process": ratio,
+        "target": 1.10, "actions": actions, "services": services,
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=2) + "\n")
+    os.replace(tmp, out)
+
+    print(f"{n} episodes ({same} identical), policy {result['policy']}, "
+          f"{'fused scoring' if result['fused_scoring'] else 'scoring through scoring_node'}")
+    print(f"operator time through ROS / in-process: {ratio:.3f}x ({totals['ros']:.3f} s / {totals['in_process']:.3f} s; target <= 1.10)")
+    print(f"{'action':<14}{'n':>5}{'in-process ms':>15}{'ROS ms':>9}")
+    for a, v in sorted(actions.items()):
+        print(f"{a:<14}{v['n']:>5}{v['in_process_ms']:>15.2f}{v['ros_ms']:>9.2f}")
+    print(f"{'service':<10}{'calls':>7}{'round trip ms':>15}{'node ms':>9}{'overhead ms':>13}")
+    for s, v in sorted(services.items()):
+        print(f"{s:<10}{v['calls']:>7}{v['round_trip_ms']:>15.2f}{v['node_ms']:>9.2f}{v['overhead_ms']:>13.2f}")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""bag_replay_node: replays a rosbag2 MCAP bag (what `perception-config bag write` records) on ROS 2
+topics, like `ros2 bag play`, publishing each message's serialized bytes as they are (no decoding).
+
+    bag_replay_node --ros-args -p bag:=recording.mcap -p rate:=1.0 -p loop:=true
+
+Topics: each of the bag's topics under its own name with the leading '/' removed, so a node
+namespace and `--ros-args -r` remappings apply. A bag of ours gives camera/color/image_raw,
+camera/depth/image_raw (16UC1 mm), camera/camera_info, perception/ground_truth (ObjectPoses) and
+perception/frame_info (std_msgs/String JSON). QoS: reliable, keep-last 10, volatile. Reliable so
+that subscribers with the default QoS match and a consumer that keeps up loses no frame (best-effort
+subscribers match too); keep-last 10 bounds memory, so with rate 0 a consumer slower than the
+replay loses the oldest frames: give a rate to replay in real time.
+
+Parameters (type, default)
+  bag (string, "")              bag file (.mcap) or rosbag2 bag directory; required
+  rate (float, 1.0)             1.0 = the recorded timing, 2.0 = twice as fast, 0 = as fast as possible
+  loop (bool, false)            start over at the end, one frame interval later. The stamps are the
+                                bag's own and do not change between passes: nodes that cache frames
+                                by stamp see the same frames again.
+  topics (string[], not set)    bag topics to replay (with or without the leading '/'); not set = all
+  wait_for_subscribers (int, 0) before starting, wait until the colour topic has this many
+  wait_timeout (float, 10.0)      subscribers, at most wait_timeout s (then a warning, and start)
+  start_delay (float, 0.0)      seconds before the first message, after wait_for_subscribers (the
+                                other topics may match a moment after the colour topic)
+
+Pacing (rate > 0): a message is due at (its log time - the first message's log time) / rate after
+the start, on the monotonic clock; a late message is published at once and the schedule does not
+drift. A non-looping replay logs a summary (messages, frames = colour images, seconds, frames per
+second), waits until its reliable subscribers have acknowledged every message (at most
+ACK_TIMEOUT_S; Fast DDS acknowledges at its heartbeat, up to 3 s later: exiting before would lose
+the last frames of a fast replay, cf. `ros2 bag play --wait-for-all-acked`) and exits 0. Ctrl-C or
+SIGTERM stop it at once, also exit 0. A truncated bag replays its complete frames and logs a
+warning. Bad parameters or an unreadable bag: an error naming it, exit 2.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+import threading
+import time
+import warnings
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+
+from ..datasets.bag import BagTruncatedWarning, bag_info, iter_messages
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+ACK_TIMEOUT_S = 5.0
+QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class ReplayError(Exception):
+    """Bad parameters or an unreadable bag (exit code 2)."""
+
+
+def message_class(type_name: str) -> type:
+    """'sensor_msgs/msg/Image' -> the class sensor_msgs.msg.Image."""
+    package, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+class BagReplayNode(Node):
+    def __init__(self) -> None:
+        super().__init__("bag_replay_node")
+        number = ParameterDescriptor(dynamic_typing=True)  # rate:=0 and rate:=0.5 both work
+        self.declare_parameter("bag", "")
+        self.declare_parameter("rate", 1.0, number)
+        self.declare_parameter("loop", False)
+        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)  # not set = all topics
+        self.declare_parameter("wait_for_subscribers", 0)
+        self.declare_parameter("wait_timeout", 10.0, number)
+        self.declare_parameter("start_delay", 0.0, number)
+
+        self.bag = self.get_parameter("bag").value
+        self.rate = self._number("rate")
+        self.loop = self.get_parameter("loop").value
+        self.wait_for = self.get_parameter("wait_for_subscribers").value
+        self.wait_timeout = self._number("wait_timeout")
+        self.start_delay = self._number("start_delay")
+        if not self.bag:
+            raise ReplayError("parameter 'bag' is empty: give a bag file or directory (--ros-args -p bag:=FILE.mcap)")
+        if self.rate < 0:
+            raise ReplayError(f"parameter 'rate' must be >= 0 (1.0 = recorded timing, 0 = as fast as possible), "
+                              f"got {self.rate}")
+        try:
+            info = bag_info(self.bag)
+        except (OSError, ValueError) as exc:
+            raise ReplayError(f"cannot replay bag {self.bag}: {exc}") from None
+        if info["truncated"]:
+            self.get_logger().warning(f"{info['damage']}: replaying the complete frames before the damage")
+
+        wanted = {t.lstrip("/") for t in self.get_parameter_or("topics").value or []}
+        self._pubs = {}
+        for t in info["topics"]:
+            name = t["topic"].lstrip("/")
+            if wanted and name not in wanted:
+                continue
+            try:
+                cls = message_class(t["type"])
+            except (ValueError, ImportError, AttributeError):
+                self.get_logger().warning(f"skipping {t['topic']}: message type {t['type']!r} is not installed")
+                continue
+            self._pubs[t["topic"]] = self.create_publisher(cls, name, QOS)
+        missing = wanted - {t["topic"].lstrip("/") for t in info["topics"]}
+        if missing:
+            raise ReplayError(f"topics {sorted(missing)} are not in bag {self.bag} "
+                              f"(it has {[t['topic'] for t in info['topics']]})")
+        if not self._pubs:
+            raise ReplayError(f"bag {self.bag}: no topic to replay")
+        frame_topics = info.get("frame_topics")
+        self._color = frame_topics.get("color") if isinstance(frame_topics, dict) else None
+        n = info["frames"]
+        self._frame_gap_s = info["duration_s"] / (n - 1) if n > 1 else 0.0  # the pause between loop passes
+
+        self.get_logger().info(f"replaying {self.bag}: {info['frames']} frames, {len(self._pubs)} topics, "
+                               f"rate {self.rate:g}{' (as fast as possible)' if self.rate == 0 else ''}"
+                               f"{', looping' if self.loop else ''}")
+        self.done: Future = Future()  # its result is the exit code
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
+        self._thread.start()
+
+    def _number(self, name: str) -> float:
+        value = self.get_parameter(name).value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ReplayError(f"parameter {name!r} must be a number, got {value!r}")
+        return float(value)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+    def _sleep(self, seconds: float) -> bool:
+        """Sleep unless stopped; False when the replay must stop."""
+        return not (self._stop.wait(seconds) if seconds > 0 else self._stop.is_set())
+
+    def _wait_for_subscribers(self) -> bool:
+        pub = self._pubs.get(self._color) or next(iter(self._pubs.values()))
+        deadline = time.monotonic() + self.wait_timeout
+        while pub.get_subscription_count() < self.wait_for:
+            if time.monotonic() > deadline:
+                self.get_logger().warning(f"{pub.topic_name} has {pub.get_subscription_count()} of {self.wait_for} "
+                                          "subscribers after wait_timeout; starting anyway")
+                return True
+            if not self._sleep(0.02):
+                return False
+        return True
+
+    def _run(self) -> None:
+        code = EXIT_OK
+        try:
+            if self._wait_for_subscribers() and self._sleep(self.start_delay):
+                self._replay()
+                self._wait_for_acks()
+        except Exception as exc:
+            if not self._stop.is_set() and self.context.ok():  # else: publishing failed because of Ctrl-C
+                bad_bag = isinstance(exc, (OSError, ValueError))
+                self.get_logger().error(f"replay of {self.bag} failed: {exc}" if bad_bag else f"replay failed: {exc!r}")
+                code = EXIT_BAD_INPUT if bad_bag else EXIT_FAILED
+        finally:
+            self.done.set_result(code)
+
+    def _wait_for_acks(self) -> None:
+        """Before exiting: reliable subscribers still fetching the last messages would lose them."""
+        deadline = time.monotonic() + ACK_TIMEOUT_S
+        for pub in self._pubs.values():
+            while not pub.wait_for_all_acked(Duration(seconds=0.05)):
+                if self._stop.is_set() or time.monotonic() > deadline:
+                    return
+
+    def _replay(self) -> None:
+        start, passes = time.monotonic(), 0
+        while True:
+            messages = frames = 0
+            log0 = first = None
+            due = start
+            for m in iter_messages(self.bag, list(self._pubs)):
+                if self.rate > 0:
+                    log0 = m.log_time_ns if log0 is None else log0
+                    due = start + (m.log_time_ns - log0) / 1e9 / self.rate
+                if not self._sleep(due - time.monotonic()):
+                    return
+                self._pubs[m.topic].publish(m.data)
+                first = time.monotonic() if first is None else first
+                messages += 1
+                frames += m.topic == self._color
+            passes += 1
+            seconds = time.monotonic() - (first or start)
+            fps = (frames - 1) / seconds if frames > 1 and seconds > 0 else 0.0
+            if self.context.ok():  # a loop logs at most every 10 s
+                self.get_logger().info(f"{f'pass {passes}: ' if self.loop else ''}replayed {messages} messages, "
+                                       f"{frames} frames in {seconds:.2f} s ({fps:.1f} frames/s)",
+                                       throttle_duration_sec=10.0 if self.loop else 0.0)
+            if not self.loop or messages == 0:
+                return
+            gap = self._frame_gap_s / self.rate if self.rate > 0 else 0.0
+            start = max(due + gap, time.monotonic())
+
+
+def main(args: list[str] | None = None) -> int:
+    warnings.simplefilter("ignore", BagTruncatedWarning)  # the node logs the damage once, at the start
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = BagReplayNode()
+        rclpy.spin_until_future_complete(node, node.done)
+        return node.done.result() if node.done.done() else EXIT_OK
+    except (ReplayError, ParameterException) as exc:
+        rclpy.logging.get_logger("bag_replay_node").error(str(exc))
+        return EXIT_BAD_INPUT
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return EXIT_OK
+    finally:
+        if node is not None:
+            node.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
