@@ -111,15 +111,18 @@ def run_through_ros(plan: list[dict[str, Any]], stamps: dict[tuple[int, int], in
 def replay_check(
     dataset: str | Path, out: str | Path, policy: str | Path | None = None, pipeline: str | Path | None = None,
     images: int = 8, noise_lambda: float = 0.5, seed: int = 0, rate: float = 1.0, quiet: bool = True,
+    image_keys: list[tuple[int, int]] | None = None,
 ) -> dict[str, Any]:
-    """Run the check (see the module docstring); returns the summary written to results.json."""
+    """Run the check (see the module docstring); returns the summary written to results.json.
+    `image_keys` replaces the policy's test images (e.g. every image of a tiny dataset)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     policy = Path(policy).resolve() if policy else None
     settings = policy_settings([policy] if policy else [], pipeline=pipeline)
     ds = BopDataset(Path(dataset), split="test")
-    _, test = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])
-    keys = test[: max(1, int(images))]
+    if image_keys is None:
+        image_keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])[1]
+    keys = sorted(image_keys)[: max(1, int(images))]
 
     bag = out / "replay.mcap"
     for stale in (bag, out / "metadata.yaml"):
@@ -233,18 +236,8 @@ def format_summary(s: dict[str, Any]) -> str:
     ])
 
 
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", required=True)
-    p.add_argument("--policy", default=None)
-    p.add_argument("--pipeline", default=None)
-    p.add_argument("--out", default="outputs/replay_check")
-    p.add_argument("--images", type=int, default=8)
-    p.add_argument("--lambda", dest="noise_lambda", type=float, default=0.5)
-    p.add_argument("--rate", type=float, default=1.0)
-    args = p.parse_args(argv)
+def run_cli(args: Any) -> int:
+    """`perception-config replay-check`: exit 0 when the success rates match within noise."""
     rclpy.init()
     try:
         s = replay_check(args.dataset, args.out, args.policy, args.pipeline, args.images, args.noise_lambda, rate=args.rate)
@@ -253,6 +246,12 @@ def main(argv: list[str] | None = None) -> int:
     print(format_summary(s))
     print(f"wrote {Path(args.out) / 'results.json'} and {Path(args.out) / 'replay_check.png'}")
     return 0 if s["success_matches"] else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ..cli import main as cli_main
+
+    return cli_main(["replay-check", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
