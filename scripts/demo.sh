@@ -4,10 +4,12 @@
 #   2. train the policy-gradient agent briefly on the train images;
 #   3. evaluate it against the oracle, fixed engineer pipelines and the random agent over the
 #      noise sweep lambda = 0.1 .. 1.0 on the test images (Fig. 5), print the table and plots;
-#   4. show the ROS 2 stack: generation_node in its own process answers a client over the
-#      project's own interfaces.
+#   4. through ROS 2: record test images to MCAP, replay them with bag_replay_node through the
+#      operator nodes and the configurator running the trained policy (each its own process),
+#      estimate every object with estimate_pose and compare with the same episodes in-process.
 # Environment: DEMO_EPISODES (training episodes, default 1500), DEMO_EVAL_EPISODES (episodes
-# per lambda, default 12), PERCEPTION_CONFIG_DATA (dataset folder, default data/default).
+# per lambda, default 12), DEMO_REPLAY_IMAGES (images replayed through ROS, default 8),
+# PERCEPTION_CONFIG_DATA (dataset folder, default data/default).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup_env.sh"
@@ -33,11 +35,9 @@ say "3/4 evaluating over lambda = 0.1 .. 1.0 on the test images"
 perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/evaluation" \
   --episodes "${DEMO_EVAL_EPISODES:-12}"
 
-say "4/4 ROS 2: generation_node in its own process, a client in another (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
-generation_node --ros-args -p models_dir:="$DATA/models" > "$OUT/generation_node.log" 2>&1 &
-NODE_PID=$!
-trap 'kill -INT $NODE_PID 2>/dev/null; wait $NODE_PID 2>/dev/null || true' EXIT
-"$PY" -m perception_config.ros.generation_demo --dataset "$DATA"
+say "4/4 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
+perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \
+  --images "${DEMO_REPLAY_IMAGES:-8}"
 
 say "done in $(( $(date +%s) - start )) s. Look at:"
 echo "  $OUT/frame.png                      a frame with the ground truth overlaid"
@@ -46,3 +46,5 @@ echo "  $OUT/evaluation/fig5.png           operations, time and first picks vs l
 echo "  $OUT/evaluation/lambda_grid.png    initial hypotheses per lambda (Fig. 4)"
 echo "  $OUT/evaluation/episode_*.png      initial vs final hypothesis of chosen episodes (Fig. 2)"
 echo "  $OUT/evaluation/results.json       all figures; bop/*.csv for bop_toolkit"
+echo "  $OUT/replay/replay_check.png       through ROS vs in-process: success and operator time"
+echo "  $OUT/replay/replay.mcap            the recorded bag (perception-config launch --bag ... replays it)"

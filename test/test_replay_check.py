@@ -44,3 +44,46 @@ def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_fa
     assert all(len(r["ros"]["operations"]) <= 5 for r in rows)  # the policy's max_ops reached the configurator
     assert (tmp_path / "replay_check.png").stat().st_size > 10_000
     assert (tmp_path / "logs" / "bag_replay_node.log").read_text().strip()
+
+
+def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_path_factory, tmp_path):
+    """configurator_node with auto: each replayed frame's objects (from its ground truth) are
+    estimated without a request, and every estimate is published as a trace and a pose."""
+    import time
+
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from perception_config_interfaces.msg import OperatorTrace
+
+    from perception_config.datasets.bag import write_bag
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.launch import Launcher, NodeSpec
+
+    root = tiny_dataset(tmp_path_factory)
+    ds = BopDataset(root, split="test")
+    expected = sum(len(ds.gt(*key)) for key in ds.image_keys())
+    bag = tmp_path / "scenes.mcap"
+    write_bag(root, bag, progress=False)
+    traces, poses = [], []
+    ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 50)
+    ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 50)
+    common = {"models_dir": str(root / "models"), "pipeline": str(pipeline_file(tmp_path_factory))}
+    specs = [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
+    specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "noise_lambda": 0.3}))
+    with open(tmp_path / "launch.log", "w") as log, Launcher(specs, log_dir=tmp_path / "logs", out=log) as launcher:
+        for spec in specs:
+            launcher.wait_for_line(spec.name, "serving", timeout=60)
+        # 4 frames at 10 Hz replayed at 0.2x: 0.5 s per frame, time for every object's estimate.
+        replay = Launcher([NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": 0.2, "wait_for_subscribers": 4,
+                                                                 "start_delay": 0.5})], out=log)
+        with replay:
+            deadline = time.monotonic() + 60
+            while (len(traces) < expected or len(poses) < expected) and time.monotonic() < deadline:
+                rclpy.spin_once(ros_node, timeout_sec=0.1)
+        assert launcher.running() == [s.name for s in specs] or set(launcher.running()) == {s.name for s in specs}
+    assert len(traces) == expected, f"{len(traces)} traces for {expected} objects"
+    assert len(poses) == expected
+    stamps = {(t.header.stamp.sec, t.header.stamp.nanosec) for t in traces}
+    assert len(stamps) == len(ds.image_keys())
+    assert all(t.operations and len(t.ok) == len(t.operations) for t in traces)
+    assert sum(t.picked for t in traces) >= expected // 2

@@ -178,6 +178,11 @@ class ConfiguratorNode(Node):
         return oks
 
     def _publish(self, response: EstimatePose.Response, object_id: str, oks: list[bool]) -> None:
+        if response.success:
+            msg = PoseStamped()
+            msg.header = response.hypothesis.header
+            msg.pose = response.hypothesis.pose
+            self.pose_pub.publish(msg)
         trace = OperatorTrace()
         trace.header = response.hypothesis.header
         trace.object_id = object_id
@@ -186,11 +191,6 @@ class ConfiguratorNode(Node):
         trace.ok = oks
         trace.picked = bool(response.picked)
         self.trace_pub.publish(trace)
-        if response.success:
-            msg = PoseStamped()
-            msg.header = response.hypothesis.header
-            msg.pose = response.hypothesis.pose
-            self.pose_pub.publish(msg)
 
     def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
         return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
