@@ -192,6 +192,10 @@ class ConfiguratorNode(Node):
         trace.picked = bool(response.picked)
         self.trace_pub.publish(trace)
 
+    def destroy_node(self) -> None:
+        self.get_logger().info(f"operator calls: {self.operators.timing_summary()}")
+        super().destroy_node()
+
     def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
         return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
                              request.noise_lambda, request.seed)

@@ -195,6 +195,16 @@ class RosOperators:
         self.refiner_rng = np.random.default_rng()
         self.refiner_rng.bit_generator.state = refiner_state
 
+    def timing_summary(self) -> str:
+        """Median round trip and node time per service over the recorded calls (for the logs)."""
+        parts = []
+        for which in SERVICES:
+            rows = [(rt, own) for w, rt, own in self.round_trips if w == which]
+            if rows:
+                rt, own = (float(np.median([r[i] for r in rows])) * 1000 for i in (0, 1))
+                parts.append(f"{SERVICES[which]} {len(rows)} calls, round trip {rt:.2f} ms (node {own:.2f} ms)")
+        return "; ".join(parts) or "no operator calls"
+
     @property
     def stamp_ns(self) -> int:
         return 0 if self.stamp is None else stamp_to_nanoseconds(self.stamp)
