@@ -3,8 +3,9 @@
 Subscribes to `camera/color/image_raw`, `camera/depth/image_raw` and `camera/camera_info`
 (relative names: remap them, or push the node into the camera's namespace). A colour and a depth
 image with the same header stamp make a frame (or the nearest depth within `sync_tolerance`
-seconds, for drivers that stamp them apart); K comes from the camera_info of that stamp, or the
-latest one (camera_info rarely changes). Frames are converted once, on arrival, and kept in a
+seconds, for drivers that stamp them apart); K comes from the camera_info of that stamp (a
+frame waits for it once the camera has been seen to stamp camera_info like its images, as
+image_transport's camera publishers do), else from the latest camera_info (a static publisher). Frames are converted once, on arrival, and kept in a
 bounded `StampCache`, so a service request names its frame by stamp and large images cross the
 middleware once, not at every operator call.
 
@@ -32,6 +33,10 @@ from .conversions import stamp_to_nanoseconds
 from .stamp_cache import StampCache
 
 MAX_PENDING = 16  # half-assembled frames kept (a colour image waiting for its depth, ...)
+
+
+class FrameNotReady(ValueError):
+    """The frame (or ground truth) a request names has not arrived (yet); the message says which."""
 
 
 @dataclass
@@ -92,7 +97,7 @@ class CameraFrames:
     from one executor thread while service callbacks read it from another)."""
 
     def __init__(self, node: Node, capacity: int, qos: str = "reliable", sync_tolerance: float = 0.0,
-                 callback_group: Any = None) -> None:
+                 callback_group: Any = None, on_arrival: Any = None) -> None:
         if not (math.isfinite(sync_tolerance) and sync_tolerance >= 0):
             raise ValueError(f"sync_tolerance must be >= 0 seconds, got {sync_tolerance}")
         self.frames: StampCache[CameraFrame | FrameError] = StampCache(capacity)
@@ -100,7 +105,9 @@ class CameraFrames:
         self._pending: OrderedDict[int, dict[str, Any]] = OrderedDict()
         self._infos: OrderedDict[int, Any] = OrderedDict()
         self._lock = threading.Lock()
+        self._info_stamped_with_images = False
         self._logger = node.get_logger()
+        self._on_arrival = on_arrival
         profile = camera_qos(qos)
         node.create_subscription(Image, "camera/color/image_raw", lambda m: self._add("color", m), profile,
                                  callback_group=callback_group)
@@ -112,7 +119,10 @@ class CameraFrames:
     # -- arrival ---------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo) -> None:
         with self._lock:
-            self._infos[stamp_to_nanoseconds(msg.header.stamp)] = msg
+            stamp = stamp_to_nanoseconds(msg.header.stamp)
+            self._infos[stamp] = msg
+            if stamp in self._pending or self.frames.has(stamp):
+                self._info_stamped_with_images = True
             while len(self._infos) > MAX_PENDING:
                 self._infos.popitem(last=False)
             ready = [s for s, parts in self._pending.items() if "color" in parts and "depth" in parts]
@@ -138,9 +148,13 @@ class CameraFrames:
             parts = self._pending.get(stamp)
             if parts is None or "color" not in parts or "depth" not in parts:
                 return
-            info = self._infos.get(stamp) or (next(reversed(self._infos.values())) if self._infos else None)
+            info = self._infos.get(stamp)
+            if info is None and not self._info_stamped_with_images and self._infos:
+                info = next(reversed(self._infos.values()))
             if info is None:
-                return  # wait for a camera_info
+                return  # wait for its camera_info
+            if stamp in self._infos:
+                self._info_stamped_with_images = True
             del self._pending[stamp]
         color = parts["color"]
         try:
@@ -150,18 +164,22 @@ class CameraFrames:
             item = FrameError(stamp, str(exc))
             self._logger.warning(f"unusable camera frame at {stamp_text(stamp)}: {exc}")
         self.frames.put(stamp, item)
+        if self._on_arrival is not None:
+            self._on_arrival()
 
     # -- requests ----------------------------------------------------------------------------
-    def get(self, stamp_ns: int, timeout: float) -> CameraFrame:
-        """The frame with this stamp (0 = the latest), waiting up to `timeout` s for it to arrive.
-        ValueError when it does not arrive in time or arrived unusable."""
-        item = self.frames.get(stamp_ns, timeout)
+    def get(self, stamp_ns: int, timeout: float, wait: bool = False) -> CameraFrame:
+        """The frame with this stamp (0 = the latest). Not there yet: FrameNotReady (the message
+        says `timeout` s, the wait the caller grants), or with `wait` block up to `timeout` s
+        first (for callers on another thread than the subscriptions). ValueError when it
+        arrived unusable."""
+        item = self.frames.get(stamp_ns, timeout if wait else 0.0)
         if item is None:
             which = "no camera frame" if stamp_ns == 0 else f"no camera frame stamped {stamp_text(stamp_ns)}"
             cached = self.frames.stamps()
             have = (f"{len(cached)} cached, {stamp_text(cached[0])} .. {stamp_text(cached[-1])}" if cached
                     else "none received yet: check the camera topics, their remapping and camera_qos")
-            raise ValueError(f"{which} arrived within {timeout:g} s ({have})")
+            raise FrameNotReady(f"{which} arrived within {timeout:g} s ({have})")
         if isinstance(item, FrameError):
             raise ValueError(f"the camera frame at {stamp_text(item.stamp_ns)} is unusable: {item.problem}")
         return item

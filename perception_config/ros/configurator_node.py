@@ -39,6 +39,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
@@ -192,13 +193,24 @@ class ConfiguratorNode(Node):
         trace.picked = bool(response.picked)
         self.trace_pub.publish(trace)
 
-    def destroy_node(self) -> None:
-        self.get_logger().info(f"operator calls: {self.operators.timing_summary()}")
-        super().destroy_node()
+    def on_exit(self) -> None:
+        print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
 
-    def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
-        return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
-                             request.noise_lambda, request.seed)
+    async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
+        """The episode runs on a worker thread (its operator calls block until the executor, on
+        this thread, takes their answers); this coroutine awaits it without blocking the executor."""
+        done = Future()
+        executor = self.executor
+
+        def work() -> None:
+            result = self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id,
+                                   request.max_operations, request.noise_lambda, request.seed)
+            done.set_result(result)
+            if executor is not None:
+                executor.wake()
+
+        threading.Thread(target=work, name="estimate", daemon=True).start()
+        return await done
 
     # -- auto mode -------------------------------------------------------------------------------
     def _on_ground_truth(self, msg: ObjectPoses) -> None:

@@ -13,8 +13,6 @@ Parameters (besides those of every operator node, operator_node.py):
 """
 from __future__ import annotations
 
-from rclpy.callback_groups import ReentrantCallbackGroup
-
 from perception_config_interfaces.srv import Pick
 
 from ..blocks.base import Kind
@@ -27,7 +25,7 @@ class PickNode(OperatorNode):
         self.declare_parameter("robot_service", "")
         self.declare_parameter("robot_timeout", 30.0)
         robot = self.param("robot_service")
-        self._robot = self.create_client(Pick, robot, callback_group=ReentrantCallbackGroup()) if robot else None
+        self._robot = self.create_client(Pick, robot, callback_group=self._wait_group) if robot else None
         picks = [a.name for a in self.pipeline.actions if a.kind == Kind.PICK]
         if not picks and self._robot is None:
             raise ValueError(f"pipeline {self.pipeline.source} has no pick action and no robot_service is set")
@@ -35,7 +33,7 @@ class PickNode(OperatorNode):
         self.serve(Pick, "pick", self._on_pick)
         self.get_logger().info(f"serving pick ({'robot service ' + robot if robot else self._pick_action})")
 
-    def _on_pick(self, request: Pick.Request, response: Pick.Response) -> None:
+    def _on_pick(self, request: Pick.Request, response: Pick.Response):
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
         self.model(object_id)
         if self._robot is not None:
@@ -47,15 +45,17 @@ class PickNode(OperatorNode):
         response.picked = bool(result.picked)
         response.message = "picked" if result.picked else f"not picked ({', '.join(f'{k} {v:.4g}' for k, v in result.scores.items())})"
 
-    def _forward(self, request: Pick.Request, response: Pick.Response) -> None:
+    async def _forward(self, request: Pick.Request, response: Pick.Response) -> None:
+        """Ask the robot cell; awaited, so the executor keeps serving topics meanwhile."""
         name = self._robot.srv_name
         if not self._robot.service_is_ready():
             raise ValueError(f"the robot's pick service {name} is not available")
         timeout = float(self.param("robot_timeout"))
-        try:
-            answer = self._robot.call(request, timeout_sec=timeout)
-        except TimeoutError:
-            raise ValueError(f"the robot's pick service {name} did not answer within {timeout:g} s") from None
+        future = self._robot.call_async(request)
+        if not await self.wait_for(future, timeout):
+            self._robot.remove_pending_request(future)
+            raise ValueError(f"the robot's pick service {name} did not answer within {timeout:g} s")
+        answer = future.result()
         if answer is None or not answer.success:
             raise ValueError(f"the robot's pick service {name} refused: {answer.message if answer else 'no answer'}")
         response.picked = bool(answer.picked)

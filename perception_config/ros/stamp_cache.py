@@ -48,6 +48,10 @@ class StampCache(Generic[T]):
                     return None
                 self._cond.wait(remaining)
 
+    def has(self, stamp_ns: int) -> bool:
+        with self._cond:
+            return stamp_ns in self._items
+
     def stamps(self) -> list[int]:
         with self._cond:
             return list(self._items)
