@@ -36,7 +36,7 @@ if str(REPO) not in sys.path:
 
 import perception_config.ros  # noqa: E402,F401  (loopback defaults before rclpy)
 import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 
 
 def newest_policy() -> Path | None:
@@ -121,7 +121,7 @@ def main() -> int:
     logs = Path(args.out).with_suffix(".logs")
     rclpy.init()
     node = rclpy.create_node("bench_ros")
-    executor = SingleThreadedExecutor()  # spinning in its own thread, as in configurator_node
+    executor = MultiThreadedExecutor(num_threads=4)  # as in configurator_node
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()

@@ -1,6 +1,7 @@
 """Start project nodes as separate OS processes and talk to them with a real rclpy node."""
 from __future__ import annotations
 
+import atexit
 import os
 import random
 import signal
@@ -26,6 +27,17 @@ def pick_domain_id() -> int:
     return random.SystemRandom().choice([d for d in range(60, 101) if d != 42])
 
 
+_STARTED: list["NodeProcess"] = []
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    """No node outlives the test session, whatever failed on the way."""
+    for node in _STARTED:
+        if node.proc.poll() is None:
+            node.proc.kill()
+
+
 class NodeProcess:
     """A node started from its console script; stopped with SIGINT, then SIGKILL."""
 
@@ -39,6 +51,7 @@ class NodeProcess:
         self.log = (log_dir or Path("/tmp")) / f"{script}-{os.getpid()}-{time.time_ns()}.log"
         self._log_file = open(self.log, "w")
         self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT)
+        _STARTED.append(self)
 
     def output(self) -> str:
         if not self._log_file.closed:

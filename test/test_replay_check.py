@@ -69,19 +69,30 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
     ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 50)
     common = {"models_dir": str(root / "models"), "pipeline": str(pipeline_file(tmp_path_factory))}
     specs = [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
-    specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "noise_lambda": 0.3}))
+    specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "auto_every_frame": True, "noise_lambda": 0.3}))
     with open(tmp_path / "launch.log", "w") as log, Launcher(specs, log_dir=tmp_path / "logs", out=log) as launcher:
         for spec in specs:
             launcher.wait_for_line(spec.name, "serving", timeout=60)
-        # 4 frames at 10 Hz replayed at 0.2x: 0.5 s per frame, time for every object's estimate.
-        replay = Launcher([NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": 0.2, "wait_for_subscribers": 4,
-                                                                 "start_delay": 0.5})], out=log)
+        deadline = time.monotonic() + 20  # this process sees the configurator's publishers before the replay
+        while (ros_node.count_publishers("perception/trace") < 1 or ros_node.count_publishers("perception/pose") < 1) \
+                and time.monotonic() < deadline:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+        time.sleep(0.5)
+        # 4 frames at 10 Hz replayed at 0.2x; auto_every_frame: none is skipped even on a slow machine.
+        # Start when every subscriber is there: four on the camera topics, three on the ground
+        # truth (generation, pick, and the configurator, which takes nothing else).
+        wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
+        replay = Launcher([NodeSpec("bag_replay_node", params={
+            "bag": str(bag), "rate": 0.2, "wait_for": wait_for + ["perception/ground_truth:3"], "start_delay": 0.5})], out=log)
         with replay:
             deadline = time.monotonic() + 60
             while (len(traces) < expected or len(poses) < expected) and time.monotonic() < deadline:
                 rclpy.spin_once(ros_node, timeout_sec=0.1)
         assert launcher.running() == [s.name for s in specs] or set(launcher.running()) == {s.name for s in specs}
-    assert len(traces) == expected, f"{len(traces)} traces for {expected} objects"
+    from collections import Counter
+
+    got = Counter((t.header.stamp.sec, t.header.stamp.nanosec) for t in traces)
+    assert len(traces) == expected, f"{len(traces)} traces for {expected} objects: {sorted(got.items())}"
     assert len(poses) == expected
     stamps = {(t.header.stamp.sec, t.header.stamp.nanosec) for t in traces}
     assert len(stamps) == len(ds.image_keys())

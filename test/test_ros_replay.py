@@ -247,7 +247,7 @@ def test_wait_for_subscribers_gives_up_after_wait_timeout(bag, tmp_path):
     assert f"replayed {5 * N_FRAMES} messages" in out, out
 
 
-@pytest.mark.parametrize("case", ["missing", "corrupt", "empty", "negative_rate", "unknown_topic"])
+@pytest.mark.parametrize("case", ["missing", "corrupt", "empty", "negative_rate", "unknown_topic", "bad_wait_for"])
 def test_bad_input_exits_2_naming_the_problem(bag, tmp_path, case):
     path, _ = bag
     params: dict[str, object] = {"bag": str(path)}
@@ -261,6 +261,8 @@ def test_bad_input_exits_2_naming_the_problem(bag, tmp_path, case):
         params["bag"], expected = '""', "parameter 'bag' is empty"
     elif case == "negative_rate":
         params["rate"], expected = -1.0, "'rate' must be >= 0"
+    elif case == "bad_wait_for":
+        params["wait_for"], expected = "[camera/color/image_raw:many]", "wait_for entry 'camera/color/image_raw:many'"
     else:
         params["topics"], expected = "[camera/nothing]", "camera/nothing"
     node = NodeProcess("bag_replay_node", params, tmp_path)

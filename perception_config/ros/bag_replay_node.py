@@ -18,8 +18,11 @@ Parameters (type, default)
                                 bag's own and do not change between passes: nodes that cache frames
                                 by stamp see the same frames again.
   topics (string[], not set)    bag topics to replay (with or without the leading '/'); not set = all
-  wait_for_subscribers (int, 0) before starting, wait until the colour topic has this many
+  wait_for_subscribers (int, 0) before starting, wait until `wait_topic` has this many
   wait_timeout (float, 10.0)      subscribers, at most wait_timeout s (then a warning, and start)
+  wait_for (string[], not set)  per-topic minimum subscribers, "topic:count" (e.g.
+                                camera/color/image_raw:4 perception/ground_truth:3), all awaited
+                                within wait_timeout; replaces wait_for_subscribers when set
   start_delay (float, 0.0)      seconds before the first message, after wait_for_subscribers (the
                                 other topics may match a moment after the colour topic)
 
@@ -77,6 +80,7 @@ class BagReplayNode(Node):
         self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)  # not set = all topics
         self.declare_parameter("wait_for_subscribers", 0)
         self.declare_parameter("wait_timeout", 10.0, number)
+        self.declare_parameter("wait_for", Parameter.Type.STRING_ARRAY)  # not set = wait_for_subscribers
         self.declare_parameter("start_delay", 0.0, number)
 
         self.bag = self.get_parameter("bag").value
@@ -117,6 +121,16 @@ class BagReplayNode(Node):
             raise ReplayError(f"bag {self.bag}: no topic to replay")
         frame_topics = info.get("frame_topics")
         self._color = frame_topics.get("color") if isinstance(frame_topics, dict) else None
+        self._wait_counts: dict[str, int] = {}  # bag topic -> minimum subscribers before starting
+        for item in self.get_parameter_or("wait_for").value or []:
+            name, _, count = str(item).rpartition(":")
+            topic = next((t for t in self._pubs if t.lstrip("/") == name.lstrip("/")), None)
+            if topic is None or not count.isdigit():
+                raise ReplayError(f"wait_for entry {item!r} must be 'topic:count' with a replayed topic "
+                                  f"(topics: {sorted(self._pubs)})")
+            self._wait_counts[topic] = int(count)
+        if not self._wait_counts and self.wait_for:
+            self._wait_counts[self._color if self._color in self._pubs else next(iter(self._pubs))] = int(self.wait_for)
         n = info["frames"]
         self._frame_gap_s = info["duration_s"] / (n - 1) if n > 1 else 0.0  # the pause between loop passes
 
@@ -143,16 +157,18 @@ class BagReplayNode(Node):
         return not (self._stop.wait(seconds) if seconds > 0 else self._stop.is_set())
 
     def _wait_for_subscribers(self) -> bool:
-        pub = self._pubs.get(self._color) or next(iter(self._pubs.values()))
         deadline = time.monotonic() + self.wait_timeout
-        while pub.get_subscription_count() < self.wait_for:
+        while True:
+            short = [(self._pubs[t], n) for t, n in self._wait_counts.items() if self._pubs[t].get_subscription_count() < n]
+            if not short:
+                return True
             if time.monotonic() > deadline:
-                self.get_logger().warning(f"{pub.topic_name} has {pub.get_subscription_count()} of {self.wait_for} "
-                                          "subscribers after wait_timeout; starting anyway")
+                for pub, n in short:
+                    self.get_logger().warning(f"{pub.topic_name} has {pub.get_subscription_count()} of {n} "
+                                              "subscribers after wait_timeout; starting anyway")
                 return True
             if not self._sleep(0.02):
                 return False
-        return True
 
     def _run(self) -> None:
         code = EXIT_OK

@@ -13,6 +13,10 @@ Parameters (besides those of every operator node, operator_node.py):
 """
 from __future__ import annotations
 
+import time
+
+from rclpy.task import Future
+
 from perception_config_interfaces.srv import Pick
 
 from ..blocks.base import Kind
@@ -48,9 +52,12 @@ class PickNode(OperatorNode):
     async def _forward(self, request: Pick.Request, response: Pick.Response) -> None:
         """Ask the robot cell; awaited, so the executor keeps serving topics meanwhile."""
         name = self._robot.srv_name
+        timeout = float(self.param("robot_timeout"))
+        deadline = time.monotonic() + min(timeout, 2.0)  # a robot service just started may not be discovered yet
+        while not self._robot.service_is_ready() and time.monotonic() < deadline:
+            await self.wait_for(Future(), 0.05)
         if not self._robot.service_is_ready():
             raise ValueError(f"the robot's pick service {name} is not available")
-        timeout = float(self.param("robot_timeout"))
         future = self._robot.call_async(request)
         if not await self.wait_for(future, timeout):
             self._robot.remove_pending_request(future)

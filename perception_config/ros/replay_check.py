@@ -145,7 +145,9 @@ def replay_check(
     specs = [NodeSpec(name, params=dict(common)) for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""), "noise_lambda": float(noise_lambda),
                                                         "max_ops": settings["max_ops"]}))
-    specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "wait_for_subscribers": 4, "start_delay": 1.0}))
+    wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
+    specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
+                                                     "wait_for": wait_for + ["perception/ground_truth:2"]}))
     log_dir = out / "logs"
     with open(out / "launch.log", "w") as launch_log:
         launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
