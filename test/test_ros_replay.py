@@ -262,7 +262,7 @@ def test_bad_input_exits_2_naming_the_problem(bag, tmp_path, case):
     elif case == "negative_rate":
         params["rate"], expected = -1.0, "'rate' must be >= 0"
     elif case == "bad_wait_for":
-        params["wait_for"], expected = "[camera/color/image_raw:many]", "wait_for entry 'camera/color/image_raw:many'"
+        params["wait_for"], expected = "['camera/color/image_raw:many']", "wait_for entry 'camera/color/image_raw:many'"
     else:
         params["topics"], expected = "[camera/nothing]", "camera/nothing"
     node = NodeProcess("bag_replay_node", params, tmp_path)
