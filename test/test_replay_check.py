@@ -46,7 +46,7 @@ def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_fa
     assert (tmp_path / "logs" / "bag_replay_node.log").read_text().strip()
 
 
-def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_path_factory, tmp_path):
+def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_path_factory, tmp_path, request):
     """configurator_node with auto: each replayed frame's objects (from its ground truth) are
     estimated without a request, and every estimate is published as a trace and a pose."""
     import time
@@ -65,8 +65,9 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
     bag = tmp_path / "scenes.mcap"
     write_bag(root, bag, progress=False)
     traces, poses = [], []
-    ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 50)
-    ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 50)
+    subs = [ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 50),
+            ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 50)]
+    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])  # the session node stays clean
     common = {"models_dir": str(root / "models"), "pipeline": str(pipeline_file(tmp_path_factory))}
     specs = [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "auto_every_frame": True, "noise_lambda": 0.3}))

@@ -77,6 +77,8 @@ def cell(data, tmp_path_factory, ros_node):
             publish_when_matched(ros_node, pubs["depth"], depth, subscribers=4)
             publish_when_matched(ros_node, pubs["color"], color, subscribers=4)
         yield {"nodes": nodes, "frames": frames, "pubs": pubs}
+        for pub in pubs.values():
+            ros_node.destroy_publisher(pub)
     finally:
         codes = {name: node.stop() for name, node in nodes.items()}  # every node, before any assert
         for name, code in codes.items():
@@ -160,7 +162,7 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
     assert res.success and not res.picked and "pick_mssd" in res.message
 
 
-def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data):
+def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data, request):
     """estimate_pose over every object of every published frame (fixed pipeline, lambda 0.5,
     seeded): the same operators chosen and the same pick outcomes as the env in-process."""
     from geometry_msgs.msg import PoseStamped
@@ -173,8 +175,9 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data)
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     traces, poses = [], []
-    ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 10)
-    ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 10)
+    subs = [ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 10),
+            ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 10)]
+    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])  # the session node stays clean
     env = PerceptionConfigEnv(data["root"], data["pipeline"], time_mode="cost_table", min_visib_fract=0.3)
     agent = make_agent("fixed", env)
     stamps = {key: stamp_ns(i) for i, key in enumerate(data["keys"])}

@@ -168,12 +168,11 @@ class CameraFrames:
             self._on_arrival()
 
     # -- requests ----------------------------------------------------------------------------
-    def get(self, stamp_ns: int, timeout: float, wait: bool = False) -> CameraFrame:
-        """The frame with this stamp (0 = the latest). Not there yet: FrameNotReady (the message
-        says `timeout` s, the wait the caller grants), or with `wait` block up to `timeout` s
-        first (for callers on another thread than the subscriptions). ValueError when it
-        arrived unusable."""
-        item = self.frames.get(stamp_ns, timeout if wait else 0.0)
+    def get(self, stamp_ns: int, timeout: float) -> CameraFrame:
+        """The frame with this stamp (0 = the latest), without waiting: FrameNotReady when it has
+        not arrived (the message names `timeout`, the wait the caller grants; operator_node awaits
+        the next arrival and asks again), ValueError when it arrived unusable."""
+        item = self.frames.get(stamp_ns, 0.0)
         if item is None:
             which = "no camera frame" if stamp_ns == 0 else f"no camera frame stamped {stamp_text(stamp_ns)}"
             cached = self.frames.stamps()

@@ -138,11 +138,15 @@ class ConfiguratorNode(Node):
         except (ValueError, OperatorCallError) as exc:
             response.success = False
             response.message = str(exc)
+            if isinstance(exc, OperatorCallError):
+                self.get_logger().warning(f"estimate of object {object_id} failed: {exc}")
         except Exception as exc:  # answer, log, keep serving
             self.get_logger().error(f"estimate_pose failed: {exc!r}")
             response.success, response.message = False, f"internal error: {exc!r}"
         response.elapsed = time.perf_counter() - start
         self._publish(response, object_id, oks)
+        self.get_logger().debug(f"object {object_id} at {stamp_text(stamp_ns)}: {response.message} after "
+                                f"{', '.join(response.operations) or 'no operation'} ({response.elapsed:.3f} s)")
         return response
 
     def _run(self, response: EstimatePose.Response, stamp_ns: int, object_id: str, max_operations: int,
