@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import signal
 import time
 from typing import Any, Awaitable, Callable
 
@@ -33,6 +34,7 @@ import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 from std_msgs.msg import Header
 
@@ -272,26 +274,42 @@ def make_hypothesis(header: Header, object_id: str, pose: Pose | None, scores: d
     return hyp
 
 
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
          executor_factory: Callable[[], Any] = SingleThreadedExecutor) -> None:
     """main() of a node: init, spin an executor (single-threaded by default) until Ctrl-C or
-    SIGTERM, shut down (the ros2/examples pattern: rclpy's context manager tears the node down).
+    SIGTERM, then destroy the node and shut down, in that order.
 
-    A node that cannot start (bad parameters, an unreadable models folder) logs why and exits 2.
+    Signals are Python's (rclpy's handler would shut the context down first, and a node
+    destroyed after that leaves its DDS endpoints announced for the lease duration, about
+    20 s: clients then see a service that no longer answers). The executor wakes every
+    0.2 s so a signal is handled promptly. A node that cannot start (bad parameters, an
+    unreadable models folder) logs why and exits 2.
     """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     node = None
+    executor = None
     try:
-        with rclpy.init(args=args):
-            try:
-                node = node_factory()
-            except (ValueError, OSError) as exc:
-                rclpy.logging.get_logger("perception_config").fatal(f"cannot start: {exc}")
-                raise SystemExit(2) from None
-            executor = executor_factory()
-            executor.add_node(node)
-            executor.spin()
+        try:
+            node = node_factory()
+        except (ValueError, OSError) as exc:
+            rclpy.logging.get_logger("perception_config").fatal(f"cannot start: {exc}")
+            raise SystemExit(2) from None
+        executor = executor_factory()
+        executor.add_node(node)
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None and hasattr(node, "on_exit"):
-            node.on_exit()  # after shutdown: print, the ROS logger is gone
+            node.on_exit()
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
