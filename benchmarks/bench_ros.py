@@ -6,7 +6,7 @@ The four operator nodes run as separate processes (started with the launcher); t
 publishes the dataset's test images (camera topics + ground truth) once, then runs every episode
 (object with visib_fract >= 0.3, lambda 0.5, seeded) twice, interleaved so machine noise hits both
 alike: in-process (InProcessOperators) and through ROS (RosOperators: every operator call a
-service request, an executor spinning in a second thread, as in configurator_node). The agent is
+service request, as in configurator_node). The agent is
 the policy (default: the newest runs/*/policy.safetensors) or the fixed pipeline.
 
 Reported: the operator time of the whole set (each action plus the scoring after it), ROS over
@@ -23,7 +23,6 @@ import argparse
 import json
 import platform
 import sys
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -36,7 +35,6 @@ if str(REPO) not in sys.path:
 
 import perception_config.ros  # noqa: E402,F401  (loopback defaults before rclpy)
 import rclpy  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 
 
 def newest_policy() -> Path | None:
@@ -73,18 +71,19 @@ def publish_frames(node, ds, keys) -> dict:
     return stamps
 
 
-def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], bool]:
+def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], list[float], bool]:
     from perception_config.agents.base import acting_seed
 
     obs, info = env.reset(options={"episode": episode, "lambda": lam, "episode_seed": seed})
     agent.begin_episode(acting_seed(seed))
-    names, seconds, terminated, truncated = [], [], False, False
+    names, seconds, own, terminated, truncated = [], [], [], False, False
     while not (terminated or truncated):
         a = int(agent.act(obs, info))
         obs, reward, terminated, truncated, info = env.step(a)
         names.append(env.action_names[a])
         seconds.append(float(env.last_outcome.elapsed))
-    return names, seconds, bool(terminated and info["picked"])
+        own.append(float(env.last_outcome.result.elapsed))  # through ROS: the operator node's own time
+    return names, seconds, own, bool(terminated and info["picked"])
 
 
 def main() -> int:
@@ -120,12 +119,8 @@ def main() -> int:
         common["pipeline"] = str(Path(settings["pipeline"]).resolve())
     logs = Path(args.out).with_suffix(".logs")
     rclpy.init()
-    node = rclpy.create_node("bench_ros")
-    executor = MultiThreadedExecutor(num_threads=4)  # as in configurator_node
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    ops = RosOperators(node, pipeline, timeout=30.0, fused_scoring=not args.separate_scoring)
+    node = rclpy.create_node("bench_ros")  # publishes the frames
+    ops = RosOperators(pipeline, node_name="bench_ros_operators", timeout=30.0, fused_scoring=not args.separate_scoring)
     ros_env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=ops)
     local_agent = load_agent(policy, local_env) if policy else make_agent("fixed", local_env)
     ros_agent = load_agent(policy, ros_env) if policy else make_agent("fixed", ros_env)
@@ -136,28 +131,29 @@ def main() -> int:
         for name in ("generation_node", "refinement_node", "scoring_node", "pick_node"):
             launcher.wait_for_line(name, "serving", timeout=60)
         stamps = publish_frames(node, ds, keys)
-        per_action: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"ros": [], "in_process": []})
+        per_action: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"ros": [], "in_process": [], "node": []})
         totals = {"ros": 0.0, "in_process": 0.0}
         same = 0
         n = len(source)
         for j in range(n):
             ek = source.episodes[j]
             seed = episode_seed(0, j)
-            l_names, l_sec, l_ok = run(local_env, local_agent, j, seed, args.lam)
+            l_names, l_sec, _, l_ok = run(local_env, local_agent, j, seed, args.lam)
             ep = source.load(j, args.lam, seed)
             ros_ep = Episode(frame=None, model=ep.model, ground_truth=None, noise_lambda=args.lam, seed=seed,
                              key=ep.key, stamp_ns=stamps[(ek.scene_id, ek.im_id)])
-            r_names, r_sec, r_ok = run(ros_env, ros_agent, ros_ep, seed, args.lam)
+            r_names, r_sec, r_own, r_ok = run(ros_env, ros_agent, ros_ep, seed, args.lam)
             same += (l_names, l_ok) == (r_names, r_ok)
             if l_names == r_names:  # per-action figures only where both ran the same operators
-                for a, x, y in zip(l_names, l_sec, r_sec):
+                for a, x, y, z in zip(l_names, l_sec, r_sec, r_own):
                     per_action[a]["in_process"].append(x)
                     per_action[a]["ros"].append(y)
+                    per_action[a]["node"].append(z)
                 totals["in_process"] += sum(l_sec)
                 totals["ros"] += sum(r_sec)
             print(f"\r{j + 1}/{n} episodes", end="", flush=True)
         print()
-    executor.shutdown()
+    ops.close()
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -170,7 +166,7 @@ def main() -> int:
         own = np.array([o for _, o in rows]) * 1000
         services[which] = {"calls": len(rows), "round_trip_ms": float(np.median(rt)), "node_ms": float(np.median(own)),
                            "overhead_ms": float(np.median(rt - own))}
-    actions = {a: {"n": len(v["ros"]), "ros_ms": float(np.median(v["ros"]) * 1000),
+    actions = {a: {"n": len(v["ros"]), "ros_ms": float(np.median(v["ros"]) * 1000), "node_ms": float(np.median(v["node"]) * 1000),
                    "in_process_ms": float(np.median(v["in_process"]) * 1000)} for a, v in per_action.items()}
     ratio = totals["ros"] / totals["in_process"] if totals["in_process"] else None
     result = {
@@ -187,9 +183,9 @@ def main() -> int:
     print(f"{n} episodes ({same} identical), policy {result['policy']}, "
           f"{'fused scoring' if result['fused_scoring'] else 'scoring through scoring_node'}")
     print(f"operator time through ROS / in-process: {ratio:.3f}x ({totals['ros']:.3f} s / {totals['in_process']:.3f} s; target <= 1.10)")
-    print(f"{'action':<14}{'n':>5}{'in-process ms':>15}{'ROS ms':>9}")
+    print(f"{'action':<14}{'n':>5}{'in-process ms':>15}{'ROS ms':>9}{'in nodes ms':>13}")
     for a, v in sorted(actions.items()):
-        print(f"{a:<14}{v['n']:>5}{v['in_process_ms']:>15.2f}{v['ros_ms']:>9.2f}")
+        print(f"{a:<14}{v['n']:>5}{v['in_process_ms']:>15.2f}{v['ros_ms']:>9.2f}{v['node_ms']:>13.2f}")
     print(f"{'service':<10}{'calls':>7}{'round trip ms':>15}{'node ms':>9}{'overhead ms':>13}")
     for s, v in sorted(services.items()):
         print(f"{s:<10}{v['calls']:>7}{v['round_trip_ms']:>15.2f}{v['node_ms']:>9.2f}{v['overhead_ms']:>13.2f}")

@@ -158,6 +158,14 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     return q if q[3] >= 0 else -q
 
 
+def as_transmitted(pose: Pose) -> Pose:
+    """The pose as a receiver of its geometry_msgs/Pose reads it back: the rotation through the
+    unit quaternion. Operators keep their output hypotheses in this form, in-process and in the
+    ROS nodes alike, so a chain of operators sees bit-identical poses whichever way they travel
+    (and per-frame renderings keyed by the pose's bytes are found again by the next call)."""
+    return Pose(matrix_from_quaternion(quaternion_from_matrix(pose.R)), pose.t)
+
+
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a quaternion (x, y, z, w); normalised first."""
     x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)

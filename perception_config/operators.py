@@ -17,7 +17,7 @@ import numpy as np
 
 from .blocks.base import BlockInput, BlockResult, Kind
 from .blocks.pipeline import Pipeline
-from .geometry import Pose
+from .geometry import Pose, as_transmitted
 from .models import ObjectModel
 from .scene import Frame
 
@@ -162,7 +162,7 @@ class InProcessOperators:
 
     def _outcome(self, action: str, result: BlockResult) -> StepOutcome:
         if result.ok and result.pose is not None:
-            self.pose = result.pose
+            self.pose = as_transmitted(result.pose)  # as the ROS nodes pass it on
         self.scores, score_elapsed = self._score()
         return StepOutcome(action, result, dict(self.scores), self.pose, result.elapsed + score_elapsed, score_elapsed)
 

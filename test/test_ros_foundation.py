@@ -42,6 +42,23 @@ def test_environment_defaults_are_loopback_and_respect_the_user():
         configure_ros_environment({"ROS_DOMAIN_ID": "abc"})
 
 
+def test_a_pose_reads_back_from_its_message_as_operators_keep_it():
+    """geometry.as_transmitted is bit for bit what a receiver of the message reconstructs, so the
+    in-process operators and a chain of nodes work on the same poses."""
+    from perception_config.geometry import as_transmitted
+    from perception_config.ros.conversions import msg_to_pose, pose_to_msg
+
+    rng = np.random.default_rng(3)
+    rotations = [exp_so3(rng.normal(size=3) * s) for s in (0.01, 1.0, 3.0) for _ in range(50)]
+    rotations += [exp_so3(np.array([np.pi - 1e-9, 0, 0])), exp_so3(np.array([0, 0, np.pi])), np.eye(3)]
+    for R in rotations:
+        pose = Pose(R, rng.normal(size=3) + [0, 0, 1])
+        kept = as_transmitted(pose)
+        read = msg_to_pose(pose_to_msg(pose))
+        assert np.array_equal(kept.R, read.R) and np.array_equal(kept.t, read.t) and np.array_equal(kept.t, pose.t)
+        assert rotation_angle(kept.R, pose.R) < 1e-7
+
+
 @pytest.fixture(scope="module")
 def generation_node(tmp_path_factory):
     from frames import box_mesh

@@ -40,7 +40,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.executors import MultiThreadedExecutor
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
@@ -92,7 +91,8 @@ class ConfiguratorNode(Node):
         self.default_lambda = float(p["noise_lambda"])
         if not (math.isfinite(self.default_lambda) and 0 <= self.default_lambda <= LAMBDA_MAX):
             raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}], got {self.default_lambda}")
-        self.operators = RosOperators(self, pipeline, timeout=float(p["operator_timeout"]), fused_scoring=bool(p["fused_scoring"]))
+        self.operators = RosOperators(pipeline, node_name=f"{self.get_name()}_operators", timeout=float(p["operator_timeout"]),
+                                      fused_scoring=bool(p["fused_scoring"]))
         self.env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=self.operators)
         if policy:
             self.agent = load_agent(policy, self.env)
@@ -178,7 +178,8 @@ class ConfiguratorNode(Node):
         header = Header(frame_id=self.operators.frame_id)
         if self.operators.stamp is not None:
             header.stamp = self.operators.stamp
-        response.hypothesis = make_hypothesis(header, object_id, info["pose"], info["scores"])
+        final = self.operators.pose_msg if self.operators.pose_msg is not None else info["pose"]  # as the operators answered it
+        response.hypothesis = make_hypothesis(header, object_id, final, info["scores"])
         response.picked = picked
         response.operations = names
         response.operation_elapsed = seconds
@@ -203,6 +204,9 @@ class ConfiguratorNode(Node):
 
     def on_exit(self) -> None:
         print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
+        if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
+            self.operators.close()
+            self._busy.release()
 
     def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
         return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
@@ -248,10 +252,9 @@ class ConfiguratorNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    # Multi-threaded: estimate_pose blocks in operator calls whose answers another thread takes.
-    # (A single-threaded executor with the episode on a worker thread and the callback awaiting
-    # it saved about 0.5 ms per call but, rarely, never resumed the callback: reliability first.)
-    spin(ConfiguratorNode, args, lambda: MultiThreadedExecutor(num_threads=4))
+    # Single-threaded: estimate_pose runs in the callback, and its operator calls spin their own
+    # executor (ros_operators.py), so nothing waits for this one.
+    spin(ConfiguratorNode, args)
 
 
 if __name__ == "__main__":

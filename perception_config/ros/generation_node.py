@@ -23,7 +23,7 @@ from perception_config_interfaces.srv import GenerateHypothesis
 from ..blocks.base import Kind
 from ..env import LAMBDA_MAX
 from .conversions import stamp_to_nanoseconds
-from .operator_node import OperatorNode, make_hypothesis, spin
+from .operator_node import OperatorNode, answered_pose, make_hypothesis, spin
 
 
 class GenerationNode(OperatorNode):
@@ -48,10 +48,11 @@ class GenerationNode(OperatorNode):
         result, header = self.run_block(block, stamp_to_nanoseconds(request.frame.stamp), request.object_id, None, rng)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
+        pose_msg, pose = answered_pose(result.pose)
         scores = None
         if request.score:
-            scores = self.score(stamp_to_nanoseconds(header.stamp), request.object_id, result.pose)[0]
-        response.hypothesis = make_hypothesis(header, request.object_id, result.pose, scores)
+            scores = self.score(stamp_to_nanoseconds(header.stamp), request.object_id, pose)[0]
+        response.hypothesis = make_hypothesis(header, request.object_id, pose_msg, scores)
 
 
 def main(args: list[str] | None = None) -> None:

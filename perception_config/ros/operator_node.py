@@ -36,6 +36,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
+from geometry_msgs.msg import Pose as PoseMsg
 from std_msgs.msg import Header
 
 from perception_config_interfaces.msg import Hypothesis, ObjectPoses
@@ -262,11 +263,23 @@ def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:
     return stamp_to_nanoseconds(msg.header.stamp), msg.object_id, pose
 
 
-def make_hypothesis(header: Header, object_id: str, pose: Pose | None, scores: dict[str, float] | None = None) -> Hypothesis:
+def answered_pose(pose: Pose) -> tuple[PoseMsg, Pose]:
+    """An operator's output pose as it is answered, and as every receiver reads it back
+    (geometry.as_transmitted): the node scores that one, so scores, cached renderings and the
+    next operator all see the pose the in-process operators see."""
+    msg = pose_to_msg(pose)
+    return msg, msg_to_pose(msg)
+
+
+def make_hypothesis(header: Header, object_id: str, pose: Pose | PoseMsg | None,
+                    scores: dict[str, float] | None = None) -> Hypothesis:
+    """A Hypothesis message; `pose` as a message is sent as it is (not converted again)."""
     hyp = Hypothesis()
     hyp.header = header
     hyp.object_id = object_id
-    if pose is not None:
+    if isinstance(pose, PoseMsg):
+        hyp.pose = pose
+    elif pose is not None:
         hyp.pose = pose_to_msg(pose)
     scores = scores or {}
     hyp.score_names = list(scores)

@@ -16,7 +16,7 @@ import numpy as np
 from perception_config_interfaces.srv import RefineHypothesis
 
 from ..blocks.base import Kind
-from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
+from .operator_node import OperatorNode, answered_pose, hypothesis_pose, make_hypothesis, spin
 
 
 class RefinementNode(OperatorNode):
@@ -33,11 +33,12 @@ class RefinementNode(OperatorNode):
         method, block = self.block(request.method, (Kind.REFINEMENT,))
         rng = np.random.default_rng(request.seed if request.seed else None)
         result, header = self.run_block(block, stamp_ns, object_id, pose, rng)
-        response.hypothesis = make_hypothesis(header, object_id, pose)
+        response.hypothesis = make_hypothesis(header, object_id, request.hypothesis.pose)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
-        scores = self.score(stamp_ns, object_id, result.pose)[0] if request.score else None
-        response.hypothesis = make_hypothesis(header, object_id, result.pose, scores)
+        pose_msg, refined = answered_pose(result.pose)
+        scores = self.score(stamp_ns, object_id, refined)[0] if request.score else None
+        response.hypothesis = make_hypothesis(header, object_id, pose_msg, scores)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -20,9 +20,11 @@ An operator that fails (success=false: a refiner diverged, the frame has no dept
 `ok=False` outcome, as in-process. A node that is not there or does not answer within
 `timeout` raises `OperatorCallError`: the episode cannot go on.
 
-Calls block the calling thread; the node's executor must spin in another thread (the
-configurator serves estimate_pose from a MultiThreadedExecutor, these clients in their own
-callback group).
+Calls block the calling thread, which spins the clients itself: they live on a private node
+with its own single-threaded executor, spun inline until the answer is there (measured: about
+1.3 ms less per call than answers taken by another executor thread and handed over). So calls
+can be made from anywhere, a callback of another executor included, but from one thread at a
+time (the configurator serialises its estimates). `close()` destroys the private node.
 """
 from __future__ import annotations
 
@@ -32,9 +34,10 @@ import time
 from typing import Any
 
 import numpy as np
-from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.node import Node
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
 
+from geometry_msgs.msg import Pose as PoseMsg
 from perception_config_interfaces.msg import Hypothesis
 from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
 
@@ -53,19 +56,22 @@ class OperatorCallError(RuntimeError):
 
 
 class RosOperators:
-    def __init__(self, node: Node, pipeline: Pipeline, timeout: float = 10.0,
+    def __init__(self, pipeline: Pipeline, node_name: str = "operator_clients", timeout: float = 10.0,
                  services: dict[str, str] | None = None, fused_scoring: bool = True) -> None:
         if not (math.isfinite(timeout) and timeout > 0):
             raise ValueError(f"operator timeout must be > 0 seconds, got {timeout}")
+        self.node = rclpy.create_node(node_name)
+        self._executor = SingleThreadedExecutor()
+        self._executor.add_node(self.node)
         self.pipeline = pipeline
         self.timeout = float(timeout)
         self.fused_scoring = bool(fused_scoring)
         names = {**SERVICES, **(services or {})}
-        group = ReentrantCallbackGroup()
         types = {"generate": GenerateHypothesis, "refine": RefineHypothesis, "score": ScoreHypothesis, "pick": Pick}
-        self.clients = {k: node.create_client(types[k], names[k], callback_group=group) for k in types}
+        self.clients = {k: self.node.create_client(types[k], names[k]) for k in types}
         self.episode: Episode | None = None
         self.pose: Pose | None = None
+        self.pose_msg: PoseMsg | None = None  # self.pose as answered: passed on as it is, never converted again
         self.scores: dict[str, float] = {}
         self.stamp = None  # builtin_interfaces/Time of the episode's frame, once resolved
         self.frame_id = ""
@@ -73,6 +79,7 @@ class RosOperators:
         self.refiner_rng = refiner_stream(0)
         # (service, round trip s, the node's own s) of every call, for benchmarks and diagnostics
         self.round_trips: deque[tuple[str, float, float]] = deque(maxlen=10_000)
+        self._answered: PoseMsg | None = None  # the pose message of the last answer, for _outcome
 
     # -- calls -------------------------------------------------------------------------------
     def _call(self, which: str, request: Any) -> Any:
@@ -81,11 +88,13 @@ class RosOperators:
         if not client.service_is_ready() and not client.wait_for_service(timeout_sec=min(self.timeout, 2.0)):
             raise OperatorCallError(f"service {client.srv_name} is not available: is {NODES[which]} running?")
         start = time.perf_counter()
-        try:
-            response = client.call(request, timeout_sec=self.timeout)
-        except TimeoutError:
+        future = client.call_async(request)
+        self._executor.spin_until_future_complete(future, timeout_sec=self.timeout)
+        if not future.done():
+            client.remove_pending_request(future)
             raise OperatorCallError(f"{client.srv_name} did not answer within {self.timeout:g} s "
-                                    f"({NODES[which]} busy or died)") from None
+                                    f"({NODES[which]} busy or died)")
+        response = future.result()
         if response is None:
             raise OperatorCallError(f"{client.srv_name} gave no answer (shutting down?)")
         self.round_trips.append((which, time.perf_counter() - start, float(response.elapsed)))
@@ -98,10 +107,11 @@ class RosOperators:
             hyp.header.stamp = self.stamp
         hyp.header.frame_id = self.frame_id
         hyp.object_id = str(self.episode.model.obj_id)
-        hyp.pose = pose_to_msg(self.pose)
+        hyp.pose = self.pose_msg if self.pose_msg is not None else pose_to_msg(self.pose)
         return hyp
 
     def _result(self, response: Any, pose_from: Hypothesis | None) -> BlockResult:
+        self._answered = None
         if not response.success:
             return BlockResult(ok=False, reason=response.message, elapsed=float(response.elapsed))
         pose = None
@@ -112,6 +122,7 @@ class RosOperators:
             except ValueError as exc:
                 return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
             scores = dict(zip(pose_from.score_names, pose_from.scores))  # when asked for (fused scoring)
+            self._answered = pose_from.pose
         return BlockResult(ok=True, pose=pose, scores=scores, elapsed=float(response.elapsed))
 
     def _generate(self, method: str) -> BlockResult:
@@ -143,7 +154,7 @@ class RosOperators:
         t_score = time.perf_counter()
         names = self.pipeline.score_names
         if result.ok and result.pose is not None:
-            self.pose = result.pose
+            self.pose, self.pose_msg = result.pose, self._answered
             if self.fused_scoring and set(names) <= set(result.scores):  # scored by the operator's node
                 self.scores = {n: float(result.scores[n]) for n in names}
             else:
@@ -160,7 +171,7 @@ class RosOperators:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
         self.refiner_rng = refiner_stream(episode.seed)
-        self.pose, self.scores = None, {}
+        self.pose, self.pose_msg, self.scores = None, None, {}
         self.stamp, self.frame_id = None, ""
         started = time.perf_counter()
         return self._outcome("generate", self._generate(self.pipeline.generator.name), started)
@@ -184,11 +195,11 @@ class RosOperators:
         raise ValueError(f"action {action!r} is a {act.kind.value} block, which is not an action")
 
     def snapshot(self) -> Any:
-        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state,
-                self.stamp, self.frame_id)
+        return (self.pose, self.pose_msg, dict(self.scores), self.rng.bit_generator.state,
+                self.refiner_rng.bit_generator.state, self.stamp, self.frame_id)
 
     def restore(self, state: Any) -> None:
-        self.pose, scores, rng_state, refiner_state, self.stamp, self.frame_id = state
+        self.pose, self.pose_msg, scores, rng_state, refiner_state, self.stamp, self.frame_id = state
         self.scores = dict(scores)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = rng_state
@@ -204,6 +215,11 @@ class RosOperators:
                 rt, own = (float(np.median([r[i] for r in rows])) * 1000 for i in (0, 1))
                 parts.append(f"{SERVICES[which]} {len(rows)} calls, round trip {rt:.2f} ms (node {own:.2f} ms)")
         return "; ".join(parts) or "no operator calls"
+
+    def close(self) -> None:
+        """Destroy the private client node (before rclpy shuts down)."""
+        self._executor.shutdown()
+        self.node.destroy_node()
 
     @property
     def stamp_ns(self) -> int:

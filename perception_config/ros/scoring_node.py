@@ -25,7 +25,7 @@ class ScoringNode(OperatorNode):
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
         blocks = None if not request.methods else [self.block(m, (Kind.SCORING,))[1] for m in request.methods]
         scores, failed, header = self.score(stamp_ns, object_id, pose, blocks)
-        response.hypothesis = make_hypothesis(header, object_id, pose, scores)
+        response.hypothesis = make_hypothesis(header, object_id, request.hypothesis.pose, scores)
         response.message = "ok" if not failed else "scored; NaN from " + "; ".join(failed)
 
 def main(args: list[str] | None = None) -> None:
