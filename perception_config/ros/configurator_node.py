@@ -27,6 +27,8 @@ Parameters:
                     scoring_node (ros_operators.py)
   auto, auto_objects, auto_every_frame, camera_qos   see above
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
+The operator clients are on a private node `<this node's name>_operators` (ros_operators.py):
+remap the operator services with global rules, not `configurator_node:`-prefixed ones.
 """
 from __future__ import annotations
 
