@@ -6,12 +6,13 @@ The four operator nodes run as separate processes (started with the launcher); t
 publishes the dataset's test images (camera topics + ground truth) once, then runs every episode
 (object with visib_fract >= 0.3, lambda 0.5, seeded) twice, interleaved so machine noise hits both
 alike: in-process (InProcessOperators) and through ROS (RosOperators: every operator call a
-service request, as in configurator_node). The agent is
-the policy (default: the newest runs/*/policy.safetensors) or the fixed pipeline.
+service request, as in configurator_node). The agent is the policy (default: the newest
+runs/*/policy.safetensors) or the fixed pipeline.
 
 Reported: the operator time of the whole set (each action plus the scoring after it), ROS over
-in-process (target <= 1.10x); per action the median seconds on both sides; per service the
-median round trip, the node's own time and the difference (middleware + rclpy). Writes JSON.
+in-process (target <= 1.10x); per action the median seconds on both sides and inside the
+operator node; per service the median round trip, the node's own time and the difference
+(middleware + rclpy). Writes JSON; the nodes' logs go to <out>.logs/.
 """
 from __future__ import annotations
 
