@@ -3,6 +3,7 @@ model, and the rclpy client node of cross-process ROS tests."""
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 from typing import Callable
 
@@ -18,6 +19,12 @@ LMO_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
 os.environ["ROS_DOMAIN_ID"] = os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"]
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+# Tests stop their child processes with SIGINT (Ctrl-C). A suite started as a background job
+# of a non-interactive shell inherits SIGINT ignored, and so would every child: catch it here,
+# so children start with the default disposition (a caught signal is reset on exec).
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

@@ -304,6 +304,9 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    # Also when started with SIGINT ignored (a background job of a script inherits that):
+    # launchers stop nodes with SIGINT.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     node = None
     executor = None
     try:
