@@ -79,7 +79,6 @@ class RosOperators:
         self.refiner_rng = refiner_stream(0)
         # (service, round trip s, the node's own s) of every call, for benchmarks and diagnostics
         self.round_trips: deque[tuple[str, float, float]] = deque(maxlen=10_000)
-        self._answered: PoseMsg | None = None  # the pose message of the last answer, for _outcome
 
     # -- calls -------------------------------------------------------------------------------
     def _call(self, which: str, request: Any) -> Any:
@@ -111,19 +110,18 @@ class RosOperators:
         return hyp
 
     def _result(self, response: Any, pose_from: Hypothesis | None) -> BlockResult:
-        self._answered = None
+        """The answer as a BlockResult; the answered pose message rides in info["pose_msg"]."""
         if not response.success:
             return BlockResult(ok=False, reason=response.message, elapsed=float(response.elapsed))
-        pose = None
-        scores: dict[str, float] = {}
-        if pose_from is not None:
-            try:
-                pose = msg_to_pose(pose_from.pose)
-            except ValueError as exc:
-                return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
-            scores = dict(zip(pose_from.score_names, pose_from.scores))  # when asked for (fused scoring)
-            self._answered = pose_from.pose
-        return BlockResult(ok=True, pose=pose, scores=scores, elapsed=float(response.elapsed))
+        if pose_from is None:
+            return BlockResult(ok=True, elapsed=float(response.elapsed))
+        try:
+            pose = msg_to_pose(pose_from.pose)
+        except ValueError as exc:
+            return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
+        scores = dict(zip(pose_from.score_names, pose_from.scores))  # when asked for (fused scoring)
+        return BlockResult(ok=True, pose=pose, scores=scores, elapsed=float(response.elapsed),
+                           info={"pose_msg": pose_from.pose})
 
     def _generate(self, method: str) -> BlockResult:
         assert self.episode is not None
@@ -154,7 +152,7 @@ class RosOperators:
         t_score = time.perf_counter()
         names = self.pipeline.score_names
         if result.ok and result.pose is not None:
-            self.pose, self.pose_msg = result.pose, self._answered
+            self.pose, self.pose_msg = result.pose, result.info.get("pose_msg")
             if self.fused_scoring and set(names) <= set(result.scores):  # scored by the operator's node
                 self.scores = {n: float(result.scores[n]) for n in names}
             else:
