@@ -41,6 +41,7 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().choice([d for d
 os.environ["PYTHONUNBUFFERED"] = "1"
 
 from bench_bag import base_frame, frames  # noqa: E402
+from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.datasets.bag import write_frames  # noqa: E402
 
 NODE = Path(sys.executable).parent / "bag_replay_node"
@@ -51,7 +52,9 @@ class Receiver:
     """Colour and depth subscriptions of this process; arrival time per stamp."""
 
     def __init__(self) -> None:
-        import perception_config.ros  # noqa: F401  (the loopback defaults, before rclpy starts)
+        from perception_config.ros_environment import configure_ros_environment
+
+        configure_ros_environment()  # the loopback defaults, before rclpy starts
         import rclpy
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image
@@ -106,10 +109,7 @@ class Receiver:
 
 
 def write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(data, indent=2) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

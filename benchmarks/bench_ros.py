@@ -34,8 +34,10 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-import perception_config.ros  # noqa: E402,F401  (loopback defaults before rclpy)
 import rclpy  # noqa: E402
+
+from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.ros_environment import configure_ros_environment  # noqa: E402
 
 
 def newest_policy() -> Path | None:
@@ -73,18 +75,11 @@ def publish_frames(node, ds, keys) -> dict:
 
 
 def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], list[float], bool]:
-    from perception_config.agents.base import acting_seed
+    from perception_config.episode_loop import acting_seed, play_episode
 
-    obs, info = env.reset(options={"episode": episode, "lambda": lam, "episode_seed": seed})
-    agent.begin_episode(acting_seed(seed))
-    names, seconds, own, terminated, truncated = [], [], [], False, False
-    while not (terminated or truncated):
-        a = int(agent.act(obs, info))
-        obs, reward, terminated, truncated, info = env.step(a)
-        names.append(env.action_names[a])
-        seconds.append(float(env.last_outcome.elapsed))
-        own.append(float(env.last_outcome.result.elapsed))  # through ROS: the operator node's own time
-    return names, seconds, own, bool(terminated and info["picked"])
+    traj = play_episode(env, agent, {"episode": episode, "lambda": lam, "episode_seed": seed}, acting_seed(seed))
+    # block_seconds through ROS: the operator node's own time
+    return traj.names, traj.operation_seconds, traj.block_seconds, traj.success
 
 
 def main() -> int:
@@ -102,27 +97,29 @@ def main() -> int:
     from perception_config.datasets.bop import BopDataset
     from perception_config.env import PerceptionConfigEnv
     from perception_config.episodes import EpisodeSource, split_image_keys
-    from perception_config.evaluation import episode_seed, policy_settings
+    from perception_config.evaluation import episode_seed
+    from perception_config.policy_settings import policy_settings
     from perception_config.launch import Launcher, NodeSpec
     from perception_config.operators import Episode
     from perception_config.ros.ros_operators import RosOperators
 
     policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())
     settings = policy_settings([policy] if policy else [])
-    pipeline = load_pipeline(settings["pipeline"])
+    pipeline = load_pipeline(settings.pipeline)
     ds = BopDataset(Path(args.dataset), split="test")
-    keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])[1][: args.images]
+    keys = split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)[1][: args.images]
     source = EpisodeSource(ds, keys)
-    local_env = PerceptionConfigEnv(source, pipeline, max_ops=settings["max_ops"])
+    local_env = PerceptionConfigEnv(source, pipeline, settings.env.replace(time_mode="measured"))
 
     common = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": len(keys) + 10}
-    if settings["pipeline"]:
-        common["pipeline"] = str(Path(settings["pipeline"]).resolve())
+    if settings.pipeline:
+        common["pipeline"] = str(Path(settings.pipeline).resolve())
     logs = Path(args.out).with_suffix(".logs")
+    configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init()
     node = rclpy.create_node("bench_ros")  # publishes the frames
     ops = RosOperators(pipeline, node_name="bench_ros_operators", timeout=30.0, fused_scoring=not args.separate_scoring)
-    ros_env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=ops)
+    ros_env = PerceptionConfigEnv(None, pipeline, settings.env.replace(time_mode="measured"), operators=ops)
     local_agent = load_agent(policy, local_env) if policy else make_agent("fixed", local_env)
     ros_agent = load_agent(policy, ros_env) if policy else make_agent("fixed", ros_env)
 
@@ -176,10 +173,7 @@ def main() -> int:
         "target": 1.10, "actions": actions, "services": services,
     }
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=2) + "\n")
-    os.replace(tmp, out)
+    atomic_write(out, json.dumps(result, indent=2) + "\n")
 
     print(f"{n} episodes ({same} identical), policy {result['policy']}, "
           f"{'fused scoring' if result['fused_scoring'] else 'scoring through scoring_node'}")

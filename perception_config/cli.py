@@ -5,6 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .settings import TIME_MODES  # light (numpy); each command imports the rest it needs
+
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from .datasets.synthetic import generate
@@ -113,8 +115,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     results = evaluate(
         args.dataset, args.policy, lambdas, args.out, episodes_per_lambda=args.episodes, seed=args.seed,
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
-        time_mode=args.time_mode, include_baselines=not args.no_baselines, progress=not args.quiet,
-        split=args.split, max_ops=args.max_ops, plots=not args.no_plots,
+        include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
+        time_mode=args.time_mode, max_ops=args.max_ops,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -133,7 +135,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the policy's, else shipped)")
     ev.add_argument("--split-seed", type=int, default=None, help="train/test split seed (default: the policy's, else 0)")
     ev.add_argument("--test-fraction", type=float, default=None, help="test share of the images (default: the policy's, else 0.3)")
-    ev.add_argument("--time-mode", choices=("measured", "cost_table"), default="measured")
+    ev.add_argument("--time-mode", choices=TIME_MODES, default=None,
+                    help="measured wall time or the blocks' cost table (default: the policy's, else measured)")
     ev.add_argument("--max-ops", type=int, default=None, help="operations per episode (default: the policy's, else 10)")
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
     ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
@@ -143,14 +146,14 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from .settings import EnvSettings
     from .training import train
 
-    lo, hi = args.lambda_range
+    settings = EnvSettings(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=tuple(args.lambda_range))
     policy = train(
-        args.dataset, args.agent, args.out, args.episodes, lambda_range=(lo, hi), seed=args.seed,
-        pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, time_mode=args.time_mode,
-        max_ops=args.max_ops, test_fraction=args.test_fraction, split_seed=args.split_seed,
-        workers=args.workers, overwrite=args.overwrite,
+        args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
+        pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
+        split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -166,7 +169,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--lambda-range", type=float, nargs=2, default=(0.1, 1.0), metavar=("A", "B"))
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
-    tr.add_argument("--time-mode", choices=("measured", "cost_table"), default="measured")
+    tr.add_argument("--time-mode", choices=TIME_MODES, default="measured")
     tr.add_argument("--max-ops", type=int, default=10)
     tr.add_argument("--test-fraction", type=float, default=0.3, help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=0)

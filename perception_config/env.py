@@ -8,8 +8,8 @@ Action space: Discrete(n) over the pipeline's actions, in the YAML's order (refi
 presets, regenerate, pick).
 
 Observation space: Box(0, 1, (n_scores + 2 * 1 + n + 4,), float32)
-  - the scoring set's scores of the current hypothesis, each mapped to [0, 1]
-    (SCORE_RANGES; unknown scores through x / (1 + |x|)), plus a flag per score that it is
+  - the scoring set's scores of the current hypothesis, each mapped to [0, 1] (the ranges
+    the scoring blocks declare; a score without one through x / (1 + |x|)), plus a flag per score that it is
     missing (scoring failed, e.g. no hypothesis): [scores..., missing...]
   - progress: step / max_ops, one-hot of the last action (all zero at the start),
     pose change of the last step (translation / diameter, rotation / pi, both clipped to 1),
@@ -24,7 +24,12 @@ one pick attempt. It is a penalty, not time: it is in the reward and in
 info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 
 Time: measured wall time by default; `time_mode="cost_table"` charges fixed seconds per action
-(and per scoring pass) from `cost_table`, for reproducible runs and tests.
+and per scoring pass (each block's `default_cost`, or the settings' `cost_table`), for
+reproducible runs and tests.
+
+Settings: one `EnvSettings` (settings.py: max_ops, failed_pick_cost, truncation_cost,
+time_mode, cost_table, min_visib_fract, lambda_range); keyword arguments of the same names
+override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_ops=5)`).
 """
 from __future__ import annotations
 
@@ -40,73 +45,46 @@ from .blocks.base import Kind
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
-from .geometry import rotation_angle
+from .geometry import check_noise_lambda, rotation_angle
 from .operators import Episode, InProcessOperators, Operators, StepOutcome
-
-# Ranges that map a score to [0, 1]: (low, high) -> (x - low) / (high - low), clipped.
-SCORE_RANGES: dict[str, tuple[float, float]] = {
-    "psi_d": (0.0, 1.0),  # M1 + M2: shares of the same rendered pixels, disjoint
-    "psi_d_m1": (0.0, 1.0),
-    "psi_d_m2": (0.0, 1.0),
-    "psi_c": (0.0, 1.0),
-    "icp_fitness": (0.0, 1.0),
-    "icp_rmse": (0.0, 0.01),
-}
-
-# Default seconds for the deterministic cost-table mode (medians of benchmarks/ on one core).
-DEFAULT_COST_TABLE: dict[str, float] = {
-    "simulated_init": 0.0005,
-    "global_registration": 2.0,
-    "icp_point_to_point": 0.04,
-    "icp_point_to_plane": 0.02,
-    "d2co": 0.04,
-    "chamfer": 0.03,
-    "chamfer_icp": 0.03,
-    "depth_refine": 0.003,
-    "simulated_pick": 0.5,
-    "external_pick": 0.5,
-    "scoring": 0.008,
-}
-
-LAMBDA_MAX = 2.0
+from .settings import EnvSettings
 
 
-def normalise_score(name: str, value: float) -> float:
+def normalise_score(value: float, score_range: tuple[float, float] | None) -> float:
+    """A score mapped to [0, 1]: (x - low) / (high - low) clipped, or 0.5 + 0.5 x / (1 + |x|)
+    without a range; 0 for NaN (a missing score has its own flag)."""
     if not math.isfinite(value):
         return 0.0
-    if name in SCORE_RANGES:
-        low, high = SCORE_RANGES[name]
+    if score_range is not None:
+        low, high = score_range
         return float(np.clip((value - low) / (high - low), 0.0, 1.0))
     return float(0.5 + 0.5 * value / (1.0 + abs(value)))
 
 
 class PerceptionConfigEnv(gym.Env):
+    """The configuration task as a Gymnasium environment (spaces and reward: module docstring).
+
+    `dataset`: a BOP dataset folder or `BopDataset` (episodes from its `image_keys`), an
+    `EpisodeSource`, or None when every reset brings its own `Episode` (the configurator).
+    `operators`: the backend that runs the blocks (default: in-process; the configurator passes
+    the ROS one). `settings` and keyword overrides: see `EnvSettings`.
+    """
+
     metadata = {"render_modes": []}
 
     def __init__(
         self,
         dataset: str | Path | BopDataset | EpisodeSource | None,
         pipeline: str | Path | Pipeline | None = None,
+        settings: EnvSettings | None = None,
         *,
         split: str = "test",
         image_keys: list[tuple[int, int]] | None = None,
-        lambda_range: tuple[float, float] = (0.1, 1.0),
-        max_ops: int = 10,
-        failed_pick_cost: float = 2.0,
-        truncation_cost: float = 10.0,
-        time_mode: str = "measured",
-        cost_table: dict[str, float] | None = None,
-        min_visib_fract: float = 0.3,
         operators: Operators | None = None,
+        **overrides: Any,
     ) -> None:
         super().__init__()
-        lo, hi = (float(x) for x in lambda_range)
-        if not (0.0 <= lo <= hi <= LAMBDA_MAX):
-            raise ValueError(f"lambda_range must satisfy 0 <= low <= high <= {LAMBDA_MAX}, got {lambda_range}")
-        if max_ops < 1:
-            raise ValueError(f"max_ops must be >= 1, got {max_ops}")
-        if time_mode not in ("measured", "cost_table"):
-            raise ValueError(f"time_mode must be 'measured' or 'cost_table', got {time_mode!r}")
+        self.settings = (settings or EnvSettings()).replace(**overrides)
         self.source: EpisodeSource | None
         if dataset is None:  # episodes come with reset(options={"episode": Episode(...)})
             self.source = None
@@ -114,21 +92,11 @@ class PerceptionConfigEnv(gym.Env):
             self.source = dataset
         else:
             ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
-            self.source = EpisodeSource(ds, image_keys, min_visib_fract=min_visib_fract)
+            self.source = EpisodeSource(ds, image_keys, min_visib_fract=self.settings.min_visib_fract)
         self.pipeline = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
         self.ops: Operators = operators if operators is not None else InProcessOperators(self.pipeline)
-        self.lambda_range = (lo, hi)
-        self.max_ops = int(max_ops)
-        self.failed_pick_cost = float(failed_pick_cost)
-        if not (math.isfinite(truncation_cost) and truncation_cost >= 0.0):
-            raise ValueError(f"truncation_cost must be a finite number >= 0, got {truncation_cost}")
-        self.truncation_cost = float(truncation_cost)
-        self.time_mode = time_mode
-        self.cost_table = {**DEFAULT_COST_TABLE, **(cost_table or {})}
-        if time_mode == "cost_table":
-            missing = [a.block.name for a in self.pipeline.actions if a.block.name not in self.cost_table]
-            if missing:
-                raise ValueError(f"cost_table has no entry for blocks {missing}")
+        self._scoring_cost = self.settings.scoring_cost(self.pipeline.scoring)
+        self.score_ranges = self.pipeline.score_ranges
 
         self.action_names = self.pipeline.action_names
         self.score_names = self.pipeline.score_names
@@ -154,10 +122,19 @@ class PerceptionConfigEnv(gym.Env):
         self.episode = None
         self.episode_time = 0.0
 
-    def _seconds(self, outcome: StepOutcome, block_name: str) -> float:
-        if self.time_mode == "measured":
+    @property
+    def max_ops(self) -> int:
+        return self.settings.max_ops
+
+    def cost_table_seconds(self, block: Any) -> float:
+        """Seconds cost-table mode charges for an action with `block`: the block plus the scoring pass."""
+        return self.settings.block_cost(block) + self._scoring_cost
+
+    def action_seconds(self, outcome: StepOutcome, block: Any) -> float:
+        """Seconds an action with `block` is charged (before a failed pick's robot time)."""
+        if self.settings.time_mode == "measured":
             return float(outcome.elapsed)
-        return self.cost_table[block_name] + self.cost_table["scoring"]  # "scoring": the whole scoring pass
+        return self.cost_table_seconds(block)
 
     def _obs(self) -> np.ndarray:
         scores = self.last_outcome.scores if self.last_outcome else {}
@@ -166,7 +143,7 @@ class PerceptionConfigEnv(gym.Env):
         if self.last_action is not None:
             one_hot[self.last_action] = 1.0
         obs = np.concatenate([
-            [normalise_score(s, v) for s, v in zip(self.score_names, vals)],
+            [normalise_score(v, self.score_ranges.get(s)) for s, v in zip(self.score_names, vals)],
             [0.0 if math.isfinite(v) else 1.0 for v in vals],
             [min(1.0, self.steps / self.max_ops)],
             one_hot,
@@ -200,9 +177,8 @@ class PerceptionConfigEnv(gym.Env):
             raise ValueError(f"episode index {index} out of range 0..{len(self.source) - 1}")
         lam = given.noise_lambda if given is not None else options.get("lambda")
         if lam is None:
-            lam = float(self.np_random.uniform(*self.lambda_range))
-        if not (math.isfinite(lam) and 0.0 <= lam <= LAMBDA_MAX):
-            raise ValueError(f"lambda must be in [0, {LAMBDA_MAX}], got {lam}")
+            lam = float(self.np_random.uniform(*self.settings.lambda_range))
+        lam = check_noise_lambda(lam)
         self._reset_state()
         if given is not None:
             self.episode = given
@@ -211,7 +187,7 @@ class PerceptionConfigEnv(gym.Env):
             self.episode = self.source.load(int(index), lam, ep_seed)
         outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
-        seconds = self._seconds(outcome, self.pipeline.generator.name)
+        seconds = self.action_seconds(outcome, self.pipeline.generator)
         self.episode_time = 0.0  # the initial hypothesis is common to all agents: not charged
         info = self._info(outcome, seconds)
         info["episode_index"] = -1 if given is not None else int(index)
@@ -228,7 +204,7 @@ class PerceptionConfigEnv(gym.Env):
         block = self.pipeline.actions[a].block
         before = self.last_outcome.pose if self.last_outcome else None
         outcome = self.ops.apply(name)
-        seconds = self._seconds(outcome, block.name)
+        seconds = self.action_seconds(outcome, block)
         reward = -seconds
         terminated = False
         if block.kind == Kind.PICK and outcome.result.ok:
@@ -236,8 +212,8 @@ class PerceptionConfigEnv(gym.Env):
                 terminated = True
             else:
                 self.pick_failed = True
-                reward -= self.failed_pick_cost
-                seconds += self.failed_pick_cost
+                reward -= self.settings.failed_pick_cost
+                seconds += self.settings.failed_pick_cost
         self.steps += 1
         self.episode_time += seconds
         self.last_action = a
@@ -253,9 +229,9 @@ class PerceptionConfigEnv(gym.Env):
         self.last_outcome = outcome
         truncated = not terminated and self.steps >= self.max_ops
         if truncated:
-            reward -= self.truncation_cost
+            reward -= self.settings.truncation_cost
         info = self._info(outcome, seconds)
-        info["truncation_cost"] = self.truncation_cost if truncated else 0.0
+        info["truncation_cost"] = self.settings.truncation_cost if truncated else 0.0
         return self._obs(), float(reward), terminated, truncated, info
 
 

@@ -34,23 +34,24 @@ import json
 import math
 import os
 import re as _re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Protocol, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .blocks.base import Kind
+from .atomic_file import atomic_write
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset, BopResult, write_results_csv
-from .env import LAMBDA_MAX, PerceptionConfigEnv, normalise_score
+from .env import PerceptionConfigEnv, normalise_score
+from .episode_loop import acting_seed, play_episode
 from .episodes import EpisodeSource, split_image_keys
-from .geometry import Pose
+from .geometry import LAMBDA_MAX, Pose, check_noise_lambda
 from .metrics import average_recall_mspd, average_recall_mssd, pose_errors
+from .policy_settings import is_policy_file, policy_settings
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
-DEFAULT_TEST_FRACTION = 0.3
-DEFAULT_SPLIT_SEED = 0
 # Engineer pipelines evaluated as baselines; those naming actions the pipeline lacks are skipped.
 DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
     ("icp_coarse", "icp_fine", "pick"),
@@ -72,19 +73,13 @@ DEFINITIONS = {
 }
 
 
-class Agent(Protocol):
-    """What evaluation needs of an agent: the next action from the observation and info."""
-
-    def act(self, obs: np.ndarray, info: dict[str, Any]) -> int: ...
-
-
 @dataclass
 class EvalAgent:
     """An agent under evaluation: its report name, its kind (random, fixed, oracle, pg, ...)."""
 
     name: str
     kind: str
-    agent: Agent
+    agent: Any  # an agents.Agent, or any object with act(obs, info) (begin_episode/observe optional)
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -114,16 +109,6 @@ def _mean_median(values: Sequence[float | None]) -> dict[str, float | None]:
     return {"mean": s["mean"], "median": s["median"]}
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _pose_json(pose: Pose | None) -> dict[str, list[float]] | None:
     if pose is None:
         return None
@@ -150,13 +135,11 @@ def _errors(pose: Pose | None, gt: Pose, model: Any, K: np.ndarray) -> dict[str,
     }
 
 
-LOWER_IS_BETTER = frozenset({"icp_rmse"})
-
-
-def _confidence(scores: dict[str, float]) -> float:
+def _confidence(scores: dict[str, float], pipeline: Pipeline) -> float:
     """A BOP score in [0, 1] for a final hypothesis, from its own scores only (no ground
     truth): the mean of the normalised scores, flipped where lower is better."""
-    vals = [1.0 - normalise_score(k, v) if k in LOWER_IS_BETTER else normalise_score(k, v)
+    ranges, lower = pipeline.score_ranges, pipeline.lower_is_better
+    vals = [1.0 - normalise_score(v, ranges.get(k)) if k in lower else normalise_score(v, ranges.get(k))
             for k, v in scores.items() if math.isfinite(v)]
     return float(np.mean(vals)) if vals else 0.0
 
@@ -167,59 +150,6 @@ def _slug(name: str) -> str:
 
 
 # --------------------------------------------------------------------------- agents
-
-
-def _is_policy_file(spec: Any) -> bool:
-    return isinstance(spec, (str, os.PathLike)) and (Path(spec).suffix != "" or os.sep in str(spec)) \
-        and Path(spec).is_file()
-
-
-# Training settings a policy file records (perception_config.training: metadata "extra") that
-# evaluation takes over when not given: the split must be the training split (else the "test"
-# images may be training images), max_ops is part of the observation (step / max_ops).
-_RECORDED = ("split_seed", "test_fraction", "pipeline", "max_ops")
-
-
-def _same_setting(key: str, a: Any, b: Any) -> bool:
-    if key == "pipeline":
-        return Path(a).resolve() == Path(b).resolve()
-    if key == "test_fraction":
-        return math.isclose(float(a), float(b))
-    return int(a) == int(b)
-
-
-def policy_settings(policies: Sequence[Any], **given: Any) -> dict[str, Any]:
-    """Evaluation settings: split_seed, test_fraction, pipeline, max_ops. An explicit value
-    (not None) wins but must agree with what the policy files record; otherwise the files'
-    value (they must agree with each other); otherwise the defaults (0, 0.3, shipped, 10)."""
-    from .agents.policy_io import policy_info
-
-    out: dict[str, Any] = {k: given.get(k) for k in _RECORDED}
-    source: dict[str, str] = {k: "the arguments" for k, v in out.items() if v is not None}
-    for spec in policies:
-        if not _is_policy_file(spec):
-            continue
-        extra = policy_info(Path(spec)).get("extra") or {}
-        recorded = {
-            "split_seed": extra.get("split_seed"), "test_fraction": extra.get("test_fraction"),
-            "pipeline": extra.get("pipeline"), "max_ops": (extra.get("env_kwargs") or {}).get("max_ops"),
-        }
-        for key, value in recorded.items():
-            if value is None:
-                continue
-            if key == "pipeline" and isinstance(out[key], Pipeline):
-                continue  # a Pipeline object: the policy loader checks its action set
-            if out[key] is None:
-                out[key], source[key] = value, f"policy {spec}"
-            elif not _same_setting(key, out[key], value):
-                raise ValueError(
-                    f"policy {spec} was trained with {key}={value!r} but {source[key]} give {key}={out[key]!r}: "
-                    + ("evaluating on its training images would be meaningless" if key in ("split_seed", "test_fraction")
-                       else "evaluate each policy with the settings it was trained with"))
-    out["split_seed"] = DEFAULT_SPLIT_SEED if out["split_seed"] is None else int(out["split_seed"])
-    out["test_fraction"] = DEFAULT_TEST_FRACTION if out["test_fraction"] is None else float(out["test_fraction"])
-    out["max_ops"] = 10 if out["max_ops"] is None else int(out["max_ops"])
-    return out
 
 
 def fixed_sequences(pipeline: Pipeline, sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES) -> list[tuple[str, ...]]:
@@ -250,7 +180,7 @@ def build_agents(
             out.append(EvalAgent(str(spec[0]), "custom", spec[1]))
         elif hasattr(spec, "act"):
             out.append(EvalAgent(str(getattr(spec, "name", type(spec).__name__)), "custom", spec))
-        elif _is_policy_file(spec):
+        elif is_policy_file(spec):
             agent = agents.load_agent(Path(spec), env)
             out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent))
         elif isinstance(spec, str):
@@ -280,39 +210,37 @@ def build_agents(
 # --------------------------------------------------------------------------- episodes
 
 
-def run_episode(env: PerceptionConfigEnv, agent: Agent, index: int, lam: float, ep_seed: int) -> dict[str, Any]:
-    """Run one episode to its end; the per-episode record (trace, poses, errors). The agent's
-    acting randomness is reseeded from the episode seed, so every agent's run of an episode is
-    reproducible whatever ran before it."""
-    from .agents.base import acting_seed
+class _Duck:
+    """An object with only `act` (a custom agent) under the episode loop's agent interface."""
 
-    obs, info = env.reset(options={"episode": int(index), "lambda": float(lam), "episode_seed": int(ep_seed)})
-    if hasattr(agent, "begin_episode"):  # acting randomness: its own stream, fixed by the episode
-        agent.begin_episode(acting_seed(ep_seed))  # type: ignore[attr-defined]
+    def __init__(self, agent: Any) -> None:
+        self.agent = agent
+
+    def begin_episode(self, seed: int | None = None) -> None:
+        if hasattr(self.agent, "begin_episode"):
+            self.agent.begin_episode(seed)
+
+    def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        return self.agent.act(obs, info)
+
+    def observe(self, *args: Any) -> None:
+        if hasattr(self.agent, "observe"):
+            self.agent.observe(*args)
+
+
+def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float, ep_seed: int) -> dict[str, Any]:
+    """Play one evaluation episode (the agent's acting randomness seeded from the episode
+    seed, so every agent's run of an episode is reproducible whatever ran before it); the
+    per-episode record: trace, poses, scores, errors."""
+    from .agents.base import Agent
+
+    player = agent if isinstance(agent, Agent) else _Duck(agent)
+    traj = play_episode(env, player, {"episode": int(index), "lambda": float(lam), "episode_seed": int(ep_seed)},
+                        acting_seed(ep_seed))
     ep = env.episode
     assert ep is not None
-    initial = info["pose"]
-    actions: list[str] = []
-    seconds: list[float] = []
-    oks: list[bool] = []
-    first_pick: bool | None = None
-    success = False
-    cost = 0.0
-    while True:
-        a = int(agent.act(obs, info))
-        obs, reward, terminated, truncated, info = env.step(a)
-        cost -= reward
-        if hasattr(agent, "observe"):
-            agent.observe(reward, obs, terminated, truncated, info)  # type: ignore[attr-defined]
-        actions.append(env.action_names[a])
-        seconds.append(float(info["seconds"]))
-        oks.append(bool(info["ok"]))
-        if env.pipeline.actions[a].kind == Kind.PICK and info["ok"] and first_pick is None:
-            first_pick = bool(info["picked"])
-        if terminated or truncated:
-            success = bool(terminated and info["picked"])
-            break
-    final = info["pose"]
+    info = traj.final_info
+    initial, final = traj.initial_info["pose"], info["pose"]
     model, gt, K = ep.model, ep.ground_truth, ep.frame.K
     scene_id, im_id, obj_id = ep.key
     rec: dict[str, Any] = {
@@ -320,11 +248,11 @@ def run_episode(env: PerceptionConfigEnv, agent: Agent, index: int, lam: float, 
         "scene_id": int(scene_id), "im_id": int(im_id), "obj_id": int(obj_id),
         "instance": int(env.source.episodes[int(index)].index),
         "diameter_mm": float(model.diameter * MM), "image_width": int(ep.frame.width),
-        "actions": actions, "seconds": seconds, "ok": oks,
-        "success": success, "ops": len(actions), "time": float(env.episode_time), "cost": float(cost),
-        "first_pick_success": bool(first_pick),
+        "actions": traj.names, "seconds": [float(x) for x in traj.seconds], "ok": traj.oks,
+        "success": traj.success, "ops": traj.steps, "time": traj.time, "cost": traj.cost,
+        "first_pick_success": traj.first_pick_success,
         "final_scores": {k: _finite_or_none(v) for k, v in info["scores"].items()},
-        "confidence": _confidence(info["scores"]),
+        "confidence": _confidence(info["scores"], env.pipeline),
         "initial_pose": _pose_json(initial), "final_pose": _pose_json(final),
     }
     search = getattr(agent, "last_result", None)  # the oracle's search of this episode
@@ -405,15 +333,7 @@ def bop_csv_name(agent: str, lam: float, dataset_name: str, split: str = "test")
 
 
 def _check_lambdas(lambdas: Iterable[float]) -> list[float]:
-    out = []
-    for lam in lambdas:
-        try:
-            x = float(lam)
-        except (TypeError, ValueError):
-            raise ValueError(f"lambda must be a number, got {lam!r}") from None
-        if not (math.isfinite(x) and 0.0 <= x <= LAMBDA_MAX):
-            raise ValueError(f"lambda must be in [0, {LAMBDA_MAX}], got {lam}")
-        out.append(x)
+    out = [check_noise_lambda(lam) for lam in lambdas]
     if not out:
         raise ValueError("no lambda to evaluate")
     return out
@@ -443,40 +363,38 @@ def evaluate(
     pipeline: str | Path | Pipeline | None = None,
     split_seed: int | None = None,
     test_fraction: float | None = None,
-    time_mode: str = "measured",
     include_baselines: bool = True,
     progress: bool = True,
     *,
     split: str = "test",
-    max_ops: int | None = None,
-    failed_pick_cost: float = 2.0,
-    truncation_cost: float = 10.0,
-    cost_table: dict[str, float] | None = None,
-    min_visib_fract: float = 0.3,
     fixed: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES,
     plots: bool = True,
     n_example_episodes: int = 2,
+    **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
     the path of results.json. See the module docstring for the outputs and definitions.
 
     policies: policy files, agent names of `perception_config.agents.AGENTS`, or agent objects
-    / (name, agent) pairs. split_seed, test_fraction, pipeline and max_ops default to what the
-    policy files record from training (they must agree with each other and with explicit
-    values), else 0, 0.3, the shipped pipeline, 10. `fixed`: the engineer sequences evaluated
-    as baselines (those naming actions the pipeline lacks are skipped).
+    / (name, agent) pairs. split_seed, test_fraction, pipeline and the environment settings
+    default to what the policy files record from training (policy_settings.py: the split, the
+    pipeline and max_ops must agree with explicit values; other settings given here, e.g.
+    time_mode="cost_table", win and are reported), else 0, 0.3, the shipped pipeline and
+    `EnvSettings()`. `env_overrides`: EnvSettings fields. `fixed`: the engineer sequences
+    evaluated as baselines (those naming actions the pipeline lacks are skipped).
     """
     lams = _check_lambdas(lambdas)
     out = Path(out)
-    settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction,
-                               pipeline=pipeline, max_ops=max_ops)
+    settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction, pipeline=pipeline,
+                               **env_overrides)
+    for note in settings.notes:
+        print(f"note: {note}", file=sys.stderr)
     ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
-    train_keys, test_keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])
-    pipe = settings["pipeline"] if isinstance(settings["pipeline"], Pipeline) else load_pipeline(settings["pipeline"])
-    source = EpisodeSource(ds, test_keys, min_visib_fract=min_visib_fract)
-    env = PerceptionConfigEnv(source, pipe, max_ops=settings["max_ops"], failed_pick_cost=failed_pick_cost,
-                              truncation_cost=truncation_cost, time_mode=time_mode, cost_table=cost_table,
-                              lambda_range=(0.0, LAMBDA_MAX))
+    train_keys, test_keys = split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)
+    pipe = settings.pipeline if isinstance(settings.pipeline, Pipeline) else load_pipeline(settings.pipeline)
+    env_settings = settings.env.replace(lambda_range=(0.0, LAMBDA_MAX))  # every lambda is set per episode
+    source = EpisodeSource(ds, test_keys, min_visib_fract=env_settings.min_visib_fract)
+    env = PerceptionConfigEnv(source, pipe, env_settings)
     agents = build_agents(env, policies, seed, include_baselines, fixed)
     plan = episode_plan(len(source), episodes_per_lambda, seed)
 
@@ -494,7 +412,7 @@ def evaluate(
                     bar.set_postfix_str(f"{ea.name} lambda={lam:g}")
                 eps = []
                 for index, ep_seed in plan:
-                    eps.append({"agent": ea.name, **run_episode(env, ea.agent, index, lam, ep_seed)})
+                    eps.append({"agent": ea.name, **episode_record(env, ea.agent, index, lam, ep_seed)})
                     if bar is not None:
                         bar.update(1)
                 per_episode.extend(eps)
@@ -505,18 +423,20 @@ def evaluate(
     _mark_best_fixed(records)
 
     out.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out / "results.json", json.dumps(records, indent=1, allow_nan=False) + "\n")
-    _atomic_write(out / "episodes.jsonl", "".join(json.dumps(e, allow_nan=False) + "\n" for e in per_episode))
+    atomic_write(out / "results.json", json.dumps(records, indent=1, allow_nan=False) + "\n")
+    atomic_write(out / "episodes.jsonl", "".join(json.dumps(e, allow_nan=False) + "\n" for e in per_episode))
+    es = env.settings
     meta = {
-        "dataset": str(ds.root), "split": split, "split_seed": settings["split_seed"],
-        "test_fraction": settings["test_fraction"], "test_images": [list(k) for k in test_keys],
+        "dataset": str(ds.root), "split": split, "split_seed": settings.split_seed,
+        "test_fraction": settings.test_fraction, "test_images": [list(k) for k in test_keys],
         "n_train_images": len(train_keys), "episodes_per_lambda": len(plan), "seed": seed, "lambdas": lams,
-        "time_mode": time_mode, "max_ops": env.max_ops, "failed_pick_cost": failed_pick_cost,
-        "truncation_cost": truncation_cost, "min_visib_fract": min_visib_fract, "pipeline": pipe.describe(),
+        "time_mode": es.time_mode, "max_ops": es.max_ops, "failed_pick_cost": es.failed_pick_cost,
+        "truncation_cost": es.truncation_cost, "min_visib_fract": es.min_visib_fract, "env_settings": es.to_json(),
+        "settings_notes": settings.notes, "pipeline": pipe.describe(),
         "agents": [{"name": a.name, "kind": a.kind} for a in agents],
         "definitions": DEFINITIONS,
     }
-    _atomic_write(out / "meta.json", json.dumps(meta, indent=1, allow_nan=False) + "\n")
+    atomic_write(out / "meta.json", json.dumps(meta, indent=1, allow_nan=False) + "\n")
     write_bop_csvs(out / "bop", per_episode, Path(ds.root).name)
     if plots:
         make_plots(out, records, per_episode, env, lams, plan, n_example_episodes)
@@ -641,7 +561,7 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
 
 
 __all__ = [
-    "evaluate", "format_table", "summarise", "run_episode", "build_agents", "policy_settings", "episode_plan",
+    "evaluate", "format_table", "summarise", "episode_record", "build_agents", "episode_plan",
     "episode_seed", "bop_results", "bop_csv_name", "write_bop_csvs", "example_episodes", "fixed_sequences",
     "pose_from_json", "EvalAgent", "DEFAULT_LAMBDAS", "DEFAULT_FIXED_SEQUENCES",
 ]

@@ -11,6 +11,18 @@ import numpy as np
 
 SIGMA_R = 0.35  # rad, rotation noise at lambda = 1
 SIGMA_T = 0.15  # share of the object diameter, translation noise at lambda = 1
+LAMBDA_MAX = 2.0  # the largest noise level anything accepts (the paper sweeps 0.1 .. 1.0)
+
+
+def check_noise_lambda(value: object, what: str = "lambda") -> float:
+    """`value` as a noise level in [0, LAMBDA_MAX]; ValueError naming `what` otherwise."""
+    try:
+        lam = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, got {value!r}") from None
+    if not (np.isfinite(lam) and 0.0 <= lam <= LAMBDA_MAX):
+        raise ValueError(f"{what} must be in [0, {LAMBDA_MAX}], got {value}")
+    return lam
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,7 +8,7 @@ stops them all on SIGINT/SIGTERM (SIGINT, 10 s, then SIGKILL), and reports a nod
 finish (exit 0 at the end of its bag) without stopping the others.
 
 This module only manages subprocesses: it never imports rclpy. The children get the project's
-loopback defaults (perception_config.ros.environment) plus PYTHONUNBUFFERED=1.
+loopback defaults (perception_config.ros_environment) plus PYTHONUNBUFFERED=1.
 
 From Python (the end-to-end tests, the demo):
 
@@ -31,6 +31,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, TextIO
+
+from .ros_environment import configure_ros_environment
 
 # Short names accepted by --nodes and the console script each one runs.
 NODE_EXECUTABLES = {
@@ -124,7 +126,6 @@ def find_executable(executable: str) -> str:
 def node_environment(extra: dict[str, str] | None = None) -> dict[str, str]:
     """The environment of every child: this process's, the project's loopback ROS defaults
     (a value the user exported wins, e.g. ROS_DOMAIN_ID), PYTHONUNBUFFERED=1, then `extra`."""
-    from .ros.environment import configure_ros_environment  # no rclpy behind this import
 
     env = configure_ros_environment(dict(os.environ))
     env["PYTHONUNBUFFERED"] = "1"

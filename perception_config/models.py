@@ -20,6 +20,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .atomic_file import atomic_write
 from .geometry import Pose
 
 MM = 1e-3  # metres per millimetre: BOP files are in mm
@@ -388,10 +389,7 @@ def write_ply(
         vlines = [" ".join(repr(float(a[i])) if t == "float" else str(int(a[i])) for _, t, a in cols) for i in range(len(v))]
         flines = [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
         body = ("\n".join(vlines + flines) + "\n").encode("ascii")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(head + body)
-    os.replace(tmp, path)
+    atomic_write(path, head + body)
 
 
 # --------------------------------------------------------------------------- mesh helpers

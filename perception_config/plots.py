@@ -15,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .atomic_file import atomic_output  # noqa: E402
 from .geometry import Pose  # noqa: E402
 from .metrics import pose_mssd  # noqa: E402
 from .models import ObjectModel  # noqa: E402
@@ -27,14 +28,11 @@ GT_COLOUR, INIT_COLOUR, FINAL_COLOUR = "#1f77ff", "#e41a1c", "#2ca02c"
 def _save(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
     """Save a figure atomically and close it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=dpi)
-        os.replace(tmp, path)
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=dpi)
     finally:
         plt.close(fig)
-        tmp.unlink(missing_ok=True)
     return path
 
 

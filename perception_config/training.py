@@ -11,6 +11,9 @@ The loop is the same for every agent; the algorithms live in the agent files. On
 Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
 held out (stored in the policy metadata with the split seed and fraction, for evaluation).
 
+The environment's settings are one `EnvSettings` (settings.py), recorded in the policy's
+metadata (`extra.env_settings`) and restored wherever the policy is run.
+
 Files in `out/`: policy.safetensors (or policy.json for agents without weights),
 checkpoint.safetensors (policy + optimizer/population + episode counter + rng states +
 history; written atomically every `checkpoint_every` episodes; `resume=True` continues from
@@ -36,11 +39,15 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .agents import AGENTS, Agent, EnvRecipe, EnvSpec, Trajectory, make_agent, run_episode
-from .agents.policy_io import (PolicyError, agent_meta, atomic_write_bytes, build_agent, check_compatible,
-                               read_file, write_file)
+from .agents import AGENTS, Agent, EnvRecipe, EnvSpec, make_agent
+from .agents.policy_io import (PolicyError, agent_meta, build_agent, check_compatible, read_file, save_agent,
+                               write_file)
+from .atomic_file import atomic_output, atomic_write
 from .datasets.bop import BopDataset
+from .episode_loop import Trajectory, play_episode
 from .episodes import split_image_keys
+from .policy_settings import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
+from .settings import EnvSettings, settings_from_policy_meta
 
 POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
@@ -85,14 +92,14 @@ def _worker_run(task: tuple[tuple, list[tuple[dict[str, Any], int]]]) -> list[Tr
     if "error" in _WORKER:
         raise RuntimeError(f"a training worker could not build its environment: {_WORKER['error']}")
     agent = _rebuild(snapshot, _WORKER["spec"])
-    return [run_episode(_WORKER["env"], agent, options, seed) for options, seed in episodes]
+    return [play_episode(_WORKER["env"], agent, options, seed) for options, seed in episodes]
 
 
 def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], act_seeds: np.ndarray,
                pool: Any = None, workers: int = 1) -> list[list[Trajectory]]:
     """Every actor plays every episode: trajectories[actor][episode]."""
     if pool is None:
-        return [[run_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
+        return [[play_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
                 for i, actor in enumerate(actors)]
     # Split each actor's episodes into chunks so that the workers stay busy.
     n_chunks = min(len(episodes), max(1, math.ceil(2 * workers / len(actors))))
@@ -172,10 +179,12 @@ def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title:
         ax.grid(alpha=0.3)
     fig.suptitle(f"{title} (moving average over {window} episodes)")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue())
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=100)
+    finally:
+        plt.close(fig)
+    return Path(path)
 
 
 def _write_history_csv(history: dict[str, np.ndarray], path: Path) -> None:
@@ -184,7 +193,7 @@ def _write_history_csv(history: dict[str, np.ndarray], path: Path) -> None:
     w.writerow(["episode", *HISTORY_FIELDS])
     for i in range(len(history["return"])):
         w.writerow([i + 1, *(f"{history[k][i]:.6g}" for k in HISTORY_FIELDS)])
-    atomic_write_bytes(path, buf.getvalue().encode())
+    atomic_write(path, buf.getvalue())
 
 
 def _policy_path(out: Path, agent: Agent) -> Path:
@@ -197,35 +206,33 @@ def train(
     agent: str | Agent,
     out: str | Path,
     episodes: int,
-    lambda_range: tuple[float, float] = (0.1, 1.0),
+    *,
+    settings: EnvSettings | None = None,
     seed: int = 0,
     pipeline: str | Path | None = None,
-    progress: bool = True,
-    resume: bool = False,
-    *,
     agent_kwargs: dict[str, Any] | None = None,
-    time_mode: str = "measured",
-    max_ops: int = 10,
-    failed_pick_cost: float = 2.0,
-    truncation_cost: float = 10.0,
-    cost_table: dict[str, float] | None = None,
-    test_fraction: float = 0.3,
-    split_seed: int = 0,
     split: str = "test",
-    min_visib_fract: float = 0.3,
-    checkpoint_every: int = 100,
+    test_fraction: float = DEFAULT_TEST_FRACTION,
+    split_seed: int = DEFAULT_SPLIT_SEED,
     workers: int | None = None,
+    checkpoint_every: int = 100,
+    resume: bool = False,
     overwrite: bool = False,
+    progress: bool = True,
 ) -> Path:
     """Train `agent` ("pg", "es", "simple"; "random"/"fixed" just play) on the train split of
     a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
 
-    Returns the policy file. `workers`: processes playing episodes (default: 2 for pg and es
-    on a machine with 2+ cores, else in-process). `resume=True` continues a run from out/checkpoint.safetensors up to
+    Returns the policy file. `settings`: the environment's (default `EnvSettings()`; its
+    lambda_range is the training distribution of lambda). `split`: the dataset's BOP split
+    folder, whose image ids are divided by (`test_fraction`, `split_seed`). `workers`:
+    processes playing episodes (default: 2 for pg and es on a machine with 2+ cores, else
+    in-process). `resume=True` continues a run from out/checkpoint.safetensors up to
     `episodes` in total, with the checkpoint's agent hyperparameters (`agent_kwargs` are
     ignored); the dataset, split, pipeline and env settings must be the same (lambda_range may
     change); without it an existing run in `out` is an error unless `overwrite`.
     """
+    settings = settings or EnvSettings()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if checkpoint_every < 1:
@@ -246,19 +253,14 @@ def train(
     # The split: train on the train image ids only.
     ds = BopDataset(Path(dataset), split=split)
     train_keys, test_keys = split_image_keys(ds.image_keys(), test_fraction, split_seed)
-    env_kwargs = {"lambda_range": tuple(float(x) for x in lambda_range), "max_ops": int(max_ops),
-                  "failed_pick_cost": float(failed_pick_cost),
-                  "truncation_cost": float(truncation_cost), "time_mode": time_mode,
-                  "cost_table": dict(cost_table) if cost_table else None, "min_visib_fract": float(min_visib_fract)}
     recipe = EnvRecipe(str(Path(dataset).resolve()), str(Path(pipeline).resolve()) if pipeline else None,
-                       tuple(train_keys), split, env_kwargs)
+                       tuple(train_keys), split, settings)
     env = recipe.make()
     spec = EnvSpec.from_env(env)
     training_info = {
         "dataset": recipe.dataset, "bop_split": split, "split_seed": int(split_seed), "test_fraction": float(test_fraction),
         "train_image_keys": [list(k) for k in train_keys], "test_image_keys": [list(k) for k in test_keys],
-        "train_episodes_available": len(env.source), "lambda_range": list(env_kwargs["lambda_range"]),
-        "env_kwargs": {k: v for k, v in env_kwargs.items() if k != "lambda_range"}, "pipeline": recipe.pipeline,
+        "train_episodes_available": len(env.source), "env_settings": settings.to_json(), "pipeline": recipe.pipeline,
         "seed": int(seed),
     }
 
@@ -271,11 +273,19 @@ def train(
         if meta["agent"] != name:
             raise PolicyError(f"checkpoint {ckpt_path} is a {meta['agent']!r} run, not {name!r}")
         saved = meta.get("extra", {})
-        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "env_kwargs"):
+        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline"):
             now = json.loads(json.dumps(training_info[key]))
             if saved.get(key) != now:
                 raise PolicyError(f"checkpoint {ckpt_path} was trained with {key}={saved.get(key)!r}, "
                                   f"this run has {now!r}: resume with the same settings")
+        try:
+            saved_settings = settings_from_policy_meta(meta, f"checkpoint {ckpt_path}")
+        except ValueError as exc:
+            raise PolicyError(str(exc)) from None
+        changed = saved_settings.differences(settings) if saved_settings else ["none recorded"]
+        if changed:
+            raise PolicyError(f"checkpoint {ckpt_path} was trained with other environment settings "
+                              f"({'; '.join(changed)}): resume with the same settings (lambda_range may change)")
         learner = build_agent(meta, tensors, spec, ckpt_path)
         learner.load_checkpoint({k: v for k, v in tensors.items() if k.startswith("train/")}, meta.get("train_state", {}))
         trainer = meta.get("trainer", {})
@@ -310,7 +320,7 @@ def train(
         write_file(ckpt_path, meta, tensors)
 
     def save_outputs(interrupted: bool) -> None:
-        learner.save(policy_path, {**training_info, "episodes": done, "interrupted": interrupted})
+        save_agent(learner, policy_path, {**training_info, "episodes": done, "interrupted": interrupted})
         if done:
             plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}")
             _write_history_csv(arrays(), out / "history.csv")
@@ -319,7 +329,7 @@ def train(
 
     pool = None
     interrupted = False
-    lo, hi = env_kwargs["lambda_range"]
+    lo, hi = settings.lambda_range
     last_ckpt = done
     bar = tqdm(total=episodes, initial=min(done, episodes), disable=not progress, unit="ep", desc=f"train {name}")
     try:

@@ -52,8 +52,9 @@ def ros_node():
     """One rclpy context and node for the test process (the client side of cross-process tests)."""
     import rclpy
 
-    import perception_config.ros  # noqa: F401  (applies the loopback defaults before rclpy.init)
+    from perception_config.ros_environment import configure_ros_environment
 
+    configure_ros_environment()  # the loopback defaults before rclpy.init
     rclpy.init()
     node = rclpy.create_node(f"pytest_client_{os.getpid()}")
     yield node

@@ -10,9 +10,10 @@ import pytest
 from rl_helpers import OTHER_PIPELINE, OTHER_SCORES_PIPELINE, make_env
 
 from perception_config.agents import (AGENTS, EnvSpec, PolicyError, load_agent, make_agent, oracle_search,
-                                      run_episode)
+                                      save_agent)
 from perception_config.agents.base import returns_to_go
 from perception_config.agents.policy_io import read_file
+from perception_config.episode_loop import play_episode
 
 # (episode index, lambda, episode seed) of the tiny dataset used by several tests.
 EPISODES = [(i, lam, 100 + i) for i in range(0, 6, 2) for lam in (0.3, 0.8)]
@@ -39,7 +40,7 @@ def _agent(name: str, env, **kw):
 def test_every_agent_acts_validly(env, name):
     agent = _agent(name, env, seed=3)
     for k, (i, lam, seed) in enumerate(EPISODES[:3]):
-        traj = run_episode(env, agent, _options(i, lam, seed), act_seed=k)
+        traj = play_episode(env, agent, _options(i, lam, seed), act_seed=k)
         assert 1 <= traj.steps <= env.max_ops
         assert all(0 <= a < len(env.action_names) for a in traj.actions)
         assert traj.obs.shape == (traj.steps, len(env.observation_layout))
@@ -66,7 +67,7 @@ def test_fixed_agent_sequence_restart_and_validation(env):
 def test_simple_agent_memory_is_a_running_average(env):
     spec = EnvSpec.from_env(env)
     agent = make_agent("simple", spec, xi_start=0.0, xi_min=0.0)
-    trajs = [run_episode(env, _agent("fixed", env), _options(i, lam, s)) for i, lam, s in EPISODES[:4]]
+    trajs = [play_episode(env, _agent("fixed", env), _options(i, lam, s)) for i, lam, s in EPISODES[:4]]
     agent.update([trajs])
     # The memory at the empty prefix for the first action (icp_coarse) averages all returns.
     a0 = spec.action_names.index("icp_coarse")
@@ -87,14 +88,14 @@ def _actions_on(agent, observations: list[np.ndarray], seed: int = 11) -> list[i
 @pytest.mark.parametrize("name", ["random", "fixed", "simple", "pg", "es"])
 def test_save_load_round_trip_gives_identical_actions(env, tmp_path, name):
     agent = _agent(name, env, seed=5)
-    trajs = [run_episode(env, agent, _options(i, lam, s), act_seed=j) for j, (i, lam, s) in enumerate(EPISODES[:4])]
+    trajs = [play_episode(env, agent, _options(i, lam, s), act_seed=j) for j, (i, lam, s) in enumerate(EPISODES[:4])]
     if name in ("simple", "pg"):
         agent.update([trajs])  # a trained state, not the initial one
     if name == "es":
         agent.actors()
         agent.update([trajs[:1], trajs[1:2], trajs[2:3], trajs[3:4]])
     observations = [o for t in trajs for o in t.obs]
-    path = agent.save(tmp_path / f"{name}.policy")
+    path = save_agent(agent, tmp_path / f"{name}.policy")
     loaded = load_agent(path, env, explore=True)
     assert type(loaded) is type(agent) and loaded.hparams() == agent.hparams()
     assert _actions_on(loaded, observations) == _actions_on(agent, observations)
@@ -106,20 +107,20 @@ def test_save_load_round_trip_gives_identical_actions(env, tmp_path, name):
 
 
 def test_weights_are_safetensors_and_tables_are_json(env, tmp_path):
-    pg_path = _agent("pg", env).save(tmp_path / "pg.bin")
+    pg_path = save_agent(_agent("pg", env), tmp_path / "pg.bin")
     assert pg_path.read_bytes()[8:9] == b"{"  # safetensors: 8-byte header length, JSON header
     meta, tensors = read_file(pg_path)
     assert meta["agent"] == "pg" and meta["env"]["action_names"] == list(env.action_names)
     assert meta["env"]["observation_layout"] == list(env.observation_layout)
     assert meta["env"]["actions"] == json.loads(json.dumps(env.pipeline.describe()["actions"]))
     assert {"policy.fc1.weight", "policy.fc2.weight"} <= set(tensors)
-    simple_path = _agent("simple", env).save(tmp_path / "simple.json")
+    simple_path = save_agent(_agent("simple", env), tmp_path / "simple.json")
     assert json.loads(simple_path.read_text())["agent"] == "simple"
     assert not list(tmp_path.glob(".*tmp"))  # atomic writes leave no temporaries
 
 
 def test_mismatched_action_set_is_a_clear_error(env, tmp_path_factory, tmp_path):
-    path = _agent("pg", env).save(tmp_path / "pg.safetensors")
+    path = save_agent(_agent("pg", env), tmp_path / "pg.safetensors")
     other = make_env(tmp_path_factory, OTHER_PIPELINE, "other.yaml")
     with pytest.raises(PolicyError, match=r"action set differs.*depth_refine.*icp_finest") as exc:
         load_agent(path, other)
@@ -127,7 +128,7 @@ def test_mismatched_action_set_is_a_clear_error(env, tmp_path_factory, tmp_path)
     scores = make_env(tmp_path_factory, OTHER_SCORES_PIPELINE, "other_scores.yaml")
     with pytest.raises(PolicyError, match=r"observation layout differs.*psi_c"):
         load_agent(path, scores)
-    json_path = _agent("simple", env).save(tmp_path / "simple.json")
+    json_path = save_agent(_agent("simple", env), tmp_path / "simple.json")
     with pytest.raises(PolicyError, match="action set differs"):
         load_agent(json_path, other)
 
@@ -135,14 +136,14 @@ def test_mismatched_action_set_is_a_clear_error(env, tmp_path_factory, tmp_path)
 def test_same_names_other_parameters_is_a_clear_error(env, tmp_path_factory, tmp_path):
     from rl_helpers import PIPELINE
 
-    path = _agent("pg", env).save(tmp_path / "pg.safetensors")
+    path = save_agent(_agent("pg", env), tmp_path / "pg.safetensors")
     changed = make_env(tmp_path_factory, PIPELINE.replace("final_distance: 0.003", "final_distance: 0.002"), "changed.yaml")
     with pytest.raises(PolicyError, match="icp_fine.*0.003.*0.002"):
         load_agent(path, changed)
 
 
 def test_corrupt_policy_file_is_a_clear_error(env, tmp_path):
-    good = _agent("pg", env).save(tmp_path / "pg.safetensors").read_bytes()
+    good = save_agent(_agent("pg", env), tmp_path / "pg.safetensors").read_bytes()
     cases = {
         "truncated.safetensors": good[: len(good) // 2],
         "garbage.safetensors": bytes(range(256)) * 4,
@@ -171,12 +172,12 @@ def test_oracle_is_a_lower_bound_for_every_agent(env):
     agents = {n: _agent(n, env, seed=1) for n in ("random", "fixed", "simple", "pg", "es")}
     oracle = make_agent("oracle", env)
     for j, (i, lam, seed) in enumerate(EPISODES):
-        opt = run_episode(env, oracle, _options(i, lam, seed))
+        opt = play_episode(env, oracle, _options(i, lam, seed))
         res = oracle.last_result
         assert res.found and res.exact and opt.success
         assert opt.time == pytest.approx(res.seconds)  # cost-table replay is exact
         for name, agent in agents.items():
-            traj = run_episode(env, agent, _options(i, lam, seed), act_seed=j)
+            traj = play_episode(env, agent, _options(i, lam, seed), act_seed=j)
             if traj.success:
                 assert opt.time <= traj.time + 1e-9, (name, i, lam, traj.names, res.actions)
             assert opt.ret >= traj.ret - 1e-9

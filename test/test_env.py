@@ -9,7 +9,8 @@ import pytest
 
 from rl_helpers import BITWISE_PIPELINE, make_env, pipeline_file, tiny_dataset
 
-from perception_config.env import DEFAULT_COST_TABLE, PerceptionConfigEnv
+from perception_config.blocks import load_all
+from perception_config.env import PerceptionConfigEnv
 
 
 @pytest.fixture(scope="module")
@@ -18,7 +19,9 @@ def env(tmp_path_factory):
 
 
 def _cost(block: str) -> float:
-    return DEFAULT_COST_TABLE[block] + DEFAULT_COST_TABLE["scoring"]
+    """Cost-table seconds of an action: the block's own default_cost plus the scoring pass."""
+    blocks = load_all()
+    return blocks[block].default_cost + sum(blocks[s].default_cost for s in ("psi_d", "psi_c", "icp_fitness"))
 
 
 def test_check_env_passes(tmp_path_factory):
@@ -74,7 +77,7 @@ def test_reset_contract_and_determinism(env):
     b, ib = env.reset(seed=5)
     np.testing.assert_array_equal(a, b)
     assert ia["episode_key"] == ib["episode_key"] and ia["noise_lambda"] == ib["noise_lambda"]
-    assert env.lambda_range[0] <= ia["noise_lambda"] <= env.lambda_range[1]
+    assert env.settings.lambda_range[0] <= ia["noise_lambda"] <= env.settings.lambda_range[1]
 
 
 def test_step_before_reset_and_bad_action(tmp_path_factory):
@@ -162,5 +165,10 @@ def test_empty_dataset_is_a_clear_error(tmp_path_factory):
     ds, pipe = tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory)
     with pytest.raises(ValueError, match="no usable episodes"):
         PerceptionConfigEnv(ds, pipe, image_keys=[])
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.episodes import EpisodeSource
+
     with pytest.raises(ValueError, match="no usable episodes"):  # every object below the visibility bar
+        EpisodeSource(BopDataset(ds), None, min_visib_fract=1.01)
+    with pytest.raises(ValueError, match="min_visib_fract must be in \\[0, 1\\]"):
         PerceptionConfigEnv(ds, pipe, min_visib_fract=1.01)

@@ -14,14 +14,16 @@ import numpy as np
 import pytest
 
 from perception_config.agents.base import EnvSpec
-from perception_config.agents.policy_io import PolicyError
+from perception_config.agents.policy_io import PolicyError, save_agent
 from perception_config.agents.random import RandomAgent
 from perception_config.datasets.bop import BopDataset, read_results_csv
 from perception_config.episodes import split_image_keys
 from perception_config.evaluation import (
-    DEFAULT_FIXED_SEQUENCES, episode_plan, evaluate, fixed_sequences, format_table, policy_settings, summarise,
+    DEFAULT_FIXED_SEQUENCES, episode_plan, evaluate, fixed_sequences, format_table, summarise,
 )
 from perception_config.blocks.pipeline import load_pipeline
+from perception_config.policy_settings import policy_settings
+from perception_config.settings import EnvSettings
 
 LAMBDAS = [0.2, 0.8]
 N_EPISODES = 3
@@ -230,25 +232,39 @@ def test_unknown_agent_name_is_refused(dataset, tmp_path):
 
 def test_policy_for_another_action_set_is_refused(dataset, tmp_path):
     spec = EnvSpec(("icp_coarse", "pick"), ("refinement", "pick"), ("score:psi_d",), 10)
-    path = RandomAgent(spec).save(tmp_path / "other.json")
+    path = save_agent(RandomAgent(spec), tmp_path / "other.json")
     with pytest.raises(PolicyError, match="action set differs"):
         evaluate(dataset, [path], [0.5], tmp_path / "x", progress=False, time_mode="cost_table")
 
 
-def test_split_and_max_ops_come_from_the_policy_metadata(tmp_path):
+def test_split_and_settings_come_from_the_policy_metadata(tmp_path):
     spec = EnvSpec(("icp_coarse", "pick"), ("refinement", "pick"), ("score:psi_d",), 7)
-    extra = {"split_seed": 5, "test_fraction": 0.5, "pipeline": None, "env_kwargs": {"max_ops": 7}}
-    path = RandomAgent(spec).save(tmp_path / "p.json", extra=extra)
-    assert policy_settings([path]) == {"split_seed": 5, "test_fraction": 0.5, "pipeline": None, "max_ops": 7}
-    assert policy_settings(["random"]) == {"split_seed": 0, "test_fraction": 0.3, "pipeline": None, "max_ops": 10}
-    assert policy_settings([path], split_seed=5)["split_seed"] == 5
+    trained = EnvSettings(max_ops=7, time_mode="cost_table", failed_pick_cost=3.0)
+    extra = {"split_seed": 5, "test_fraction": 0.5, "pipeline": None, "env_settings": trained.to_json()}
+    path = save_agent(RandomAgent(spec), tmp_path / "p.json", extra=extra)
+    got = policy_settings([path])
+    assert (got.split_seed, got.test_fraction, got.pipeline, got.env, got.notes) == (5, 0.5, None, trained, [])
+    plain = policy_settings(["random"])
+    assert (plain.split_seed, plain.test_fraction, plain.pipeline, plain.env) == (0, 0.3, None, EnvSettings())
+    assert policy_settings([path], split_seed=5).split_seed == 5
     with pytest.raises(ValueError, match="split_seed=5.*training images"):
         policy_settings([path], split_seed=0)
     with pytest.raises(ValueError, match="test_fraction"):
         policy_settings([path], test_fraction=0.3)
-    other = RandomAgent(spec).save(tmp_path / "q.json", extra={**extra, "split_seed": 6})
+    with pytest.raises(ValueError, match="max_ops"):  # part of the observation
+        policy_settings([path], max_ops=10)
+    other = save_agent(RandomAgent(spec), tmp_path / "q.json", extra={**extra, "split_seed": 6})
     with pytest.raises(ValueError, match="split_seed"):
         policy_settings([path, other])
+    # Other settings may be changed, and that is said.
+    measured = policy_settings([path], time_mode="measured")
+    assert measured.env == trained.replace(time_mode="measured")
+    assert measured.notes == [f"policy {path} was trained with other settings (time_mode: 'cost_table' -> 'measured')"]
+    # Policies written before env_settings existed recorded env_kwargs and lambda_range.
+    old = save_agent(RandomAgent(spec), tmp_path / "old.json", extra={
+        "split_seed": 5, "test_fraction": 0.5, "pipeline": None, "lambda_range": [0.2, 0.9],
+        "env_kwargs": {"max_ops": 7, "time_mode": "cost_table", "cost_table": None, "failed_pick_cost": 3.0}})
+    assert policy_settings([old]).env == trained.replace(lambda_range=(0.2, 0.9))
 
 
 def test_episode_plan_subsets_and_cycles():

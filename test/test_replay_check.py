@@ -17,9 +17,11 @@ def policy(tmp_path_factory):
     from perception_config.training import train
 
     out = tmp_path_factory.mktemp("policy") / "run"
-    return train(tiny_dataset(tmp_path_factory), "pg", out, 16, seed=0, pipeline=pipeline_file(tmp_path_factory),
-                 time_mode="cost_table", progress=False, lambda_range=(0.2, 0.8), max_ops=5, workers=1,
-                 agent_kwargs={"batch_episodes": 8})
+    from perception_config.settings import EnvSettings
+
+    settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
+    return train(tiny_dataset(tmp_path_factory), "pg", out, 16, settings=settings, seed=0,
+                 pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1, agent_kwargs={"batch_episodes": 8})
 
 
 def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_factory, tmp_path, policy):

@@ -29,7 +29,7 @@ def test_interfaces_import_with_fields():
 
 
 def test_environment_defaults_are_loopback_and_respect_the_user():
-    from perception_config.ros.environment import FASTDDS_PROFILE, configure_ros_environment
+    from perception_config.ros_environment import FASTDDS_PROFILE, configure_ros_environment
 
     env = configure_ros_environment({})
     assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"

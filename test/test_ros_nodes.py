@@ -170,8 +170,8 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     from perception_config_interfaces.srv import EstimatePose
 
     from perception_config.agents import make_agent
-    from perception_config.agents.base import acting_seed
     from perception_config.env import PerceptionConfigEnv
+    from perception_config.episode_loop import acting_seed, play_episode
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     traces, poses = [], []
@@ -190,14 +190,8 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
         assert res.success, res.message
         assert len(res.operation_elapsed) == len(res.operations) and res.elapsed >= sum(res.operation_elapsed) * 0.99
 
-        obs, info = env.reset(options={"episode": j, "lambda": LAMBDA, "episode_seed": seed})
-        agent.begin_episode(acting_seed(seed))
-        names, terminated, truncated = [], False, False
-        while not (terminated or truncated):
-            a = agent.act(obs, info)
-            obs, _, terminated, truncated, info = env.step(a)
-            names.append(env.action_names[a])
-        local = bool(terminated and info["picked"])
+        traj = play_episode(env, agent, {"episode": j, "lambda": LAMBDA, "episode_seed": seed}, acting_seed(seed))
+        names, local = traj.names, traj.success
         n += 1
         same += names == list(res.operations) and local == res.picked
         ros_success += res.picked

@@ -10,18 +10,22 @@ import pytest
 
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
-from perception_config.agents import load_agent, make_agent, run_episode
+from perception_config.agents import load_agent, make_agent
+from perception_config.episode_loop import play_episode
 from perception_config.agents.policy_io import read_file
 from perception_config import training
+from perception_config.settings import EnvSettings, settings_from_policy_meta
 from perception_config.training import CHECKPOINT, CURVE, train
 
-FAST = dict(time_mode="cost_table", progress=False, lambda_range=(0.2, 0.8), max_ops=5)
+FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
 
 def _train(tmp_path_factory, out, agent="pg", episodes=16, **kw):
-    args = {**FAST, "workers": 1, **kw}
+    """train() on the tiny dataset; EnvSettings fields among `kw` change the FAST settings."""
+    settings = FAST.replace(**{k: kw.pop(k) for k in list(kw) if k in EnvSettings.__dataclass_fields__})
+    args = {"workers": 1, "progress": False, **kw}
     args.setdefault("agent_kwargs", {"batch_episodes": 8} if agent == "pg" else {})
-    return train(tiny_dataset(tmp_path_factory), agent, out, episodes, seed=args.pop("seed", 0),
+    return train(tiny_dataset(tmp_path_factory), agent, out, episodes, settings=settings, seed=args.pop("seed", 0),
                  pipeline=pipeline_file(tmp_path_factory), **args)
 
 
@@ -34,6 +38,7 @@ def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path):
     meta, _ = read_file(path)
     extra = meta["extra"]
     assert extra["episodes"] == 16 and extra["split_seed"] == 0 and extra["test_fraction"] == 0.3
+    assert extra["env_settings"] == FAST.to_json() and settings_from_policy_meta(meta) == FAST  # restored on load
     train_keys = {tuple(k) for k in extra["train_image_keys"]}
     test_keys = {tuple(k) for k in extra["test_image_keys"]}
     assert train_keys and test_keys and not train_keys & test_keys and len(train_keys | test_keys) == 4
@@ -67,14 +72,17 @@ def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tm
     _, b = read_file(resumed)
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
-    # A different split cannot be resumed.
+    # A different split cannot be resumed, nor other environment settings (lambda_range may change).
     with pytest.raises(ValueError, match="split_seed"):
         _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, split_seed=1)
+    with pytest.raises(ValueError, match="failed_pick_cost: 2.0 -> 3.0"):
+        _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, failed_pick_cost=3.0)
+    _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, lambda_range=(0.1, 0.9))
 
 
 def test_ctrl_c_keeps_the_last_completed_round(tmp_path_factory, tmp_path, monkeypatch):
     calls = {"n": 0}
-    real = training.run_episode
+    real = training.play_episode
 
     def interrupting(*args, **kw):
         calls["n"] += 1
@@ -82,7 +90,7 @@ def test_ctrl_c_keeps_the_last_completed_round(tmp_path_factory, tmp_path, monke
             os.kill(os.getpid(), signal.SIGINT)
         return real(*args, **kw)
 
-    monkeypatch.setattr(training, "run_episode", interrupting)
+    monkeypatch.setattr(training, "play_episode", interrupting)
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         _train(tmp_path_factory, out, episodes=64, checkpoint_every=100)
@@ -91,7 +99,7 @@ def test_ctrl_c_keeps_the_last_completed_round(tmp_path_factory, tmp_path, monke
     policy_meta, _ = read_file(out / "policy.safetensors")
     assert policy_meta["extra"]["interrupted"] is True and policy_meta["extra"]["episodes"] == 16
     assert (out / CURVE).exists()
-    monkeypatch.setattr(training, "run_episode", real)
+    monkeypatch.setattr(training, "play_episode", real)
     _train(tmp_path_factory, out, episodes=24, resume=True)
     meta, _ = read_file(out / CHECKPOINT)
     assert meta["trainer"]["episodes_done"] == 24
@@ -121,7 +129,7 @@ def test_pg_learns_a_clear_best_action(tmp_path_factory, tmp_path):
     episodes = [{"episode": i % len(env.source), "lambda": 0.03, "episode_seed": 500 + i} for i in range(20)]
 
     def mean_return(agent) -> float:
-        return float(np.mean([run_episode(env, agent, o, act_seed=k).ret for k, o in enumerate(episodes)]))
+        return float(np.mean([play_episode(env, agent, o, act_seed=k).ret for k, o in enumerate(episodes)]))
 
     untrained = make_agent("pg", env, seed=1)
     untrained.explore = True  # the policy training starts from, as it acts while training

@@ -1,51 +1,19 @@
 """Configuration agents: they choose the next operator from the scores until the robot can pick.
 
-`AGENTS` maps a name to its class; `make_agent(name, env_spec, **kw)` builds one. The spec is
-an `EnvSpec` (or an environment, from which it is taken). Policies are saved with
-`agent.save(path)` and loaded with `load_agent(path, env)` (policy_io.py: safetensors / JSON,
-checked against the environment's action set and observation layout).
+`AGENTS` maps a name to its class; `make_agent(name, env_spec, **kw)` builds one (registry.py).
+The spec is an `EnvSpec` (or an environment, from which it is taken). Policies are saved with
+`save_agent(agent, path)` and loaded with `load_agent(path, env)` (policy_io.py: safetensors /
+JSON, checked against the environment's action set and observation layout, never unpickled).
+Episodes are played by perception_config.episode_loop.play_episode.
 """
 from __future__ import annotations
 
-from typing import Any
-
-from .base import Agent, EnvRecipe, EnvSpec, Trajectory, run_episode
-from .evolutionary import EvolutionaryAgent
-from .fixed import FixedAgent
-from .oracle import OracleAgent, OracleResult, oracle_search
-from .policy_gradient import PolicyGradientAgent
-from .policy_io import PolicyError, load_agent, policy_info
-from .random import RandomAgent
-from .simple import SimpleAgent
-
-AGENTS: dict[str, type[Agent]] = {
-    "random": RandomAgent,
-    "simple": SimpleAgent,
-    "pg": PolicyGradientAgent,
-    "es": EvolutionaryAgent,
-    "fixed": FixedAgent,
-    "oracle": OracleAgent,
-}
-
-
-def make_agent(name: str, env_spec: EnvSpec | Any = None, *, env: Any = None, **kw: Any) -> Agent:
-    """Build agent `name` for an environment: `env_spec` is an EnvSpec or an env (whose spec is
-    taken); or pass `env=`. The oracle also needs the live env, which is attached when given."""
-    if name not in AGENTS:
-        raise ValueError(f"unknown agent {name!r}; agents: {', '.join(AGENTS)}")
-    if env_spec is not None and not isinstance(env_spec, EnvSpec):
-        env = env_spec if env is None else env
-        env_spec = None
-    if env_spec is None:
-        if env is None:
-            raise ValueError("make_agent needs an EnvSpec or an environment (env=...)")
-        env_spec = EnvSpec.from_env(env)
-    if name == "oracle" and env is not None:
-        kw.setdefault("env", env)
-    return AGENTS[name](env_spec, **kw)
-
+from .base import Agent, EnvRecipe, EnvSpec
+from .oracle import OracleResult, oracle_search
+from .policy_io import PolicyError, load_agent, policy_info, save_agent
+from .registry import AGENTS, make_agent
 
 __all__ = [
-    "AGENTS", "Agent", "EnvRecipe", "EnvSpec", "OracleResult", "PolicyError", "Trajectory",
-    "load_agent", "make_agent", "oracle_search", "policy_info", "run_episode",
+    "AGENTS", "Agent", "EnvRecipe", "EnvSpec", "OracleResult", "PolicyError",
+    "load_agent", "make_agent", "oracle_search", "policy_info", "save_agent",
 ]

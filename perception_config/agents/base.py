@@ -1,19 +1,26 @@
-"""What every agent shares: the environment's description, the agent interface, one episode.
+"""What every agent shares: the environment's description and the agent interface.
 
 An agent sees only an `EnvSpec` (action names and kinds, observation layout, max_ops), never
 the environment object, so a policy can run against either operator backend (in-process or
 ROS) and in worker processes. The exception is the oracle, which searches the live episode.
 
 `EnvRecipe` is the picklable way to build the same environment again in a worker process.
+Episodes are played by perception_config.episode_loop.play_episode; policies are saved and
+loaded by policy_io.py.
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
+
+from ..settings import EnvSettings
+
+if TYPE_CHECKING:
+    from ..episode_loop import Trajectory
 
 
 @dataclass(frozen=True)
@@ -71,15 +78,13 @@ class EnvRecipe:
     pipeline: str | None = None  # a pipeline YAML path; None = the shipped default
     image_keys: tuple[tuple[int, int], ...] | None = None
     split: str = "test"
-    env_kwargs: dict[str, Any] = field(default_factory=dict)  # time_mode, max_ops, cost_table, ...
+    settings: EnvSettings = field(default_factory=EnvSettings)
 
     def make(self) -> Any:
-        from ..env import PerceptionConfigEnv
+        from ..env import PerceptionConfigEnv  # gymnasium and the blocks: only where an env is built
 
         keys = [tuple(k) for k in self.image_keys] if self.image_keys is not None else None
-        return PerceptionConfigEnv(
-            Path(self.dataset), self.pipeline, split=self.split, image_keys=keys, **self.env_kwargs
-        )
+        return PerceptionConfigEnv(Path(self.dataset), self.pipeline, self.settings, split=self.split, image_keys=keys)
 
 
 class Agent:
@@ -151,78 +156,6 @@ class Agent:
 
     def load_checkpoint(self, tensors: dict[str, np.ndarray], state: dict[str, Any]) -> None:
         """Restore what `checkpoint` returned (the policy itself is restored before)."""
-
-    def save(self, path: str | Path, extra: dict[str, Any] | None = None) -> Path:
-        from .policy_io import save_agent
-
-        return save_agent(self, path, extra)
-
-
-@dataclass
-class Trajectory:
-    """One episode as an agent played it: the observation before each action, the actions,
-    the rewards (minus seconds), and the outcome."""
-
-    obs: np.ndarray  # (T, obs_dim) float32
-    actions: np.ndarray  # (T,) int64
-    rewards: np.ndarray  # (T,) float64: minus seconds, minus penalties (failed pick, truncation)
-    seconds: np.ndarray  # (T,) float64: the time each action took (failed-pick attempts included)
-    success: bool  # ended by a successful pick
-    noise_lambda: float
-    episode_index: int
-    first_pick_success: bool = False  # the first pick of the episode succeeded
-    names: list[str] = field(default_factory=list)
-
-    @property
-    def time(self) -> float:
-        """Seconds the episode took (failed pick attempts included; the truncation penalty not)."""
-        return float(self.seconds.sum())
-
-    @property
-    def steps(self) -> int:
-        return int(len(self.actions))
-
-    @property
-    def ret(self) -> float:
-        return float(self.rewards.sum())
-
-
-def acting_seed(episode_seed: int) -> int:
-    """The seed of an agent's acting randomness in the episode with this seed: evaluation and
-    the ROS configurator act the same way on the same episode."""
-    return int(np.random.SeedSequence([int(episode_seed), 1]).generate_state(1)[0])
-
-
-def run_episode(env: Any, agent: Agent, options: dict[str, Any] | None = None, act_seed: int | None = None) -> Trajectory:
-    """Play one episode of `env` with `agent` (reset options: episode, lambda, episode_seed)."""
-    obs, info = env.reset(options=options)
-    agent.begin_episode(act_seed)
-    pick_ids = set(agent.spec.pick_actions)
-    obs_l, act_l, rew_l, sec_l, names = [], [], [], [], []
-    first_pick: bool | None = None
-    terminated = truncated = False
-    while not (terminated or truncated):
-        a = int(agent.act(obs, info))
-        obs_l.append(obs)
-        obs, reward, terminated, truncated, info = env.step(a)
-        act_l.append(a)
-        rew_l.append(reward)
-        sec_l.append(float(info.get("seconds", -reward)))
-        names.append(agent.spec.action_names[a])
-        if a in pick_ids and first_pick is None and info.get("ok"):
-            first_pick = bool(info.get("picked"))
-        agent.observe(reward, obs, terminated, truncated, info)
-    return Trajectory(
-        obs=np.asarray(obs_l, np.float32).reshape(len(obs_l), -1),
-        actions=np.asarray(act_l, np.int64),
-        rewards=np.asarray(rew_l, np.float64),
-        seconds=np.asarray(sec_l, np.float64),
-        success=bool(terminated),
-        noise_lambda=float(info.get("noise_lambda") or 0.0),
-        episode_index=int((options or {}).get("episode", -1)),
-        first_pick_success=bool(first_pick),
-        names=names,
-    )
 
 
 def returns_to_go(rewards: np.ndarray, gamma: float = 1.0) -> np.ndarray:

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Agent, EnvSpec, Trajectory
+from ..episode_loop import Trajectory
+from .base import Agent, EnvSpec
 
 Weights = list[np.ndarray]  # [W1, b1, W2, b2, W3, b3]
 
@@ -57,6 +58,8 @@ def mutate(rng: np.random.Generator, w: Weights, sigma: float, rate: float) -> W
 
 
 class EvolutionaryAgent(Agent):
+    """A population of three-layer networks; the best two breed (module docstring: one generation)."""
+
     kind = "es"
 
     def __init__(self, spec: EnvSpec, population: int = 8, episodes_per_generation: int = 4,

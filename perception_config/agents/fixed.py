@@ -19,6 +19,8 @@ DEFAULT_SEQUENCE = ("icp_coarse", "icp_fine", "pick")
 
 
 class FixedAgent(Agent):
+    """An engineer's fixed action sequence (module docstring: what happens when it runs out)."""
+
     kind = "fixed"
 
     def __init__(self, spec: EnvSpec, sequence: list[str] | tuple[str, ...] | None = None,

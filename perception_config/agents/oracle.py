@@ -7,7 +7,7 @@ without replaying the prefix. The episode's rng is part of the snapshot, so stoc
 (e.g. `regenerate`) draw the same numbers as when the sequence is replayed in the env.
 
 Search: uniform-cost (Dijkstra) over action sequences, costs = the env's own accounting
-(`env._seconds`: measured or cost-table seconds of the block plus the scoring pass, plus
+(`env.action_seconds`: measured or cost-table seconds of the block plus the scoring pass, plus
 `failed_pick_cost` for a failed pick). A node is expanded by applying every action once:
 - a successful pick is a solution (cost known: pushes the incumbent `best` down);
 - a failed pick, a failed action and an action that moves the pose less than `noop_tol`
@@ -36,6 +36,8 @@ from .base import Agent, EnvSpec
 
 @dataclass
 class OracleResult:
+    """The best action sequence `oracle_search` found from a state, with its cost."""
+
     actions: list[str]  # the best sequence found (ends with a successful pick); [] if none
     seconds: float  # its cost; inf when no sequence was found
     found: bool
@@ -48,11 +50,11 @@ class OracleResult:
 def _charge(env: Any, action: int, outcome: Any) -> tuple[float, bool, bool]:
     """(seconds, is_pick, picked) exactly as env.step accounts them."""
     block = env.pipeline.actions[action].block
-    seconds = env._seconds(outcome, block.name)
+    seconds = env.action_seconds(outcome, block)
     is_pick = block.kind.value == "pick"
     picked = bool(is_pick and outcome.result.ok and outcome.result.picked)
     if is_pick and outcome.result.ok and not outcome.result.picked:
-        seconds += env.failed_pick_cost
+        seconds += env.settings.failed_pick_cost
     return float(seconds), is_pick, picked
 
 
@@ -69,8 +71,9 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
     pick_ids = [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick"]
     max_depth = env.max_ops - env.steps
     diameter = float(env.episode.model.diameter)
-    if env.time_mode == "cost_table":  # admissible: every solution ends with one pick
-        min_pick = min(env.cost_table[env.pipeline.actions[i].block.name] for i in pick_ids) + env.cost_table["scoring"]
+    cost_table = env.settings.time_mode == "cost_table"
+    if cost_table:  # admissible: every solution ends with one pick
+        min_pick = min(env.cost_table_seconds(env.pipeline.actions[i].block) for i in pick_ids)
     else:
         min_pick = 0.0  # replaced by the cheapest pick measured during the search
 
@@ -100,8 +103,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
                 action_cost[a] = min(action_cost[a], seconds)
                 c = cost + seconds
                 if is_pick:
-                    if env.time_mode != "cost_table" and outcome.result.ok:
-                        pick_s = env._seconds(outcome, env.pipeline.actions[a].block.name)
+                    if not cost_table and outcome.result.ok:
+                        pick_s = env.action_seconds(outcome, env.pipeline.actions[a].block)
                         min_pick = pick_s if min_pick == 0.0 else min(min_pick, pick_s)
                     if picked and c < best:
                         best, best_path, best_times = c, path + (a,), times + (seconds,)

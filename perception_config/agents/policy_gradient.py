@@ -22,7 +22,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .base import Agent, EnvSpec, Trajectory, returns_to_go
+from ..episode_loop import Trajectory
+from .base import Agent, EnvSpec, returns_to_go
 
 
 class PolicyNet(nn.Module):
@@ -59,6 +60,8 @@ def _load_optim(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, np.n
 
 
 class PolicyGradientAgent(Agent):
+    """REINFORCE with a value (or running-mean) baseline; the policy network is `PolicyNet`."""
+
     kind = "pg"
 
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,

@@ -10,19 +10,20 @@ agent's memory), the action set the policy was trained for (pipeline.describe()[
 and the observation layout (env.observation_layout). `load_agent(path, env)` refuses a file
 whose action set or observation layout differs from the environment's, saying what differs:
 a policy's output index i means "action i of the set it was trained with", nothing else.
-Writes are atomic (a temporary file in the same folder, then os.replace).
+Writes are atomic (perception_config.atomic_file). The metadata's `extra` holds what training
+records: the environment settings (`env_settings`), the split, the pipeline.
 """
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..atomic_file import atomic_write
 from .base import Agent, EnvSpec
+from .registry import AGENTS
 
 FORMAT = "perception_config.policy"
 VERSION = 1
@@ -31,23 +32,6 @@ META_KEY = "perception_config"
 
 class PolicyError(ValueError):
     """A policy or checkpoint file that cannot be used here; the message names the file."""
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write `data` to `path` so that readers see the old file or the new one, never half."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def write_file(path: str | Path, meta: dict[str, Any], tensors: dict[str, np.ndarray] | None = None) -> Path:
@@ -60,7 +44,7 @@ def write_file(path: str | Path, meta: dict[str, Any], tensors: dict[str, np.nda
         data = save(arrays, metadata={META_KEY: json.dumps(meta)})
     else:
         data = (json.dumps(meta, indent=1) + "\n").encode()
-    return atomic_write_bytes(path, data)
+    return atomic_write(path, data)
 
 
 def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -143,8 +127,6 @@ def save_agent(agent: Agent, path: str | Path, extra: dict[str, Any] | None = No
 
 def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvSpec, path: str | Path = "<policy>") -> Agent:
     """An agent from file contents already checked against `spec`."""
-    from . import AGENTS
-
     kind = meta["agent"]
     if kind not in AGENTS:
         raise PolicyError(f"policy {path} is for agent {kind!r}; known agents: {sorted(AGENTS)}")

@@ -9,6 +9,8 @@ from .base import Agent
 
 
 class RandomAgent(Agent):
+    """Uniformly random actions: the baseline every learned agent must beat."""
+
     kind = "random"
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:

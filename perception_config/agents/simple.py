@@ -20,12 +20,15 @@ from typing import Any
 
 import numpy as np
 
-from .base import Agent, EnvSpec, Trajectory, returns_to_go
+from ..episode_loop import Trajectory
+from .base import Agent, EnvSpec, returns_to_go
 
 Key = tuple[int, ...]
 
 
 class SimpleAgent(Agent):
+    """The paper's memory agent: xi-greedy over running-average returns per action history."""
+
     kind = "simple"
 
     def __init__(self, spec: EnvSpec, xi_start: float = 1.0, xi_min: float = 0.05, xi_decay: float = 0.995,

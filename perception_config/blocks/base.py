@@ -1,7 +1,9 @@
 """The block model: the paper's formally modelled building blocks.
 
 A block declares its `kind` (generation | refinement | scoring | pick), its `name`, the inputs
-it uses, and its parameters with defaults and valid ranges. Calling a block returns a
+it uses, its parameters with defaults and valid ranges, the seconds it is charged in the
+environment's cost-table mode (`default_cost`), and the names and ranges of the scores it
+returns (`score_names`, `score_ranges`, `lower_is_better`). Calling a block returns a
 `BlockResult` (pose and/or scores, `ok`, a reason when not ok, elapsed seconds). A block never
 raises on bad data: `Block.__call__` validates the inputs, times the call and turns any
 exception into `ok=False` with a reason, so an agent (or a ROS service) can always go on.
@@ -112,9 +114,16 @@ class Block(ABC):
     name: ClassVar[str]
     inputs: ClassVar[tuple[str, ...]] = ()
     params: ClassVar[tuple[Param, ...]] = ()
+    # Seconds charged for one call in the environment's cost-table mode (settings.py): about
+    # the block's median on one core (benchmarks/results/blocks.json). Every block declares it.
+    default_cost: ClassVar[float]
     # Names of the scores this block puts in BlockResult.scores (the observation layout of the
     # learning environment is built from the scoring blocks' names).
     score_names: ClassVar[tuple[str, ...]] = ()
+    # (low, high) of each score, mapped to [0, 1] in the agent's observation; a score without a
+    # range is squashed by x / (1 + |x|). `lower_is_better`: scores where small means good.
+    score_ranges: ClassVar[dict[str, tuple[float, float]]] = {}
+    lower_is_better: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, **overrides: Any) -> None:
         declared = {p.name: p for p in self.params}
@@ -164,7 +173,28 @@ REGISTRY: dict[str, type[Block]] = {}
 
 
 def register(cls: type[Block]) -> type[Block]:
-    """Class decorator adding a block to the registry under its `name`."""
+    """Class decorator adding a block to the registry under its `name`, after checking that it
+    describes itself: kind, name, a finite default_cost >= 0, ranges only of its own scores."""
+    where = f"block class {cls.__module__}.{cls.__qualname__}"
+    if not isinstance(getattr(cls, "name", None), str) or not cls.name:
+        raise TypeError(f"{where} has no name")
+    if not isinstance(getattr(cls, "kind", None), Kind):
+        raise TypeError(f"{where} ({cls.name!r}) has no kind (a Kind)")
+    cost = getattr(cls, "default_cost", None)
+    if isinstance(cost, bool) or not isinstance(cost, (int, float)) or not math.isfinite(cost) or cost < 0:
+        raise TypeError(f"{where} ({cls.name!r}) must declare default_cost, its seconds per call in cost-table "
+                        f"mode (a finite number >= 0), got {cost!r}")
+    for score, bounds in cls.score_ranges.items():
+        if score not in cls.score_names:
+            raise TypeError(f"{where} ({cls.name!r}) gives a range for {score!r}, which is not one of its "
+                            f"score_names {list(cls.score_names)}")
+        low, high = bounds
+        if not (math.isfinite(low) and math.isfinite(high) and high > low):
+            raise TypeError(f"{where} ({cls.name!r}): the range of {score!r} must be finite with high > low, "
+                            f"got {bounds}")
+    unknown = [n for n in cls.lower_is_better if n not in cls.score_names]
+    if unknown:
+        raise TypeError(f"{where} ({cls.name!r}): lower_is_better names {unknown}, not among its score_names")
     if cls.name in REGISTRY and REGISTRY[cls.name] is not cls:
         raise ValueError(f"two blocks are named {cls.name!r}: {REGISTRY[cls.name].__name__} and {cls.__name__}")
     REGISTRY[cls.name] = cls

@@ -84,8 +84,10 @@ class ChamferMatching(Block):
 
     kind = Kind.REFINEMENT
     name = "chamfer"
+    default_cost = 0.03
     inputs = (RGB, MODEL, POSE)
     score_names = ("chamfer_cost",)
+    lower_is_better = ("chamfer_cost",)
     params = (
         Param("rounds", 4, 1, 20, doc="search rounds; the radius halves each round"),
         Param("candidates", 40, 4, 1000, doc="random poses tried per round"),
@@ -152,8 +154,10 @@ class ChamferIcp(Block):
 
     kind = Kind.REFINEMENT
     name = "chamfer_icp"
+    default_cost = 0.03
     inputs = (RGB, MODEL, POSE)
     score_names = ("chamfer_cost",)
+    lower_is_better = ("chamfer_cost",)
     params = (
         Param("iterations", 8, 1, 100, doc="match-and-solve iterations"),
         Param("steps", 3, 1, 20, doc="LM steps per set of matches"),

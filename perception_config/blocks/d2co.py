@@ -136,8 +136,10 @@ class D2CO(Block):
 
     kind = Kind.REFINEMENT
     name = "d2co"
+    default_cost = 0.04
     inputs = (RGB, MODEL, POSE)
     score_names = ("d2co_cost",)
+    lower_is_better = ("d2co_cost",)
     params = (
         Param("n_bins", 60, 8, 180, doc="orientation bins over [0, pi)"),
         Param("penalty", 0.5, 0.0, 10.0, doc="tensor cost per bin of orientation difference (px); the notes: 0.5 works, 5 hurts"),

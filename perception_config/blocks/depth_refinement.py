@@ -59,6 +59,7 @@ class DepthRefine(Block):
 
     kind = Kind.REFINEMENT
     name = "depth_refine"
+    default_cost = 0.003
     inputs = (DEPTH, MODEL, POSE)
     params = (
         Param("max_diff_factor", 0.5, 0.01, 5.0, doc="ignore depth differences beyond this x the object diameter"),

@@ -39,7 +39,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from ..geometry import SIGMA_R, SIGMA_T, Pose, perturb
+from ..geometry import LAMBDA_MAX, SIGMA_R, SIGMA_T, Pose, perturb
 from ..models import ObjectModel
 from ..render import MIN_Z, Rendering, project, render_box
 from ..scene import Frame
@@ -62,9 +62,10 @@ class SimulatedInit(Block):
 
     kind = Kind.GENERATION
     name = "simulated_init"
+    default_cost = 0.0005
     inputs = (MODEL, GROUND_TRUTH)
     params = (
-        Param("noise_lambda", 0.5, 0.0, 2.0, doc="noise level lambda (the paper sweeps 0.1 .. 1.0); 0 = ground truth"),
+        Param("noise_lambda", 0.5, 0.0, LAMBDA_MAX, doc="noise level lambda (the paper sweeps 0.1 .. 1.0); 0 = ground truth"),
         Param("sigma_r", SIGMA_R, 0.0, math.pi, doc="rotation noise (rad) at lambda = 1"),
         Param("sigma_t", SIGMA_T, 0.0, 2.0, doc="translation noise as a share of the diameter at lambda = 1"),
         Param("max_retries", 100, 1, 10000, doc="re-draws when a draw ends behind the camera"),
@@ -856,6 +857,7 @@ class GlobalRegistration(Block):
 
     kind = Kind.GENERATION
     name = "global_registration"
+    default_cost = 2.0
     inputs = (DEPTH, MODEL)
     params = (
         Param("voxel_rel", 0.05, 0.01, 0.2, doc="feature voxel size as a share of the diameter"),

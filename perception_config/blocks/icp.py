@@ -74,6 +74,8 @@ class _IcpBase(Block):
     kind = Kind.REFINEMENT
     inputs = (DEPTH, MODEL, POSE)
     score_names = ("icp_fitness", "icp_rmse")
+    score_ranges = {"icp_fitness": (0.0, 1.0), "icp_rmse": (0.0, 0.01)}  # share; metres
+    lower_is_better = ("icp_rmse",)
     point_to_plane: ClassVar[bool]
     params = (
         Param("max_correspondence_distance", 0.03, 0.001, 0.2, doc="first-stage correspondence distance (m)"),
@@ -146,6 +148,7 @@ class IcpPointToPoint(_IcpBase):
     """Point-to-point ICP (Open3D legacy), coarse to fine, visible model surface to scene."""
 
     name = "icp_point_to_point"
+    default_cost = 0.04
     point_to_plane = False
 
 
@@ -154,6 +157,7 @@ class IcpPointToPlane(_IcpBase):
     """Point-to-plane ICP (Open3D legacy) with depth-grid scene normals and a robust kernel."""
 
     name = "icp_point_to_plane"
+    default_cost = 0.02
     point_to_plane = True
     params = _IcpBase.params + (
         Param("kernel", "tukey", choices=("tukey", "huber", "none"), doc="robust loss; width relative to the stage distance"),

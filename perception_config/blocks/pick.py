@@ -39,6 +39,7 @@ class SimulatedPick(Block):
 
     kind = Kind.PICK
     name = "simulated_pick"
+    default_cost = 0.5
     inputs = (POSE, MODEL, GROUND_TRUTH)
     params = (
         Param("criterion", "mssd", choices=("mssd", "re_te"), doc="success test: BOP MSSD or rotation/translation error"),
@@ -106,6 +107,7 @@ class ExternalPick(Block):
 
     kind = Kind.PICK
     name = "external_pick"
+    default_cost = 0.5
     inputs = (POSE, MODEL)
     params = (Param("timeout", 30.0, 0.01, 600.0, doc="seconds to wait for the robot cell's answer"),)
 

@@ -55,6 +55,16 @@ class Pipeline:
         """The scores the scoring set produces, in order: the state layout of the environment."""
         return [n for b in self.scoring for n in b.score_names]
 
+    @property
+    def score_ranges(self) -> dict[str, tuple[float, float]]:
+        """(low, high) of every score of the scoring set that declares one (Block.score_ranges)."""
+        return {n: r for b in self.scoring for n, r in b.score_ranges.items()}
+
+    @property
+    def lower_is_better(self) -> frozenset[str]:
+        """The scores of the scoring set where small means good."""
+        return frozenset(n for b in self.scoring for n in b.lower_is_better)
+
     def action(self, name: str) -> Action:
         for a in self.actions:
             if a.name == name:

@@ -121,8 +121,10 @@ class PsiD(Block):
 
     kind = Kind.SCORING
     name = "psi_d"
+    default_cost = 0.003
     inputs = (DEPTH, MODEL, POSE)
     score_names = ("psi_d", "psi_d_m1", "psi_d_m2")
+    score_ranges = {"psi_d": (0.0, 1.0), "psi_d_m1": (0.0, 1.0), "psi_d_m2": (0.0, 1.0)}  # shares of rendered pixels
     params = (
         Param("threshold", 0.005, 0.0001, 0.1, doc="depth agreement threshold of M1 (m)"),
         Param("min_pixels", 10, 1, 1000000, doc="minimum rendered object pixels inside the image"),
@@ -148,8 +150,10 @@ class PsiC(Block):
 
     kind = Kind.SCORING
     name = "psi_c"
+    default_cost = 0.003
     inputs = (RGB, MODEL, POSE)
     score_names = ("psi_c",)
+    score_ranges = {"psi_c": (0.0, 1.0)}
     params = (
         Param("min_gradient", 5.0, 0.0, 255.0, doc="gradient magnitude (grey levels / px) for a point to count; below it counts 0"),
         Param("grazing_cos", 0.3, 0.0, 1.0, doc="surface samples with |cos(normal, ray)| below this are contour points"),
@@ -181,8 +185,11 @@ class IcpFitness(Block):
 
     kind = Kind.SCORING
     name = "icp_fitness"
+    default_cost = 0.002
     inputs = (DEPTH, MODEL, POSE)
     score_names = ("icp_fitness", "icp_rmse")
+    score_ranges = {"icp_fitness": (0.0, 1.0), "icp_rmse": (0.0, 0.01)}  # share; metres
+    lower_is_better = ("icp_rmse",)
     params = (
         Param("threshold", 0.01, 0.0005, 0.2, doc="inlier distance (m)"),
         Param("max_scene_points", 8000, 100, 1000000, doc="scene points budget around the hypothesis (grid subsampling)"),

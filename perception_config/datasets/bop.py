@@ -14,7 +14,7 @@ stays in mm as BOP defines it (models.py converts it when preparing a model). Ba
 a reader never returns silently wrong data, so a wrong depth_scale fails loudly rather than
 putting every object ten times too far away.
 
-Writers are atomic (temporary file, then os.replace), so a reader never sees half a JSON file.
+Writers are atomic (atomic_file.py), so a reader never sees half a JSON file.
 A generator writing many frames uses `SceneWriter`, which writes each image at once and the
 scene's JSON files once at close; `write_frame` is the one-off convenience.
 """
@@ -33,6 +33,7 @@ from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
 import cv2
 import numpy as np
 
+from ..atomic_file import atomic_write
 from ..geometry import Pose, nearest_rotation
 from ..models import MM, ObjectModel, load_model
 from ..scene import Frame, SceneObject
@@ -51,20 +52,6 @@ class BopFormatError(ValueError):
 
 
 # --------------------------------------------------------------------------- small I/O helpers
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write bytes to `path` via a temporary file in the same folder and os.replace: readers
-    see the old file or the new one, never a partial one. (No fsync: atomicity, not durability.)"""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def load_json(path: str | os.PathLike) -> Any:
@@ -92,7 +79,7 @@ def save_json(path: str | os.PathLike, content: Mapping[Any, Any]) -> None:
     items = sorted(content.items(), key=lambda kv: order(kv[0]))
     lines = [f"  {json.dumps(str(k))}: {json.dumps(_jsonable(v), sort_keys=True)}" for k, v in items]
     text = "{\n" + ",\n".join(lines) + ("\n" if lines else "") + "}\n"
-    _atomic_write(Path(path), text.encode("utf-8"))
+    atomic_write(Path(path), text.encode("utf-8"))
 
 
 def _jsonable(v: Any) -> Any:
@@ -434,7 +421,7 @@ def write_rgb(path: str | os.PathLike, rgb: np.ndarray, jpg_quality: int = 95) -
     ok, buf = cv2.imencode(ext, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise BopFormatError(f"{path}: could not encode the rgb image")
-    _atomic_write(path, buf.tobytes())
+    atomic_write(path, buf.tobytes())
 
 
 def write_depth(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float = 1.0) -> None:
@@ -462,7 +449,7 @@ def write_depth(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float
     ok, buf = cv2.imencode(".png", units.astype(np.uint16))
     if not ok:
         raise BopFormatError(f"{path}: could not encode the depth image")
-    _atomic_write(path, buf.tobytes())
+    atomic_write(path, buf.tobytes())
 
 
 # --------------------------------------------------------------------------- dataset reader
@@ -858,7 +845,7 @@ def write_results_csv(path: str | os.PathLike, rows: Iterable[BopResult]) -> Non
         R = " ".join(repr(float(x)) for x in r.pose.R.reshape(-1))
         t = " ".join(repr(float(x)) for x in r.pose.t / MM)
         buf.write(f"{int(r.scene_id)},{int(r.im_id)},{int(r.obj_id)},{float(r.score)!r},{R},{t},{float(r.time)!r}\n")
-    _atomic_write(Path(path), buf.getvalue().encode("utf-8"))
+    atomic_write(Path(path), buf.getvalue().encode("utf-8"))
 
 
 def read_results_csv(path: str | os.PathLike) -> list[BopResult]:

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic_file import atomic_write
+
 __all__ = ["show_frame", "object_colour"]
 
 _PALETTE = [  # RGB, distinct and readable on grey
@@ -149,10 +151,4 @@ def show_frame(
     ok, buf = cv2.imencode(".png", cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"could not encode {out}")
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(buf.tobytes())
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return out
+    return atomic_write(out, buf.tobytes())

@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from ..atomic_file import atomic_write
 from ..geometry import Pose
 from . import sensor
 
@@ -557,12 +558,7 @@ def _prepare_models(models_out: Path, models_dir: Path | None) -> list[_Obj]:
 
 
 def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
 def _is_ours(path: Path) -> bool:

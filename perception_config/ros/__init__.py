@@ -1,8 +1,6 @@
 """The ROS 2 layer: the only place that imports rclpy and perception_config_interfaces.
 
-Importing this package applies the project's safe defaults to the process environment
-(loopback-only discovery, the shipped Fast DDS profile) before rclpy creates a participant.
+Every entry point here applies the project's loopback defaults
+(perception_config.ros_environment) before rclpy creates a participant; importing this package
+changes nothing.
 """
-from .environment import configure_ros_environment
-
-configure_ros_environment()

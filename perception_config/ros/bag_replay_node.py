@@ -54,6 +54,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from ..datasets.bag import BagTruncatedWarning, bag_info, iter_messages
+from ..ros_environment import configure_ros_environment
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 ACK_TIMEOUT_S = 5.0
@@ -71,6 +72,8 @@ def message_class(type_name: str) -> type:
 
 
 class BagReplayNode(Node):
+    """Publishes a bag's messages on their topics at the recorded pace (times `rate`), raw CDR."""
+
     def __init__(self) -> None:
         super().__init__("bag_replay_node")
         number = ParameterDescriptor(dynamic_typing=True)  # rate:=0 and rate:=0.5 both work
@@ -223,6 +226,7 @@ class BagReplayNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     warnings.simplefilter("ignore", BagTruncatedWarning)  # the node logs the damage once, at the start
+    configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init(args=args)
     node = None
     try:

@@ -172,7 +172,7 @@ class CameraFrames:
         """The frame with this stamp (0 = the latest), without waiting: FrameNotReady when it has
         not arrived (the message names `timeout`, the wait the caller grants; operator_node awaits
         the next arrival and asks again), ValueError when it arrived unusable."""
-        item = self.frames.get(stamp_ns, 0.0)
+        item = self.frames.get(stamp_ns)
         if item is None:
             which = "no camera frame" if stamp_ns == 0 else f"no camera frame stamped {stamp_text(stamp_ns)}"
             cached = self.frames.stamps()

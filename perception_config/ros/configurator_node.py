@@ -49,13 +49,14 @@ from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
 from perception_config_interfaces.srv import EstimatePose
 
 from ..agents import load_agent, make_agent
-from ..agents.base import acting_seed
 from ..agents.fixed import DEFAULT_SEQUENCE
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bop import ModelFolder
-from ..env import LAMBDA_MAX, PerceptionConfigEnv
-from ..evaluation import policy_settings
+from ..env import PerceptionConfigEnv
+from ..episode_loop import acting_seed, play_episode
+from ..geometry import check_noise_lambda
 from ..operators import Episode
+from ..policy_settings import policy_settings
 from .camera_frames import camera_qos, stamp_text
 from .conversions import stamp_to_nanoseconds
 from .operator_node import make_hypothesis, spin
@@ -63,6 +64,9 @@ from .ros_operators import OperatorCallError, RosOperators
 
 
 class ConfiguratorNode(Node):
+    """Serves `estimate_pose`: the agent plays one episode of the same environment as in
+    training, whose operators are service calls to the operator nodes (RosOperators)."""
+
     def __init__(self) -> None:
         super().__init__("configurator_node")
         self.declare_parameter("policy", "")
@@ -89,13 +93,12 @@ class ConfiguratorNode(Node):
             raise ValueError(f"policy file {policy} does not exist")
         settings = policy_settings([policy] if policy else [], pipeline=p["pipeline"] or None,
                                    max_ops=p["max_ops"] or None)
-        pipeline = load_pipeline(settings["pipeline"])
-        self.default_lambda = float(p["noise_lambda"])
-        if not (math.isfinite(self.default_lambda) and 0 <= self.default_lambda <= LAMBDA_MAX):
-            raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}], got {self.default_lambda}")
+        pipeline = load_pipeline(settings.pipeline)
+        self.default_lambda = check_noise_lambda(p["noise_lambda"], "noise_lambda")
         self.operators = RosOperators(pipeline, node_name=f"{self.get_name()}_operators", timeout=float(p["operator_timeout"]),
                                       fused_scoring=bool(p["fused_scoring"]))
-        self.env = PerceptionConfigEnv(None, pipeline, max_ops=settings["max_ops"], operators=self.operators)
+        # The policy's own settings (max_ops is part of its observation); time is measured here.
+        self.env = PerceptionConfigEnv(None, pipeline, settings.env.replace(time_mode="measured"), operators=self.operators)
         if policy:
             self.agent = load_agent(policy, self.env)
             self.agent_name = f"{self.agent.kind} policy {policy}"
@@ -155,28 +158,16 @@ class ConfiguratorNode(Node):
              noise_lambda: float, seed: int) -> list[bool]:
         """Fill the response; returns the ok flag of each operation."""
         lam = self.default_lambda if (math.isfinite(noise_lambda) and noise_lambda < 0) else float(noise_lambda)
-        if not (math.isfinite(lam) and 0 <= lam <= LAMBDA_MAX):
-            raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}] (negative = the configurator's), got {noise_lambda}")
+        lam = check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
         model = self.models.model(object_id)
         seed = int(seed) if seed else int(self._rng.integers(1, 2**31))
         episode = Episode(frame=None, model=model, ground_truth=None, noise_lambda=lam, seed=seed,
                           key=(0, 0, model.obj_id), stamp_ns=stamp_ns)
         limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
-        obs, info = self.env.reset(options={"episode": episode})
-        if not info["ok"]:
-            raise ValueError(f"no first hypothesis: {info['reason']}")
-        self.agent.begin_episode(acting_seed(seed))
-        names, seconds, oks = [], [], []
-        while True:
-            a = int(self.agent.act(obs, info))
-            obs, reward, terminated, truncated, info = self.env.step(a)
-            self.agent.observe(reward, obs, terminated, truncated, info)
-            names.append(self.env.action_names[a])
-            seconds.append(float(self.env.last_outcome.elapsed))  # measured (info["seconds"] adds charges)
-            oks.append(bool(info["ok"]))
-            if terminated or truncated or len(names) >= limit:
-                break
-        picked = bool(terminated and info["picked"])
+        traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
+                            require_hypothesis=True)
+        info, names = traj.final_info, traj.names
+        picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
         if self.operators.stamp is not None:
             header.stamp = self.operators.stamp
@@ -184,10 +175,10 @@ class ConfiguratorNode(Node):
         response.hypothesis = make_hypothesis(header, object_id, final, info["scores"])
         response.picked = picked
         response.operations = names
-        response.operation_elapsed = seconds
+        response.operation_elapsed = traj.operation_seconds  # measured (info["seconds"] adds charges)
         response.success = True
         response.message = "picked" if picked else f"no successful pick within {len(names)} operations"
-        return oks
+        return traj.oks
 
     def _publish(self, response: EstimatePose.Response, object_id: str, oks: list[bool]) -> None:
         if response.success:

@@ -21,12 +21,14 @@ import numpy as np
 from perception_config_interfaces.srv import GenerateHypothesis
 
 from ..blocks.base import Kind
-from ..env import LAMBDA_MAX
+from ..geometry import check_noise_lambda
 from .conversions import stamp_to_nanoseconds
 from .operator_node import OperatorNode, answered_pose, make_hypothesis, spin
 
 
 class GenerationNode(OperatorNode):
+    """Serves `generate_hypothesis`: the pipeline's generators on a cached camera frame."""
+
     def __init__(self) -> None:
         super().__init__("generation_node", ground_truth=True)
         self.declare_parameter("default_method", "")
@@ -40,8 +42,7 @@ class GenerationNode(OperatorNode):
         lam = float(request.noise_lambda)
         if math.isfinite(lam) and lam < 0:
             lam = float(self.param("default_lambda"))
-        if not (math.isfinite(lam) and 0.0 <= lam <= LAMBDA_MAX):
-            raise ValueError(f"noise_lambda must be in [0, {LAMBDA_MAX}] (negative = the node's default), got {lam}")
+        lam = check_noise_lambda(lam, "noise_lambda (negative = the node's default)")
         self.model(request.object_id)  # an unknown object is refused before any waiting
         _, block = self.block(method, (Kind.GENERATION,), lam)
         rng = np.random.default_rng(request.seed if request.seed else int(self._rng.integers(1, 2**32)))

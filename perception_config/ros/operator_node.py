@@ -47,12 +47,17 @@ from ..datasets.bop import ModelFolder
 from ..geometry import Pose
 from ..models import ObjectModel
 from ..operators import FrameCaches
+from ..ros_environment import configure_ros_environment
 from .camera_frames import CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 from .stamp_cache import StampCache
 
 
 class OperatorNode(Node):
+    """What every operator node shares: parameters, the models folder, the pipeline's blocks,
+    the camera frame cache (and replayed ground truth) by stamp, awaiting a frame not yet
+    arrived, and answering every request (success=false with a message on bad input)."""
+
     def __init__(self, name: str, *, ground_truth: bool = False) -> None:
         super().__init__(name)
         self.declare_parameter("models_dir", "")
@@ -172,7 +177,7 @@ class OperatorNode(Node):
 
     def ground_truth_pose(self, stamp_ns: int, object_id: str) -> tuple[Pose, Header]:
         assert self.ground_truth is not None
-        item = self.ground_truth.get(stamp_ns, 0.0)
+        item = self.ground_truth.get(stamp_ns)
         if item is None:
             which = "any frame" if stamp_ns == 0 else f"the frame at {stamp_text(stamp_ns)}"
             raise FrameNotReady(f"no ground truth for {which} arrived on perception/ground_truth "
@@ -302,6 +307,7 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     0.2 s so a signal is handled promptly. A node that cannot start (bad parameters, an
     unreadable models folder) logs why and exits 2.
     """
+    configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     # Also when started with SIGINT ignored (a background job of a script inherits that):

@@ -24,6 +24,8 @@ from .operator_node import OperatorNode, hypothesis_pose, spin
 
 
 class PickNode(OperatorNode):
+    """Serves `pick`: simulated from the replayed ground truth, or forwarded to the robot."""
+
     def __init__(self) -> None:
         super().__init__("pick_node", ground_truth=True)
         self.declare_parameter("robot_service", "")

@@ -20,6 +20,8 @@ from .operator_node import OperatorNode, answered_pose, hypothesis_pose, make_hy
 
 
 class RefinementNode(OperatorNode):
+    """Serves `refine_hypothesis`: the pipeline's refiners on a cached camera frame."""
+
     def __init__(self) -> None:
         super().__init__("refinement_node")
         self.serve(RefineHypothesis, "refine_hypothesis", self._on_refine)

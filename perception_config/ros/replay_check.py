@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -37,21 +36,18 @@ from tqdm import tqdm
 from perception_config_interfaces.srv import EstimatePose
 
 from ..agents import load_agent, make_agent
-from ..agents.base import acting_seed
+from ..atomic_file import atomic_output, atomic_write
 from ..datasets.bag import RECORDING_EPOCH_NS, write_frames
 from ..datasets.bop import BopDataset
 from ..env import PerceptionConfigEnv
+from ..episode_loop import acting_seed, play_episode
 from ..episodes import split_image_keys
-from ..evaluation import episode_seed, policy_settings
+from ..evaluation import episode_seed
 from ..launch import Launcher, NodeSpec
+from ..policy_settings import policy_settings
+from ..ros_environment import configure_ros_environment
 
 RECORD_RATE_HZ = 10.0
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def success_noise(p: float, n: int) -> float:
@@ -69,16 +65,9 @@ def run_in_process(env: PerceptionConfigEnv, policy: Path | None, plan: list[dic
     out = []
     for ep in tqdm(plan, desc="in-process", unit="episode", leave=False):
         t0 = time.perf_counter()
-        obs, info = env.reset(options={"episode": ep["episode"], "lambda": ep["lambda"], "episode_seed": ep["seed"]})
-        agent.begin_episode(acting_seed(ep["seed"]))
-        names, op_seconds, terminated, truncated = [], [], False, False
-        while not (terminated or truncated):
-            a = int(agent.act(obs, info))
-            obs, reward, terminated, truncated, info = env.step(a)
-            agent.observe(reward, obs, terminated, truncated, info)
-            names.append(env.action_names[a])
-            op_seconds.append(float(env.last_outcome.elapsed))
-        out.append({"picked": bool(terminated and info["picked"]), "operations": names, "operation_seconds": op_seconds,
+        traj = play_episode(env, agent, {"episode": ep["episode"], "lambda": ep["lambda"], "episode_seed": ep["seed"]},
+                            acting_seed(ep["seed"]))
+        out.append({"picked": traj.success, "operations": traj.names, "operation_seconds": traj.operation_seconds,
                     "wall": time.perf_counter() - t0})
     return out
 
@@ -121,7 +110,7 @@ def replay_check(
     settings = policy_settings([policy] if policy else [], pipeline=pipeline)
     ds = BopDataset(Path(dataset), split="test")
     if image_keys is None:
-        image_keys = split_image_keys(ds.image_keys(), settings["test_fraction"], settings["split_seed"])[1]
+        image_keys = split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)[1]
     keys = sorted(image_keys)[: max(1, int(images))]
 
     bag = out / "replay.mcap"
@@ -131,7 +120,8 @@ def replay_check(
     write_frames(frames, bag, RECORD_RATE_HZ, progress=not quiet, total=len(keys))
     stamps = {key: RECORDING_EPOCH_NS + round(i * 1e9 / RECORD_RATE_HZ) for i, key in enumerate(keys)}
 
-    env = PerceptionConfigEnv(ds, settings["pipeline"], image_keys=keys, max_ops=settings["max_ops"])
+    # The policy's settings, time measured (the configurator measures it too).
+    env = PerceptionConfigEnv(ds, settings.pipeline, settings.env.replace(time_mode="measured"), image_keys=keys)
     counts: dict[tuple[int, int, int], int] = {}
     for ek in env.source.episodes:
         counts[(ek.scene_id, ek.im_id, ek.obj_id)] = counts.get((ek.scene_id, ek.im_id, ek.obj_id), 0) + 1
@@ -140,11 +130,11 @@ def replay_check(
             for j, ek in enumerate(env.source.episodes) if counts[(ek.scene_id, ek.im_id, ek.obj_id)] == 1]
 
     common: dict[str, Any] = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": max(30, len(keys) + 5)}
-    if settings["pipeline"]:
-        common["pipeline"] = str(Path(settings["pipeline"]).resolve())
+    if settings.pipeline:
+        common["pipeline"] = str(Path(settings.pipeline).resolve())
     specs = [NodeSpec(name, params=dict(common)) for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""), "noise_lambda": float(noise_lambda),
-                                                        "max_ops": settings["max_ops"]}))
+                                                        "max_ops": settings.env.max_ops}))
     wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
     specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
                                                      "wait_for": wait_for + ["perception/ground_truth:2"]}))
@@ -189,8 +179,8 @@ def _summarise(out: Path, plan, ros, local, policy, keys) -> dict[str, Any]:
         "median_episode_wall_ros": float(np.median([r["wall"] for r in ros])),
         "median_episode_wall_in_process": float(np.median([l_["wall"] for l_ in local])),
     }
-    _atomic_write(out / "results.json", json.dumps(summary, indent=2) + "\n")
-    _atomic_write(out / "episodes.jsonl", "".join(json.dumps({**p, "ros": r, "in_process": l_}) + "\n"
+    atomic_write(out / "results.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write(out / "episodes.jsonl", "".join(json.dumps({**p, "ros": r, "in_process": l_}) + "\n"
                                                  for p, r, l_ in zip(plan, ros, local)))
     _plot(out / "replay_check.png", ros, local, summary)
     return summary
@@ -220,10 +210,11 @@ def _plot(path: Path, ros, local, summary) -> None:
     ax.set_title(f"ROS / in-process: {summary['operator_time_ratio']:.2f}x")
     ax.legend()
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def format_summary(s: dict[str, Any]) -> str:
@@ -240,6 +231,7 @@ def format_summary(s: dict[str, Any]) -> str:
 
 def run_cli(args: Any) -> int:
     """`perception-config replay-check`: exit 0 when the success rates match within noise."""
+    configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init()
     try:
         s = replay_check(args.dataset, args.out, args.policy, args.pipeline, args.images, args.noise_lambda, rate=args.rate)
@@ -248,13 +240,3 @@ def run_cli(args: Any) -> int:
     print(format_summary(s))
     print(f"wrote {Path(args.out) / 'results.json'} and {Path(args.out) / 'replay_check.png'}")
     return 0 if s["success_matches"] else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["replay-check", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    sys.exit(main())

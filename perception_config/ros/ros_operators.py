@@ -56,6 +56,10 @@ class OperatorCallError(RuntimeError):
 
 
 class RosOperators:
+    """The environment's operator backend over ROS 2: generator, refiner, scoring and pick calls
+    are service requests to the operator nodes, with the same seeds as in-process (operators.py).
+    The clients live on a private node whose executor the calling thread spins itself."""
+
     def __init__(self, pipeline: Pipeline, node_name: str = "operator_clients", timeout: float = 10.0,
                  services: dict[str, str] | None = None, fused_scoring: bool = True) -> None:
         if not (math.isfinite(timeout) and timeout > 0):

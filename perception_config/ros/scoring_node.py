@@ -16,6 +16,8 @@ from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
 
 
 class ScoringNode(OperatorNode):
+    """Serves `score_hypothesis`: the pipeline's scoring set on a cached camera frame."""
+
     def __init__(self) -> None:
         super().__init__("scoring_node")
         self.serve(ScoreHypothesis, "score_hypothesis", self._on_score)

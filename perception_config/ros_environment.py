@@ -1,6 +1,8 @@
 """Loopback-only ROS 2 defaults for every process the project starts.
 
-Set before rclpy creates its first DDS participant; a value the user already exported wins.
+Applied by every entry point right before `rclpy.init` (the nodes, replay-check, the test
+client) and to the environment of every child the launcher starts; a value the user already
+exported wins. This module does not import rclpy, so the launcher can use it.
 - ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: discovery stays on this machine (Kilted ignores
   the older ROS_LOCALHOST_ONLY).
 - FASTDDS_DEFAULT_PROFILES_FILE: the shipped profile (large shared-memory segment for images,
@@ -17,7 +19,7 @@ import sys
 from pathlib import Path
 
 DEFAULT_DOMAIN_ID = 42
-FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
+FASTDDS_PROFILE = Path(__file__).parent / "ros" / "fastdds_profile.xml"
 
 
 def ros_environment_defaults() -> dict[str, str]:

@@ -1,0 +1,128 @@
+"""The one episode loop: reset, then act, step and observe until the episode ends.
+
+Training, evaluation, the ROS configurator and replay-check all play episodes through
+`play_episode`, so they count operations, time, first picks and success the same way. The
+agent's acting randomness is reseeded per episode (`act_seed`; `acting_seed(episode_seed)`
+where an episode seed exists), so one agent's run of an episode does not depend on what ran
+before it, in-process or through ROS.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .blocks.base import Kind
+
+if TYPE_CHECKING:
+    from .agents.base import Agent
+    from .env import PerceptionConfigEnv
+
+
+@dataclass
+class Trajectory:
+    """One episode as an agent played it: the observation before each action, the actions, the
+    rewards (minus seconds, minus penalties), and the outcome."""
+
+    obs: np.ndarray  # (T, obs_dim) float32
+    actions: np.ndarray  # (T,) int64
+    rewards: np.ndarray  # (T,) float64: minus seconds, minus penalties (failed pick, truncation)
+    seconds: np.ndarray  # (T,) float64: the time each action was charged (failed-pick attempts included)
+    success: bool  # ended by a successful pick
+    noise_lambda: float
+    episode_index: int  # -1 for an episode given to reset (the configurator)
+    first_pick_success: bool = False  # the first pick of the episode succeeded
+    names: list[str] = field(default_factory=list)  # action names, as actions
+    oks: list[bool] = field(default_factory=list)  # whether each operator succeeded
+    operation_seconds: list[float] = field(default_factory=list)  # measured seconds of each operator call
+    block_seconds: list[float] = field(default_factory=list)  # of which the block itself (through ROS: in its node)
+    time: float = 0.0  # seconds charged (env.episode_time: failed picks at their robot cost)
+    cost: float = 0.0  # minus the return: time plus the truncation penalty
+    initial_info: dict[str, Any] = field(default_factory=dict)  # reset's info (the initial hypothesis)
+    final_info: dict[str, Any] = field(default_factory=dict)  # the last step's info (final pose, scores)
+
+    @property
+    def steps(self) -> int:
+        return int(len(self.actions))
+
+    @property
+    def ret(self) -> float:
+        return float(self.rewards.sum())
+
+
+def acting_seed(episode_seed: int) -> int:
+    """The seed of an agent's acting randomness in the episode with this seed: evaluation and
+    the ROS configurator act the same way on the same episode."""
+    return int(np.random.SeedSequence([int(episode_seed), 1]).generate_state(1)[0])
+
+
+def play_episode(
+    env: PerceptionConfigEnv,
+    agent: Agent,
+    options: dict[str, Any] | None = None,
+    act_seed: int | None = None,
+    *,
+    max_steps: int | None = None,
+    require_hypothesis: bool = False,
+) -> Trajectory:
+    """Play one episode of `env` with `agent` and return its trajectory.
+
+    `options` go to `env.reset` (episode index or Episode, lambda, episode_seed); `act_seed`
+    reseeds the agent's acting randomness. `max_steps` stops earlier than the env's max_ops
+    (a request's own limit), without the truncation charge. `require_hypothesis`: raise
+    ValueError when the generator gives no first hypothesis instead of letting the agent try.
+    """
+    env_ = getattr(env, "unwrapped", env)
+    obs, info = env.reset(options=options)
+    if require_hypothesis and not info["ok"]:
+        raise ValueError(f"no first hypothesis: {info['reason']}")
+    agent.begin_episode(act_seed)
+    initial_info = info
+    obs_l: list[np.ndarray] = []
+    act_l: list[int] = []
+    rew_l: list[float] = []
+    sec_l: list[float] = []
+    names: list[str] = []
+    oks: list[bool] = []
+    op_seconds: list[float] = []
+    block_seconds: list[float] = []
+    first_pick: bool | None = None
+    cost = 0.0
+    terminated = truncated = False
+    while not (terminated or truncated):
+        a = int(agent.act(obs, info))
+        obs_l.append(obs)
+        obs, reward, terminated, truncated, info = env.step(a)
+        agent.observe(reward, obs, terminated, truncated, info)
+        cost -= reward
+        act_l.append(a)
+        rew_l.append(reward)
+        sec_l.append(float(info["seconds"]))
+        names.append(env_.action_names[a])
+        oks.append(bool(info["ok"]))
+        op_seconds.append(float(env_.last_outcome.elapsed))  # measured, whatever the time mode charges
+        block_seconds.append(float(env_.last_outcome.result.elapsed))
+        if first_pick is None and info["ok"] and env_.pipeline.actions[a].kind == Kind.PICK:
+            first_pick = bool(info["picked"])
+        if max_steps is not None and len(act_l) >= max_steps:
+            break
+    index = (options or {}).get("episode", -1)
+    return Trajectory(
+        obs=np.asarray(obs_l, np.float32).reshape(len(obs_l), -1),
+        actions=np.asarray(act_l, np.int64),
+        rewards=np.asarray(rew_l, np.float64),
+        seconds=np.asarray(sec_l, np.float64),
+        success=bool(terminated and info["picked"]),
+        noise_lambda=float(info.get("noise_lambda") or 0.0),
+        episode_index=int(index) if isinstance(index, (int, np.integer)) else -1,
+        first_pick_success=bool(first_pick),
+        names=names,
+        oks=oks,
+        operation_seconds=op_seconds,
+        block_seconds=block_seconds,
+        time=float(env_.episode_time),
+        cost=float(cost),
+        initial_info=initial_info,
+        final_info=info,
+    )

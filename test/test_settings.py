@@ -1,0 +1,62 @@
+"""EnvSettings (one settings object for the environment) and the atomic file writer."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from perception_config.atomic_file import atomic_output, atomic_write
+from perception_config.settings import EnvSettings, settings_from_policy_meta
+
+
+def test_settings_round_trip_and_defaults():
+    s = EnvSettings(max_ops=7, time_mode="cost_table", cost_table={"d2co": 0.1}, lambda_range=(0.2, 0.4))
+    assert EnvSettings.from_json(s.to_json()) == s
+    assert EnvSettings().to_json() == {"max_ops": 10, "failed_pick_cost": 2.0, "truncation_cost": 10.0,
+                                       "time_mode": "measured", "cost_table": {}, "min_visib_fract": 0.3,
+                                       "lambda_range": [0.1, 1.0]}
+    assert s.replace(max_ops=None) == s  # None = not given
+    assert s.differences(s.replace(failed_pick_cost=3.0, lambda_range=(0.0, 1.0))) == ["failed_pick_cost: 2.0 -> 3.0"]
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"max_ops": 0}, "max_ops"), ({"max_ops": 2.5}, "max_ops"), ({"max_ops": True}, "max_ops"),
+    ({"failed_pick_cost": -1.0}, "failed_pick_cost"), ({"truncation_cost": float("inf")}, "truncation_cost"),
+    ({"time_mode": "fast"}, "time_mode"), ({"cost_table": {"d2co": float("nan")}}, "cost_table"),
+    ({"min_visib_fract": 1.5}, "min_visib_fract"), ({"lambda_range": (0.5, 0.1)}, "low <= high"),
+    ({"lambda_range": (0.0, 9.0)}, "lambda_range high"),
+])
+def test_bad_settings_are_refused_naming_the_field(bad, message):
+    with pytest.raises(ValueError, match=message):
+        EnvSettings(**bad)
+
+
+def test_unknown_settings_name_the_source():
+    with pytest.raises(ValueError, match="policy p.json: unknown environment settings \\['speed'\\]"):
+        EnvSettings.from_json({"speed": 2}, "policy p.json")
+    with pytest.raises(ValueError, match="unknown environment settings \\['speed'\\]"):
+        EnvSettings().replace(speed=2)
+    assert settings_from_policy_meta({"extra": {}}) is None
+
+
+def test_atomic_write_replaces_whole_files(tmp_path):
+    path = tmp_path / "sub" / "results.json"
+    atomic_write(path, "first\n")
+    atomic_write(path, b"second\n")
+    assert path.read_text() == "second\n"
+    assert os.listdir(path.parent) == ["results.json"]  # no temporary left
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    path = tmp_path / "plot.png"
+    atomic_write(path, b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_output(path) as tmp:
+            assert tmp.parent == path.parent and tmp.suffix == ".png"  # writers pick the format from it
+            tmp.write_bytes(b"half")
+            raise RuntimeError("the writer failed")
+    assert path.read_bytes() == b"old" and os.listdir(tmp_path) == ["plot.png"]
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_output(path) as tmp:
+            raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == ["plot.png"]
