@@ -28,7 +28,7 @@ from perception_config.datasets.bag import (
     write_frames,
 )
 from perception_config.datasets.ros2msg_schemas import SCHEMAS, TYPE_HASHES
-from perception_config.geometry import Pose, exp_so3
+from perception_config.geometry import Pose, exp_so3, nearest_rotation
 from perception_config.scene import Frame, SceneObject
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,7 +62,7 @@ def assert_same_frame(a: Frame, b: Frame, exact_depth: bool = True, project_R: b
     ga = [o for o in a.objects if o.gt is not None]
     assert [o.obj_id for o in ga] == [o.obj_id for o in b.objects]
     for oa, ob in zip(ga, b.objects):
-        Ra = bagmod.nearest_rotation(oa.gt.R) if project_R else oa.gt.R
+        Ra = nearest_rotation(oa.gt.R) if project_R else oa.gt.R
         assert np.abs(Ra - ob.gt.R).max() < 1e-9
         assert np.abs(oa.gt.t - ob.gt.t).max() < 1e-9
 

@@ -9,9 +9,9 @@ import pytest
 from frames import box_model, default_pose, perturbed_pose as _perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.blocks.edges import crop_box, directional_chamfer_tensor
 from perception_config.geometry import Pose
 from perception_config.render import project
+from perception_config.vision.edges import crop_box, directional_chamfer_tensor
 
 
 def _px_error(model, K, est: Pose, gt: Pose) -> float:

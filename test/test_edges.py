@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from frames import box_model, default_pose, synthetic_frame
-from perception_config.blocks.edges import TensorCache, directional_chamfer_tensor, image_gradients, sample_tensor
 from perception_config.scene import Frame
+from perception_config.vision.edges import TensorCache, directional_chamfer_tensor, image_gradients, sample_tensor
 
 
 def test_tensor_is_the_cyclic_min_over_orientation_bins():

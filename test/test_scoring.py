@@ -7,10 +7,11 @@ import pytest
 
 from frames import box_model, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
-from perception_config.blocks.scoring import IcpFitness, PsiC, PsiD, image_derivatives, projected_directions
+from perception_config.blocks.scoring import IcpFitness, PsiC, PsiD
 from perception_config.geometry import Pose, exp_so3
 from perception_config.render import project, render
 from perception_config.scene import Frame
+from perception_config.vision.edges import image_derivatives, projected_directions
 
 SCORERS = {"psi_d": PsiD, "psi_c": PsiC, "icp_fitness": IcpFitness}
 

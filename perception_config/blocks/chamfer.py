@@ -1,7 +1,7 @@
 """The paper's comparison methods for edge-based refinement: chamfer matching and chamfer-ICP.
 
-Both use the model contour visible from the hypothesis (edges.model_contour) and the plain
-(non-directional) distance transform of the image's Canny edges, computed once per frame on
+Both use the model contour visible from the hypothesis (vision.edges.model_contour) and the
+plain (non-directional) distance transform of the image's Canny edges, computed once per frame on
 the whole image (a few ms; more with the nearest-pixel labels chamfer-ICP needs) and shared
 by every object and every call on that frame.
 - `chamfer`: local search over pose perturbations (random rotations about the object origin
@@ -25,9 +25,9 @@ import numpy as np
 from ..geometry import Pose, exp_so3
 from ..render import projected_box
 from ..scene import Frame
+from ..vision.edges import bilinear, canny_edges, model_contour, project_with_directions
+from ..vision.pose_solver import levenberg_marquardt, project_with_jacobian
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
-from .d2co import levenberg_marquardt, project_with_jacobian
-from .edges import bilinear, canny_edges, model_contour, project_with_directions
 
 
 def edge_distance(frame: Frame, cache: dict | None, low: float, high: float, labels: bool = True):

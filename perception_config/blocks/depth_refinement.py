@@ -20,8 +20,8 @@ import numpy as np
 from ..geometry import Pose
 from ..models import ObjectModel
 from ..scene import Frame
+from ..vision.visibility import hypothesis_rendering
 from .base import DEPTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
-from .visibility import hypothesis_rendering
 
 
 def model_centre(model: ObjectModel) -> np.ndarray:

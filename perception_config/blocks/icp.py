@@ -31,8 +31,8 @@ import numpy as np
 import open3d as o3d
 
 from ..geometry import Pose
+from ..vision.visibility import scene_patch, visible_surface
 from .base import DEPTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
-from .visibility import scene_patch, visible_surface
 
 _reg = o3d.pipelines.registration
 

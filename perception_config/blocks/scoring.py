@@ -24,64 +24,17 @@
   threshold when there is no inlier).
 
 The three share one render of the hypothesis and one visible-surface selection through the
-per-frame cache (visibility.py), and the image gradients are computed once per frame.
+per-frame cache (vision/visibility.py), and the image gradients (vision/edges.py) are computed
+once per frame.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..render import Rendering
-from ..scene import Frame
+from ..vision.edges import image_derivatives, projected_directions, silhouette_points
+from ..vision.visibility import hypothesis_rendering, scene_patch, visible_edges, visible_surface
 from .base import DEPTH, MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
-from .visibility import hypothesis_rendering, scene_patch, visible_edges, visible_surface
-
-_GRAD_KEY = "scoring:gradients:gauss1:sobel3"
-
-
-def image_derivatives(frame: Frame, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Image derivatives (gx, gy) float32 HxW of the grey image in grey levels per pixel (Sobel
-    3x3 / 8 after a sigma-1 Gaussian); computed once per frame and cached."""
-    if cache is not None and _GRAD_KEY in cache and cache[_GRAD_KEY][0] is frame.rgb:
-        return cache[_GRAD_KEY][1]
-    gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    gray = cv2.GaussianBlur(gray, (5, 5), 1.0)
-    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    if cache is not None:
-        cache[_GRAD_KEY] = (frame.rgb, (gx, gy))
-    return gx, gy
-
-
-def projected_directions(points_cam: np.ndarray, dirs_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Image-plane directions (N, 2), not normalised, of 3D directions `dirs_cam` attached to
-    camera-frame points: the projection Jacobian at each point applied to its direction."""
-    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
-    dx, dy, dz = dirs_cam[:, 0], dirs_cam[:, 1], dirs_cam[:, 2]
-    du = K[0, 0] * (dx * z - x * dz) / z**2 + K[0, 1] * (dy * z - y * dz) / z**2
-    dv = K[1, 1] * (dy * z - y * dz) / z**2
-    return np.stack([du, dv], axis=1)
-
-
-def silhouette_points(rendering: Rendering) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel positions (N, 2) and 2D normals (N, 2, not normalised) of the rendered object's
-    outline: object pixels with a background 4-neighbour, normal = gradient of the slightly
-    blurred mask (finer angles than the raw binary mask gives)."""
-    if rendering.empty:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    obj = (rendering.mask >= 0).astype(np.uint8)
-    # The crop has a 1 px background margin except where the image border cuts the object:
-    # replicate there, so the image border is not taken for an outline.
-    obj = np.pad(obj, 2, mode="edge")
-    inner = cv2.erode(obj, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8))
-    ys, xs = np.nonzero(obj & (1 - inner))
-    soft = cv2.GaussianBlur(obj.astype(np.float32), (5, 5), 1.0)
-    gx = cv2.Sobel(soft, cv2.CV_32F, 1, 0, ksize=3)[ys, xs]
-    gy = cv2.Sobel(soft, cv2.CV_32F, 0, 1, ksize=3)[ys, xs]
-    x0, y0 = rendering.offset
-    uv = np.stack([xs - 2 + x0, ys - 2 + y0], axis=1).astype(np.float64)
-    return uv, np.stack([gx, gy], axis=1).astype(np.float64)
 
 
 def _unit_rows(uv: np.ndarray, n: np.ndarray, min_norm: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
@@ -214,4 +167,4 @@ class IcpFitness(Block):
                            info={"visible_points": len(vis), "inliers": n_in, "scene_points": 0 if scene is None else len(scene)})
 
 
-__all__ = ["PsiD", "PsiC", "IcpFitness", "image_derivatives", "projected_directions", "contour_points", "silhouette_points"]
+__all__ = ["PsiD", "PsiC", "IcpFitness", "contour_points"]

@@ -1,0 +1,36 @@
+"""The errors and warnings of reading and writing bags."""
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+
+class BagFormatError(ValueError):
+    """A bag that cannot be read as RGB-D frames; the message names the file, topic and problem."""
+
+
+class BagTruncatedError(BagFormatError):
+    """The MCAP file has no valid end (footer): a recording that was cut or killed."""
+
+
+class BagWarning(UserWarning):
+    pass
+
+
+class BagTruncatedWarning(BagWarning):
+    """Frames were read from a truncated file up to the damage; the rest is lost."""
+
+
+class ImageFormatError(ValueError):
+    """An image message whose encoding, step or size does not add up."""
+
+
+class BagWriteInterrupted(KeyboardInterrupt):
+    """Raised by the writers after Ctrl-C / SIGTERM, once the bag has been finished cleanly."""
+
+    def __init__(self, path: Path, frames: int, signum: int):
+        super().__init__(f"recording interrupted by {signal.Signals(signum).name} after {frames} frames; "
+                         f"{path} is complete and readable")
+        self.path = path
+        self.frames = frames
+        self.signum = signum

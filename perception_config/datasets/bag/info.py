@@ -1,0 +1,68 @@
+"""`bag_info`: a summary of a bag (files, time range, topics and counts, damage)."""
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+from .errors import BagFormatError
+from .mcap_reader import McapFile, bag_files, schema_name
+from .topics import resolve_topics
+
+
+def bag_info(path: str | os.PathLike) -> dict:
+    """Summary of a bag: path, files, size, start/end (s), duration_s, message_count, frames
+    (colour images that have depth and camera_info messages: an upper bound of what read_bag
+    yields), topics [{topic, type, count}], the frame topics, recording metadata, truncated."""
+    files = bag_files(path)
+    counts: dict[str, int] = {}
+    types: dict[str, str] = {}
+    t0, t1 = None, None
+    truncated: list[str] = []
+    recording: dict[str, str] = {}
+    profile = library = ""
+    size = 0
+    for p in files:
+        f = McapFile(p)
+        chans = f.channels()
+        size += f.size
+        profile, library = f.header_profile or profile, f.header_library or library
+        for cid, n in f.counts.items():
+            if cid in chans:
+                counts[chans[cid].topic] = counts.get(chans[cid].topic, 0) + n
+        for ch in chans.values():
+            types.setdefault(ch.topic, schema_name(ch))
+            counts.setdefault(ch.topic, 0)
+        if f.times:
+            t0 = f.times[0] if t0 is None else min(t0, f.times[0])
+            t1 = f.times[1] if t1 is None else max(t1, f.times[1])
+        recording.update(f.metadata.get("perception_config", {}))
+        if not f.complete:
+            truncated.append(f.truncation_message())
+    info: dict[str, Any] = {
+        "path": str(path),
+        "files": [str(p) for p in files],
+        "size_bytes": size,
+        "profile": profile,
+        "library": library,
+        "start": t0 / 1e9 if t0 is not None else None,
+        "end": t1 / 1e9 if t1 is not None else None,
+        "start_utc": (time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t0 // 1_000_000_000))
+                      + f".{t0 % 1_000_000_000:09d}Z") if t0 is not None else None,
+        "duration_s": (t1 - t0) / 1e9 if t0 is not None else 0.0,
+        "message_count": sum(counts.values()),
+        "frames": 0,
+        "topics": [{"topic": t, "type": types[t], "count": counts[t]} for t in sorted(types)],
+        "truncated": bool(truncated),
+    }
+    try:
+        ft = resolve_topics(types, path)
+        info["frames"] = min(counts.get(ft.color, 0), counts.get(ft.depth, 0), counts.get(ft.camera_info, 0))
+        info["frame_topics"] = {k: v for k, v in ft.__dict__.items() if v}
+    except BagFormatError as exc:
+        info["frame_topics"] = f"not an RGB-D bag ({exc})"
+    if recording:
+        info["recording"] = recording
+    if truncated:
+        info["damage"] = "; ".join(truncated)
+    return info

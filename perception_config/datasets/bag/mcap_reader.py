@@ -1,0 +1,275 @@
+"""Reading MCAP files: bag file discovery, damaged files, channels, raw and decoded messages.
+
+A bag is a .mcap file or a rosbag2 directory (metadata.yaml lists its files; without it, every
+.mcap file in it). A file without a valid end (no footer: the recorder was killed, the copy was
+cut) is read in file order up to the damage (`McapFile.damage`, `damage_offset`).
+`iter_messages` yields the raw CDR messages; `make_decoder` decodes a channel's messages from
+the bag's own schema, or ours for a type we ship.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, NamedTuple
+
+import yaml
+
+from ..ros2msg_schemas import SCHEMAS
+from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning
+
+_MAGIC = b"\x89MCAP0\r\n"
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+class BagMessage(NamedTuple):
+    """A raw serialized message, for a replay node that publishes without decoding."""
+
+    topic: str
+    type: str  # schema name, e.g. sensor_msgs/msg/Image
+    log_time_ns: int
+    data: bytes  # CDR, as a ROS 2 publisher would send it
+
+
+def bag_files(path: str | os.PathLike) -> list[Path]:
+    """The .mcap files of a bag: the file itself, or those of a directory (as its metadata.yaml
+    lists them, else every .mcap file in it)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"no such bag: {p}")
+    if p.is_file():
+        return [p]
+    meta = p / "metadata.yaml"
+    files: list[Path] = []
+    if meta.is_file():
+        try:
+            info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+            storage = info.get("storage_identifier", "mcap")
+            if storage != "mcap":
+                raise BagFormatError(f"{p}: rosbag2 storage {storage!r} is not supported, only mcap "
+                                     "(convert with `ros2 bag convert`)")
+            files = [p / Path(f).name for f in info.get("relative_file_paths", [])]
+        except BagFormatError:
+            raise
+        except Exception as exc:
+            raise BagFormatError(f"{meta}: not a readable rosbag2 metadata.yaml ({exc})") from None
+        missing = [str(f) for f in files if not f.is_file()]
+        if missing:
+            raise BagFormatError(f"{p}: metadata.yaml lists files that are missing: {missing}")
+    if not files:
+        files = sorted(p.glob("*.mcap"))
+    if not files:
+        raise BagFormatError(f"{p}: no .mcap file in this directory")
+    return files
+
+
+class _Schema(NamedTuple):
+    name: str
+    encoding: str
+    data: bytes
+
+
+class _ChannelInfo(NamedTuple):
+    id: int
+    topic: str
+    message_encoding: str
+    schema: _Schema | None
+
+
+class McapFile:
+    """One MCAP file: indexed and complete, or damaged (read in file order up to the damage)."""
+
+    def __init__(self, path: Path):
+        from mcap.reader import SeekingReader
+
+        self.path = path
+        self.size = path.stat().st_size
+        self.damage: str | None = None  # why the file is not complete
+        self.damage_offset: int | None = None  # bytes read fine before the damage
+        self._channels: dict[int, _ChannelInfo] | None = None
+        self.counts: dict[int, int] = {}
+        self.times: list[int] = []
+        self.metadata: dict[str, dict[str, str]] = {}
+        with open(path, "rb") as f:
+            head = f.read(len(_SQLITE_MAGIC))
+            if head.startswith(_SQLITE_MAGIC):
+                raise BagFormatError(f"{path}: a rosbag2 sqlite3 (.db3) file, not MCAP; convert it with "
+                                     "`ros2 bag convert` to mcap storage")
+            if not head.startswith(_MAGIC):
+                if len(head) < len(_MAGIC) and _MAGIC.startswith(head):
+                    raise BagTruncatedError(f"{path}: truncated before its first MCAP record ({self.size} bytes)")
+                raise BagFormatError(f"{path}: not an MCAP file (bad magic bytes)")
+            f.seek(max(0, self.size - len(_MAGIC)))
+            tail = f.read()
+            self.summary = None
+            self.header_profile = ""
+            self.header_library = ""
+            if self.size < 2 * len(_MAGIC) + 29 or tail != _MAGIC:
+                self.damage = "no MCAP footer: the recording was cut or the recorder was killed"
+            else:
+                try:
+                    f.seek(0)
+                    reader = SeekingReader(f)
+                    self.summary = reader.get_summary()
+                    h = reader.get_header()
+                    self.header_profile, self.header_library = h.profile, h.library
+                except Exception as exc:  # damaged footer/summary
+                    self.summary = None
+                    self.damage = f"unreadable MCAP summary/footer ({exc})"
+
+    @property
+    def complete(self) -> bool:
+        return self.damage is None
+
+    # -- sequential scan: damaged files and files without an index ------------------------------
+    def _record_batches(self) -> Iterator[list]:
+        """The file's records in file order, a chunk's records as one batch (its CRC checked).
+
+        Stops at the first record that cannot be read and notes the damage and its offset.
+        """
+        from mcap.records import Chunk, Footer, Header
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        with open(self.path, "rb") as f:
+            records = StreamReader(f, emit_chunks=True).records
+            good = len(_MAGIC)
+            while True:
+                try:
+                    rec = next(records)
+                    batch = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
+                    good = f.tell()
+                except StopIteration:
+                    return
+                except Exception as exc:  # cut or corrupt: everything before `good` was intact
+                    if self.damage is None:
+                        self.damage = f"damaged MCAP data ({type(exc).__name__}: {exc})"
+                    self.damage_offset = good
+                    return
+                if isinstance(rec, Header):
+                    self.header_profile, self.header_library = rec.profile, rec.library
+                yield batch
+                if isinstance(rec, Footer):
+                    return
+
+    def channels(self) -> dict[int, _ChannelInfo]:
+        """Channels by id; also fills message counts, time range and metadata records."""
+        if self._channels is not None:
+            return self._channels
+        chans: dict[int, _ChannelInfo] = {}
+        counts: dict[int, int] = {}
+        times: list[int] = []
+        metadata: dict[str, dict[str, str]] = {}
+        if self.summary is not None and self.summary.statistics is not None:
+            schemas = {i: _Schema(s.name, s.encoding, s.data) for i, s in self.summary.schemas.items()}
+            for i, c in self.summary.channels.items():
+                chans[i] = _ChannelInfo(i, c.topic, c.message_encoding, schemas.get(c.schema_id))
+            st = self.summary.statistics
+            counts = dict(st.channel_message_counts)
+            if st.message_count:
+                times = [st.message_start_time, st.message_end_time]
+            metadata = self._read_metadata_indexed()
+        else:
+            from mcap.records import Channel, Message, Metadata, Schema
+
+            scm: dict[int, _Schema] = {}
+            for batch in self._record_batches():
+                for r in batch:
+                    if isinstance(r, Schema):
+                        scm[r.id] = _Schema(r.name, r.encoding, r.data)
+                    elif isinstance(r, Channel):
+                        chans[r.id] = _ChannelInfo(r.id, r.topic, r.message_encoding, scm.get(r.schema_id))
+                    elif isinstance(r, Message):
+                        counts[r.channel_id] = counts.get(r.channel_id, 0) + 1
+                        times = [min(times[0], r.log_time), max(times[1], r.log_time)] if times else [r.log_time] * 2
+                    elif isinstance(r, Metadata):
+                        metadata[r.name] = dict(r.metadata)
+        self._channels, self.counts, self.times, self.metadata = chans, counts, times, metadata
+        return chans
+
+    def _read_metadata_indexed(self) -> dict[str, dict[str, str]]:
+        from mcap.reader import SeekingReader
+
+        out: dict[str, dict[str, str]] = {}
+        try:
+            with open(self.path, "rb") as f:
+                for m in SeekingReader(f).iter_metadata():
+                    out[m.name] = dict(m.metadata)
+        except Exception:
+            pass
+        return out
+
+    def messages(self, channel_ids: set[int] | None) -> Iterator[tuple[_ChannelInfo, int, bytes]]:
+        """(channel, log_time_ns, data): log-time order when indexed, else file order."""
+        chans = self.channels()
+        if self.summary is not None and self.summary.chunk_indexes:
+            from mcap.reader import SeekingReader
+
+            topics = None if channel_ids is None else sorted({chans[i].topic for i in channel_ids})
+            if topics == []:
+                return
+            with open(self.path, "rb") as f:
+                it = SeekingReader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=True)
+                while True:
+                    try:
+                        _schema, channel, message = next(it)
+                    except StopIteration:
+                        return
+                    except Exception as exc:
+                        raise BagFormatError(f"{self.path}: damaged MCAP data ({type(exc).__name__}: {exc})") from None
+                    yield chans[channel.id], message.log_time, message.data
+        from mcap.records import Message
+
+        for batch in self._record_batches():
+            for r in batch:
+                if isinstance(r, Message) and (channel_ids is None or r.channel_id in channel_ids):
+                    ch = chans.get(r.channel_id)
+                    if ch is not None:
+                        yield ch, r.log_time, r.data
+
+    def truncation_message(self) -> str:
+        intact = f"; its first {self.damage_offset} of {self.size} bytes are intact" if self.damage_offset else ""
+        return f"{self.path} is truncated or damaged ({self.damage}){intact}"
+
+
+def schema_name(ch: _ChannelInfo) -> str:
+    return ch.schema.name if ch.schema is not None else ""
+
+
+def make_decoder(ch: _ChannelInfo, path: Path) -> Callable[[bytes], Any]:
+    """CDR decoder of a channel, from the bag's own schema, or ours for a type we ship."""
+    from mcap_ros2._dynamic import generate_dynamic
+
+    if ch.message_encoding != "cdr":
+        raise BagFormatError(f"{path}: topic {ch.topic} has message encoding {ch.message_encoding!r}, not cdr")
+    name = schema_name(ch)
+    text = None
+    if ch.schema is not None and ch.schema.encoding == "ros2msg" and ch.schema.data:
+        text = ch.schema.data.decode("utf-8", errors="replace")
+    elif name in SCHEMAS:  # e.g. a ros2idl or empty definition of a standard type
+        text = SCHEMAS[name]
+    if text is None:
+        enc = ch.schema.encoding if ch.schema is not None else "none"
+        raise BagFormatError(f"{path}: topic {ch.topic} ({name or 'no schema'}) has a {enc!r} schema this reader "
+                             "cannot decode (ros2msg needed)")
+    try:
+        return generate_dynamic(name, text)[name]
+    except Exception as exc:
+        raise BagFormatError(f"{path}: topic {ch.topic}: cannot parse the message definition of {name} ({exc})") from None
+
+
+def iter_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    """Raw serialized messages (topic, type, log_time_ns, cdr bytes) of a bag file or directory.
+
+    In log-time order per file (a damaged file: file order, up to the damage, then a
+    BagTruncatedWarning). A replay node can publish `data` as is (rclpy publish of serialized
+    bytes), without decoding.
+    """
+    wanted = None if topics is None else set(topics)
+    for p in bag_files(path):
+        f = McapFile(p)
+        chans = f.channels()
+        ids = None if wanted is None else {i for i, c in chans.items() if c.topic in wanted}
+        for ch, log_time, data in f.messages(ids):
+            yield BagMessage(ch.topic, schema_name(ch), log_time, bytes(data))
+        if not f.complete:
+            warnings.warn(f.truncation_message(), BagTruncatedWarning, stacklevel=2)

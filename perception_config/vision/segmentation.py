@@ -1,0 +1,255 @@
+"""Scene segmentation of an RGB-D frame for the model-only generator (blocks/generation.py).
+
+`segment_scene` removes the support surfaces (table, bin floor and walls; RANSAC planes) and
+splits what stands on them into connected object-like regions of the depth image, cut at depth
+jumps and concave creases, at two levels of detail (`Segmentation`, `Cluster`). Helpers:
+organised points and normals of a depth image, a box-filtered depth, a robust region size.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..scene import Frame
+
+MIN_DEPTH_JUMP = 0.008  # metres: neighbour differences below this are noise or slanted surfaces
+
+
+@dataclass
+class Cluster:
+    """A connected object-like region of the depth image above the support surfaces."""
+
+    pixels: np.ndarray  # (N,) flat pixel indices
+    points: np.ndarray  # (N, 3) camera-frame points, metres
+    extent: float  # robust diagonal of the PCA-aligned box, metres
+    box: tuple[int, int, int, int]  # x, y, w, h in pixels
+    colour_hist: np.ndarray | None = None  # hue histogram, filled on first use
+
+
+@dataclass
+class Segmentation:
+    """Support surfaces removed, the rest split into clusters at two levels of detail: the
+    same object region can appear twice (fine and coarse), which is harmless for a generator
+    that tries regions one after the other."""
+
+    plane: np.ndarray | None  # (4,) n . p + d = 0, n towards the camera; None when no dominant plane
+    plane_share: float  # share of valid pixels on the plane
+    clusters: list[Cluster]
+    n_valid: int
+    points: np.ndarray  # (H, W, 3) organised camera-frame points, NaN where missing
+    normals: np.ndarray  # (H, W, 3) unit normals from the smoothed depth, facing the camera; NaN where unknown
+    labels: list[np.ndarray]  # per level, (H, W) int32 index into `clusters`, -1 outside
+    support: np.ndarray  # (H, W) bool: pixels on the removed support surfaces (or below the table)
+
+
+def organised_points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W, 3) camera-frame points of every pixel (NaN where depth is missing or <= 0)."""
+    h, w = depth.shape
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float64)
+    u = np.arange(w, dtype=np.float64)[None, :]
+    v = np.arange(h, dtype=np.float64)[:, None]
+    fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    y = (v - cy) / fy * z
+    x = (u - cx - s * (v - cy) / fy) / fx * z
+    return np.stack([x, y, z], axis=-1)
+
+
+def fit_plane_ransac(
+    points: np.ndarray, rng: np.random.Generator, threshold: float, iterations: int = 200
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """Dominant plane of (N, 3) points by RANSAC (vectorised over hypotheses on at most 4000
+    samples) then two least-squares refits on the inliers. Returns (plane (4,) with the normal
+    towards the camera origin, inlier mask), or (None, all-False mask) for degenerate input."""
+    n = len(points)
+    if n < 3:
+        return None, np.zeros(n, bool)
+    sample = points if n <= 4000 else points[rng.choice(n, 4000, replace=False)]
+    idx = rng.integers(0, len(sample), size=(iterations, 3))
+    a, b, c = sample[idx[:, 0]], sample[idx[:, 1]], sample[idx[:, 2]]
+    normal = np.cross(b - a, c - a)
+    norm = np.linalg.norm(normal, axis=1)
+    ok = norm > 1e-9
+    if not ok.any():
+        return None, np.zeros(n, bool)
+    normal, a = normal[ok] / norm[ok, None], a[ok]
+    d = -np.einsum("ij,ij->i", normal, a)
+    counts = (np.abs(sample @ normal.T + d) < threshold).sum(axis=0)
+    best = int(np.argmax(counts))
+    plane = np.r_[normal[best], d[best]]
+    inl = np.abs(points @ plane[:3] + plane[3]) < threshold
+    for _ in range(2):  # least-squares refit on the inliers, then re-select
+        if inl.sum() < 3:
+            break
+        p = points[inl]
+        centre = p.mean(axis=0)
+        nrm = np.linalg.svd(p - centre, full_matrices=False)[2][2]
+        plane = np.r_[nrm, -nrm @ centre]
+        inl = np.abs(points @ plane[:3] + plane[3]) < threshold
+    if plane[3] < 0:  # camera origin on the positive side: n . 0 + d > 0
+        plane = -plane
+    return plane, inl
+
+
+def segment_scene(
+    frame: Frame,
+    rng: np.random.Generator,
+    plane_distance: float = 0.008,
+    depth_jump: float = 0.012,
+    min_plane_share: float = 0.15,
+    min_pixels: int = 40,
+    concave_angle_deg: float = 30.0,
+    support_extent: float = 0.25,
+    max_planes: int = 5,
+) -> Segmentation:
+    """Remove the support surfaces (table, bin floor and walls) and split what stands on them
+    into connected regions of the depth image.
+
+    Support: the dominant plane's points and everything below it (the side away from the
+    camera) are dropped; when no plane holds `min_plane_share` of the valid pixels (no table in
+    view) every valid pixel is kept. Then up to `max_planes - 1` further planes are removed one
+    at a time (RANSAC on what is left), each only as its largest connected patch in the image
+    and only when that patch spans more than `support_extent` metres: bin floors and walls,
+    not the flat faces of parts (which are smaller).
+
+    Regions: 8-connected components after removing the pixels at depth jumps larger than
+    max(`depth_jump` z^2, 8 mm) and on concave creases sharper than `concave_angle_deg` (where
+    two touching objects meet; LCCP-style, convex edges of one object are kept). Two levels:
+    "fine" additionally opens the mask with a 3x3 square (breaks thin bridges between touching
+    objects: needed on the cluttered LM-O frame), "coarse" does not (keeps thin rims of small
+    parts in one piece: needed for the synthetic bushings and flanges). Regions smaller than
+    `min_pixels` are dropped; a coarse region identical to a fine one is kept once."""
+    depth, K = frame.depth, frame.K
+    P = organised_points(depth, K)
+    valid = np.isfinite(P[..., 2])
+    n_valid = int(valid.sum())
+    h, w = depth.shape
+    if n_valid < 3:
+        nan = np.full((h, w, 3), np.nan)
+        return Segmentation(None, 0.0, [], n_valid, P, nan, [], np.zeros((h, w), bool))
+    pts = P[valid]
+    plane, inl = fit_plane_ransac(pts, rng, plane_distance)
+    share = float(inl.mean()) if plane is not None else 0.0
+    keep = valid.copy()
+    if plane is not None and share >= min_plane_share:
+        height = pts @ plane[:3] + plane[3]  # > 0 towards the camera
+        keep[valid] = height > plane_distance
+    else:
+        plane = None
+    for _ in range(max_planes - 1):
+        rest = P[keep]
+        if len(rest) < 100:
+            break
+        p2, inl2 = fit_plane_ransac(rest, rng, plane_distance)
+        if p2 is None:
+            break
+        on = np.zeros_like(keep)
+        on[keep] = inl2
+        n_cc, lab, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8)
+        if n_cc < 2:
+            break
+        big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        patch = lab == big
+        if stats[big, cv2.CC_STAT_AREA] < 4 * min_pixels or robust_extent(P[patch]) < support_extent:
+            break
+        keep &= ~cv2.dilate(patch.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
+    z = np.where(valid, P[..., 2], np.nan)
+    thr = np.maximum(depth_jump * np.nan_to_num(z, nan=1.0) ** 2, MIN_DEPTH_JUMP)
+    cut = np.zeros_like(valid)
+    with np.errstate(invalid="ignore"):
+        jx = np.abs(np.diff(z, axis=1)) > np.minimum(thr[:, 1:], thr[:, :-1])
+        jy = np.abs(np.diff(z, axis=0)) > np.minimum(thr[1:, :], thr[:-1, :])
+    cut[:, 1:] |= jx
+    cut[:, :-1] |= jx
+    cut[1:, :] |= jy
+    cut[:-1, :] |= jy
+    Ps = organised_points(smooth_depth(depth), K)  # normals from raw 1 mm-quantised depth are noise
+    normals = organised_normals(Ps)
+    if concave_angle_deg < 180.0:
+        cut |= concave_edges(Ps, normals, concave_angle_deg)
+    coarse = (keep & ~cut).astype(np.uint8)
+    fine = cv2.morphologyEx(coarse, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+
+    clusters: list[Cluster] = []
+    seen: dict[tuple[int, int, int], int] = {}
+    levels = []
+    Pf = P.reshape(-1, 3)
+    for mask in (fine, coarse):
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        flat = labels.ravel()
+        order = np.argsort(flat, kind="stable")
+        bounds = np.searchsorted(flat[order], np.arange(n + 1))
+        index = np.full(n, -1, np.int32)
+        for lab in range(1, n):
+            if stats[lab, cv2.CC_STAT_AREA] < min_pixels:
+                continue
+            pix = order[bounds[lab]:bounds[lab + 1]]
+            key = (len(pix), int(pix[0]), int(pix[-1]))
+            if key in seen:
+                index[lab] = seen[key]
+                continue
+            seen[key] = index[lab] = len(clusters)
+            p = Pf[pix]
+            clusters.append(Cluster(pix, p, robust_extent(p), tuple(int(v) for v in stats[lab, :4])))
+        levels.append(index[labels])
+    return Segmentation(plane, share, clusters, n_valid, P, normals, levels, valid & ~keep)
+
+
+def smooth_depth(depth: np.ndarray, size: int = 5) -> np.ndarray:
+    """Box-filtered depth over fully valid windows (NaN where any pixel of the window is
+    missing): removes quantisation noise before differentiating, without bleeding into holes."""
+    valid = np.isfinite(depth) & (depth > 0)
+    z = np.where(valid, depth, 0.0).astype(np.float32)
+    k = (size, size)
+    zs = cv2.boxFilter(z, -1, k, normalize=True, borderType=cv2.BORDER_REPLICATE)
+    vs = cv2.boxFilter(valid.astype(np.float32), -1, k, normalize=True, borderType=cv2.BORDER_REPLICATE)
+    return np.where(vs > 0.999, zs, np.nan).astype(np.float32)
+
+
+def concave_edges(P: np.ndarray, N: np.ndarray, angle_deg: float, step: int = 2) -> np.ndarray:
+    """Pixels on a concave crease: neighbours `step` apart whose normals differ by more than
+    `angle_deg` and face each other ((n1 - n2) . (p1 - p2) < 0)."""
+    out = np.zeros(P.shape[:2], bool)
+    cos_thr = math.cos(math.radians(angle_deg))
+    for axis in (0, 1):
+        a = (slice(None, -step), slice(None)) if axis == 0 else (slice(None), slice(None, -step))
+        b = (slice(step, None), slice(None)) if axis == 0 else (slice(None), slice(step, None))
+        n1, n2, p1, p2 = N[a], N[b], P[a], P[b]
+        with np.errstate(invalid="ignore"):
+            bent = np.sum(n1 * n2, axis=-1) < cos_thr
+            concave = np.sum((n1 - n2) * (p1 - p2), axis=-1) < 0
+        e = bent & concave
+        out[a] |= e
+        out[b] |= e
+    return out
+
+
+def organised_normals(P: np.ndarray, step: int = 2) -> np.ndarray:
+    """(H, W, 3) unit normals of an organised point image from central differences `step`
+    pixels apart, facing the camera; NaN where a neighbour is missing."""
+    n = np.full_like(P, np.nan)
+    s = step
+    du = P[s:-s, 2 * s:] - P[s:-s, : -2 * s]
+    dv = P[2 * s:, s:-s] - P[: -2 * s, s:-s]
+    c = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c /= np.linalg.norm(c, axis=-1, keepdims=True)
+        flip = np.einsum("hwc,hwc->hw", c, P[s:-s, s:-s]) > 0
+    c[flip] *= -1.0
+    n[s:-s, s:-s] = c
+    return n
+
+
+def robust_extent(points: np.ndarray) -> float:
+    """Diagonal of the PCA-aligned box of the 2nd..98th percentiles: the size of the region,
+    insensitive to a few stray pixels and to how the object is oriented."""
+    if len(points) < 3:
+        return 0.0
+    c = points - points.mean(axis=0)
+    axes = np.linalg.svd(c[:: max(1, len(c) // 2000)], full_matrices=False)[2]
+    proj = c @ axes.T
+    lo, hi = np.percentile(proj, [2, 98], axis=0)
+    return float(np.linalg.norm(hi - lo))
