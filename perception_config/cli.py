@@ -5,7 +5,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from .settings import TIME_MODES  # light (numpy); each command imports the rest it needs
+# Light imports only (numpy): each command imports the rest it needs.
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
+from .settings import TIME_MODES, EnvSettings
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -134,10 +136,12 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
     ev.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the policy's, else shipped)")
     ev.add_argument("--split-seed", type=int, default=None, help="train/test split seed (default: the policy's, else 0)")
-    ev.add_argument("--test-fraction", type=float, default=None, help="test share of the images (default: the policy's, else 0.3)")
+    ev.add_argument("--test-fraction", type=float, default=None,
+                    help=f"test share of the images (default: the policy's, else {DEFAULT_TEST_FRACTION})")
     ev.add_argument("--time-mode", choices=TIME_MODES, default=None,
                     help="measured wall time or the blocks' cost table (default: the policy's, else measured)")
-    ev.add_argument("--max-ops", type=int, default=None, help="operations per episode (default: the policy's, else 10)")
+    ev.add_argument("--max-ops", type=int, default=None,
+                    help=f"operations per episode (default: the policy's, else {EnvSettings().max_ops})")
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
     ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
     ev.add_argument("--no-plots", action="store_true")
@@ -146,10 +150,10 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .settings import EnvSettings
     from .training import train
 
-    settings = EnvSettings(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=tuple(args.lambda_range))
+    lambda_range = tuple(args.lambda_range) if args.lambda_range else None
+    settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
     policy = train(
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
@@ -166,13 +170,16 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--agent", choices=("random", "simple", "pg", "es", "fixed"), default="pg")
     tr.add_argument("--out", type=Path, required=True, help="run folder: policy, checkpoint, learning curve")
     tr.add_argument("--episodes", type=int, default=1000)
-    tr.add_argument("--lambda-range", type=float, nargs=2, default=(0.1, 1.0), metavar=("A", "B"))
+    env = EnvSettings()
+    tr.add_argument("--lambda-range", type=float, nargs=2, default=None, metavar=("A", "B"),
+                    help=f"lambda of the training episodes ~ U(A, B) (default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
-    tr.add_argument("--time-mode", choices=TIME_MODES, default="measured")
-    tr.add_argument("--max-ops", type=int, default=10)
-    tr.add_argument("--test-fraction", type=float, default=0.3, help="share of image ids held out for evaluation")
-    tr.add_argument("--split-seed", type=int, default=0)
+    tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
+    tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
+    tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
+                    help="share of image ids held out for evaluation")
+    tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
     tr.add_argument("--workers", type=int, default=None, help="processes playing episodes (default: 2 for pg/es)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")

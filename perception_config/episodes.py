@@ -17,9 +17,12 @@ from .operators import Episode
 from .scene import Frame
 
 ImageKey = tuple[int, int]  # scene_id, im_id
+DEFAULT_TEST_FRACTION = 0.3  # share of the image ids held out for evaluation
+DEFAULT_SPLIT_SEED = 0
 
 
-def split_image_keys(keys: list[ImageKey], test_fraction: float = 0.3, seed: int = 0) -> tuple[list[ImageKey], list[ImageKey]]:
+def split_image_keys(keys: list[ImageKey], test_fraction: float = DEFAULT_TEST_FRACTION,
+                     seed: int = DEFAULT_SPLIT_SEED) -> tuple[list[ImageKey], list[ImageKey]]:
     """Disjoint (train, test) image keys, a seeded random split; both non-empty when len >= 2."""
     if not 0.0 < test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction}")

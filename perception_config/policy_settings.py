@@ -18,10 +18,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .agents.policy_io import policy_info
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .settings import EnvSettings, settings_from_policy_meta
-
-DEFAULT_TEST_FRACTION = 0.3
-DEFAULT_SPLIT_SEED = 0
 
 
 @dataclass

@@ -45,8 +45,7 @@ from .agents.policy_io import (PolicyError, agent_meta, build_agent, check_compa
 from .atomic_file import atomic_output, atomic_write
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
-from .episodes import split_image_keys
-from .policy_settings import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .settings import EnvSettings, settings_from_policy_meta
 
 POLICY_STEM = "policy"

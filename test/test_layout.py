@@ -184,9 +184,3 @@ def test_block_modules_do_not_import_each_other():
             if (m == f"{PACKAGE}.blocks" or m.startswith(f"{PACKAGE}.blocks.")) and m not in allowed:
                 offenders.append(f"{name} imports {m}")
     assert not offenders, "; ".join(offenders)
-
-
-def test_every_block_module_is_loaded_by_load_all():
-    from perception_config.blocks import BLOCK_MODULES as LOADED
-
-    assert sorted(LOADED) == BLOCK_MODULES

@@ -5,7 +5,7 @@ same policy on the same episodes in-process.
     perception-config replay-check --dataset data/default --policy runs/demo-pg/policy.safetensors
 
 1. The policy's test images (its split seed and test fraction; the first `images` of them) are
-   recorded to `<out>/replay.mcap` (the bag format of datasets/bag.py).
+   recorded to `<out>/replay.mcap` (the bag format of datasets/bag/).
 2. generation_node, refinement_node, scoring_node, pick_node, configurator_node and
    bag_replay_node are started with the launcher; the bag is replayed at `rate` x its recorded
    timing; the operator nodes cache every frame by stamp.
