@@ -98,9 +98,9 @@ def main() -> int:
     from perception_config.env import PerceptionConfigEnv
     from perception_config.episodes import EpisodeSource, split_image_keys
     from perception_config.evaluation import episode_seed
-    from perception_config.policy_settings import policy_settings
     from perception_config.launch import Launcher, NodeSpec
     from perception_config.operators import Episode
+    from perception_config.policy_settings import policy_settings
     from perception_config.ros.ros_operators import RosOperators
 
     policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())

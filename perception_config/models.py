@@ -361,7 +361,7 @@ def write_ply(
     binary: bool = True,
 ) -> None:
     """Write a triangle mesh as PLY in the caller's units (BOP model files are mm), with
-    optional vertex normals and uint8 colours; atomic (temporary file, then os.replace)."""
+    optional vertex normals and uint8 colours; atomic (atomic_file.py)."""
     path = Path(path)
     v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int32).reshape(-1, 3)

@@ -40,8 +40,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from .agents import AGENTS, Agent, EnvRecipe, EnvSpec, make_agent
-from .agents.policy_io import (PolicyError, agent_meta, build_agent, check_compatible, read_file, save_agent,
-                               write_file)
+from .agents.policy_io import PolicyError, agent_meta, build_agent, check_compatible, read_file, save_agent, write_file
 from .atomic_file import atomic_output, atomic_write
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode

@@ -43,7 +43,13 @@ from ..models import ObjectModel
 from ..render import MIN_Z, render_box
 from ..vision.colour import colour_similarity
 from ..vision.features import (
-    ModelFeatures, distance_field, fpfh, model_features, normalise_features, point_cloud, ransac_candidates,
+    ModelFeatures,
+    distance_field,
+    fpfh,
+    model_features,
+    normalise_features,
+    point_cloud,
+    ransac_candidates,
 )
 from ..vision.segmentation import Cluster, Segmentation, segment_scene
 from ..vision.verification import icp_polish, icp_target, verify
@@ -130,12 +136,9 @@ class GlobalRegistration(Block):
     returning the best candidate so far. `info` reports the search (clusters tried,
     candidates verified, the list of (score, pose) of all polished candidates).
 
-    Measured (benchmarks/bench_generation.py, one core of a loaded 2-core machine; success =
-    symmetry-aware MSSD < 0.1 d): the real LM-O frame 4/8 objects with a 2 s budget, 5/8 with
-    10 s (median 4.6 s); synthetic bin/table scenes of the procedural parts 13/44 (the search
-    ends by itself in ~2 s). `min_verification` 0.6 is calibrated on those runs: about two
-    thirds of the poses returned with ok=True are right, and almost none below 0.6 is. Known
-    failures: parts lying flat within `plane_distance` of the table (the bracket) are removed
+    Its success on the real LM-O frame and the synthetic default is measured by
+    benchmarks/bench_generation.py (figures: benchmarks/results/generation*.json and the
+    README); `min_verification` 0.6 is calibrated on those runs. Known failures: parts lying flat within `plane_distance` of the table (the bracket) are removed
     with the table; parts of a few cm (the 38 mm hexnut) give too few points for FPFH; a
     distractor of similar shape and colour that is not in the model set (a white box for the
     LM-O glue bottle) can win the verification.

@@ -584,8 +584,8 @@ def generate(
     parts (copied into out/models). An existing `out` is replaced only when it is an empty
     folder or a dataset this generator wrote; anything else raises ValueError.
     """
-    from .bop import SceneWriter
     from ..scene import Frame, SceneObject
+    from .bop import SceneWriter
 
     out = Path(out)
     if scenes < 1 or images_per_scene < 1:

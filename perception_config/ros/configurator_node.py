@@ -34,19 +34,18 @@ from __future__ import annotations
 
 import math
 import threading
-from collections import deque
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
+from perception_config_interfaces.srv import EstimatePose
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
-
-from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
-from perception_config_interfaces.srv import EstimatePose
 
 from ..agents import load_agent, make_agent
 from ..agents.fixed import DEFAULT_SEQUENCE

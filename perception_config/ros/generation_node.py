@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from perception_config_interfaces.srv import GenerateHypothesis
 
 from ..blocks.base import Kind

@@ -31,15 +31,14 @@ from typing import Any, Awaitable, Callable
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import Pose as PoseMsg
+from perception_config_interfaces.msg import Hypothesis, ObjectPoses
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
-from geometry_msgs.msg import Pose as PoseMsg
 from std_msgs.msg import Header
-
-from perception_config_interfaces.msg import Hypothesis, ObjectPoses
 
 from ..blocks.base import DEPTH, GROUND_TRUTH, RGB, Block, BlockInput, BlockResult, Kind, create
 from ..blocks.pipeline import load_pipeline

@@ -15,9 +15,8 @@ from __future__ import annotations
 
 import time
 
-from rclpy.task import Future
-
 from perception_config_interfaces.srv import Pick
+from rclpy.task import Future
 
 from ..blocks.base import Kind
 from .operator_node import OperatorNode, hypothesis_pose, spin

@@ -12,7 +12,6 @@ Parameters: those of every operator node (operator_node.py).
 from __future__ import annotations
 
 import numpy as np
-
 from perception_config_interfaces.srv import RefineHypothesis
 
 from ..blocks.base import Kind

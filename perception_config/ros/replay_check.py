@@ -31,9 +31,8 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from tqdm import tqdm
-
 from perception_config_interfaces.srv import EstimatePose
+from tqdm import tqdm
 
 from ..agents import load_agent, make_agent
 from ..atomic_file import atomic_output, atomic_write

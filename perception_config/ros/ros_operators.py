@@ -29,17 +29,16 @@ time (the configurator serialises its estimates). `close()` destroys the private
 from __future__ import annotations
 
 import math
-from collections import deque
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
-
 from geometry_msgs.msg import Pose as PoseMsg
 from perception_config_interfaces.msg import Hypothesis
 from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+from rclpy.executors import SingleThreadedExecutor
 
 from ..blocks.base import BlockResult, Kind
 from ..blocks.pipeline import Pipeline

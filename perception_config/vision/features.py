@@ -23,6 +23,7 @@ from scipy.spatial.distance import cdist
 from ..geometry import Pose
 from ..models import ObjectModel
 
+
 def point_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """An open3d point cloud of (N, 3) points, with normals when given (copied as float64)."""
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64, order="C")))

@@ -17,18 +17,38 @@ Everything public is importable from `perception_config.datasets.bag`.
 from __future__ import annotations
 
 from .errors import (
-    BagFormatError, BagTruncatedError, BagTruncatedWarning, BagWarning, BagWriteInterrupted, ImageFormatError,
+    BagFormatError,
+    BagTruncatedError,
+    BagTruncatedWarning,
+    BagWarning,
+    BagWriteInterrupted,
+    ImageFormatError,
 )
 from .frames import read_bag
 from .info import bag_info
 from .mcap_reader import BagMessage, iter_messages
 from .messages import (
-    COLOR_ENCODINGS, DEPTH_ENCODINGS, OPTICAL_FRAME, camera_info_fields, depth_to_image_fields, image_msg_to_depth,
-    image_msg_to_rgb, rgb_to_image_fields,
+    COLOR_ENCODINGS,
+    DEPTH_ENCODINGS,
+    OPTICAL_FRAME,
+    camera_info_fields,
+    depth_to_image_fields,
+    image_msg_to_depth,
+    image_msg_to_rgb,
+    rgb_to_image_fields,
 )
 from .topics import (
-    CAMERA_INFO, CAMERA_INFO_TOPIC, COLOR_TOPIC, DEPTH_TOPIC, FRAME_INFO_TOPIC, GROUND_TRUTH_TOPIC, IMAGE, OBJECT_POSES,
-    STRING, FrameTopics, resolve_topics,
+    CAMERA_INFO,
+    CAMERA_INFO_TOPIC,
+    COLOR_TOPIC,
+    DEPTH_TOPIC,
+    FRAME_INFO_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    IMAGE,
+    OBJECT_POSES,
+    STRING,
+    FrameTopics,
+    resolve_topics,
 )
 from .writer import RECORDING_EPOCH_NS, ROSBAG2_VERSION, BagWriter, write_bag, write_frames
 

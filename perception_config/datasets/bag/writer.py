@@ -60,13 +60,21 @@ from typing import Any, Callable, Iterable
 
 import yaml
 
+from ...atomic_file import atomic_write
 from ...geometry import nearest_rotation, quaternion_from_matrix
 from ...scene import Frame
 from ..ros2msg_schemas import SCHEMAS, TYPE_HASHES
 from .errors import BagWriteInterrupted
 from .messages import OPTICAL_FRAME, camera_info_fields, depth_to_image_fields, header_fields, rgb_to_image_fields
 from .topics import (
-    CAMERA_INFO, CAMERA_INFO_TOPIC, COLOR_TOPIC, DEPTH_TOPIC, FRAME_INFO_TOPIC, GROUND_TRUTH_TOPIC, IMAGE, OBJECT_POSES,
+    CAMERA_INFO,
+    CAMERA_INFO_TOPIC,
+    COLOR_TOPIC,
+    DEPTH_TOPIC,
+    FRAME_INFO_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    IMAGE,
+    OBJECT_POSES,
     STRING,
 )
 
@@ -289,9 +297,7 @@ class BagWriter:
         finally:
             self._file.close()
         if self.metadata_path is not None:
-            tmp = self.metadata_path.with_name(self.metadata_path.name + ".tmp")
-            tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
-            os.replace(tmp, self.metadata_path)
+            atomic_write(self.metadata_path, yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
 
     def __enter__(self) -> "BagWriter":
         return self
