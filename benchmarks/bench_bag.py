@@ -94,7 +94,8 @@ def main() -> int:
                 "raw_mb_per_frame": m / args.frames / 1e6,
             }
             results["runs"].append(row)
-            print(f"  {compression:<5} write {row['write_fps']:7.1f} frames/s   read_bag {row['read_fps']:7.1f} frames/s   "
+            print(f"  {compression:<5} write {row['write_fps']:7.1f} frames/s   "
+                  f"read_bag {row['read_fps']:7.1f} frames/s   "
                   f"iter_messages {row['raw_iter_fps']:7.1f} frames/s   {row['mb_per_frame']:.2f} MB/frame on disk "
                   f"({row['raw_mb_per_frame']:.2f} MB serialized)")
     ok = min(r["read_fps"] for r in results["runs"]) >= 30.0

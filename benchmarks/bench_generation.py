@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
             rows = evaluate(frames, budget, args.seed)
             s = summary(rows)
             print(f"{name:<36} {budget:>8.1f} {s['queries']:>7} {s['success_mssd']:>9.0%} {s['success_add']:>8.0%} "
-                  f"{s['found']:>6.0%} {s['ok']:>5.0%} {s['wrong_but_ok']:>8.0%} {s['median_s']:>8.2f} {s['p90_s']:>6.2f}")
+                  f"{s['found']:>6.0%} {s['ok']:>5.0%} {s['wrong_but_ok']:>8.0%} "
+                  f"{s['median_s']:>8.2f} {s['p90_s']:>6.2f}")
             per_obj: dict[int, list] = {}
             for r in rows:
                 per_obj.setdefault(r["obj_id"], []).append(r["success"])

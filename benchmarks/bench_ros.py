@@ -85,10 +85,12 @@ def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], list[fl
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--dataset", default=str(REPO / "data" / "default"))
-    p.add_argument("--policy", default=None, help="policy file (default: the newest runs/*/policy.safetensors; 'none' = fixed)")
+    p.add_argument("--policy", default=None,
+                   help="policy file (default: the newest runs/*/policy.safetensors; 'none' = fixed)")
     p.add_argument("--images", type=int, default=6)
     p.add_argument("--lambda", dest="lam", type=float, default=0.5)
-    p.add_argument("--separate-scoring", action="store_true", help="every scoring a call to scoring_node (no fused scoring)")
+    p.add_argument("--separate-scoring", action="store_true",
+                   help="every scoring a call to scoring_node (no fused scoring)")
     p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "ros.json"))
     args = p.parse_args()
 
@@ -123,9 +125,9 @@ def main() -> int:
     local_agent = load_agent(policy, local_env) if policy else make_agent("fixed", local_env)
     ros_agent = load_agent(policy, ros_env) if policy else make_agent("fixed", ros_env)
 
-    with open(os.devnull, "w") as quiet, Launcher([NodeSpec(n, params=common) for n in
-                                                    ("generation_node", "refinement_node", "scoring_node", "pick_node")],
-                                                   log_dir=logs, out=quiet) as launcher:
+    with open(os.devnull, "w") as quiet, Launcher(
+            [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")],
+            log_dir=logs, out=quiet) as launcher:
         for name in ("generation_node", "refinement_node", "scoring_node", "pick_node"):
             launcher.wait_for_line(name, "serving", timeout=60)
         stamps = publish_frames(node, ds, keys)
@@ -164,12 +166,14 @@ def main() -> int:
         own = np.array([o for _, o in rows]) * 1000
         services[which] = {"calls": len(rows), "round_trip_ms": float(np.median(rt)), "node_ms": float(np.median(own)),
                            "overhead_ms": float(np.median(rt - own))}
-    actions = {a: {"n": len(v["ros"]), "ros_ms": float(np.median(v["ros"]) * 1000), "node_ms": float(np.median(v["node"]) * 1000),
+    actions = {a: {"n": len(v["ros"]), "ros_ms": float(np.median(v["ros"]) * 1000),
+                   "node_ms": float(np.median(v["node"]) * 1000),
                    "in_process_ms": float(np.median(v["in_process"]) * 1000)} for a, v in per_action.items()}
     ratio = totals["ros"] / totals["in_process"] if totals["in_process"] else None
     result = {
         "machine": platform.node(), "policy": str(policy) if policy else "fixed pipeline", "images": len(keys),
-        "fused_scoring": not args.separate_scoring, "episodes": n, "identical_episodes": same, "operator_seconds": totals, "ros_over_in_process": ratio,
+        "fused_scoring": not args.separate_scoring, "episodes": n, "identical_episodes": same,
+        "operator_seconds": totals, "ros_over_in_process": ratio,
         "target": 1.10, "actions": actions, "services": services,
     }
     out = Path(args.out)
@@ -177,7 +181,8 @@ def main() -> int:
 
     print(f"{n} episodes ({same} identical), policy {result['policy']}, "
           f"{'fused scoring' if result['fused_scoring'] else 'scoring through scoring_node'}")
-    print(f"operator time through ROS / in-process: {ratio:.3f}x ({totals['ros']:.3f} s / {totals['in_process']:.3f} s; target <= 1.10)")
+    print(f"operator time through ROS / in-process: {ratio:.3f}x "
+          f"({totals['ros']:.3f} s / {totals['in_process']:.3f} s; target <= 1.10)")
     print(f"{'action':<14}{'n':>5}{'in-process ms':>15}{'ROS ms':>9}{'in nodes ms':>13}")
     for a, v in sorted(actions.items()):
         print(f"{a:<14}{v['n']:>5}{v['in_process_ms']:>15.2f}{v['ros_ms']:>9.2f}{v['node_ms']:>13.2f}")

@@ -31,10 +31,12 @@ DEFAULT_LAMBDAS = tuple(round(0.1 * i, 1) for i in range(1, 11))
 
 def _stats(ms: list[float]) -> dict[str, float | int]:
     a = np.asarray(ms, dtype=np.float64)
-    return {"median_ms": round(float(np.median(a)), 3), "p90_ms": round(float(np.percentile(a, 90)), 3), "calls": int(a.size)}
+    return {"median_ms": round(float(np.median(a)), 3), "p90_ms": round(float(np.percentile(a, 90)), 3),
+            "calls": int(a.size)}
 
 
-def _cases(ds: BopDataset, n_frames: int, lam: float, seed: int, min_visib: float = 0.3) -> Iterable[tuple[Frame, Any, Any]]:
+def _cases(ds: BopDataset, n_frames: int, lam: float, seed: int,
+           min_visib: float = 0.3) -> Iterable[tuple[Frame, Any, Any]]:
     """(frame, object, perturbed pose) over the first n_frames images."""
     rng = np.random.default_rng(seed)
     for scene_id, im_id in ds.image_keys()[:n_frames]:
@@ -64,7 +66,7 @@ def bench_blocks(
     if not cases:
         raise ValueError(f"{dataset}: no usable (frame, object) pairs to benchmark")
     for frame, obj, pose in tqdm(cases, desc="bench blocks", disable=not progress, unit="object"):
-        def inp(cache: dict[str, Any], at=pose) -> BlockInput:
+        def inp(cache: dict[str, Any], at=pose, *, frame=frame, obj=obj) -> BlockInput:
             return BlockInput(frame=frame, model=obj.model, pose=at, ground_truth=obj.gt,
                               rng=np.random.default_rng(seed), cache=cache)
 

@@ -135,7 +135,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--episodes", type=int, default=None, help="episodes per lambda (default: every test episode)")
     ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
     ev.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the policy's, else shipped)")
-    ev.add_argument("--split-seed", type=int, default=None, help="train/test split seed (default: the policy's, else 0)")
+    ev.add_argument("--split-seed", type=int, default=None,
+                    help="train/test split seed (default: the policy's, else 0)")
     ev.add_argument("--test-fraction", type=float, default=None,
                     help=f"test share of the images (default: the policy's, else {DEFAULT_TEST_FRACTION})")
     ev.add_argument("--time-mode", choices=TIME_MODES, default=None,
@@ -172,7 +173,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--episodes", type=int, default=1000)
     env = EnvSettings()
     tr.add_argument("--lambda-range", type=float, nargs=2, default=None, metavar=("A", "B"),
-                    help=f"lambda of the training episodes ~ U(A, B) (default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
+                    help="lambda of the training episodes ~ U(A, B) "
+                         f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
     tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
@@ -209,15 +211,20 @@ def _add_launch_parser(sub: argparse._SubParsersAction) -> None:
                     help="comma-separated, from: generation, refinement, scoring, pick, configurator, bag_replay "
                          "(default: generation,refinement,scoring,pick,configurator)")
     la.add_argument("--models", type=Path, default=None, metavar="DIR",
-                    help="BOP models folder (default: data/default/models, else the procedural parts in data/parts_models)")
-    la.add_argument("--pipeline", type=Path, default=None, metavar="YAML", help="pipeline YAML (default: the built-in one)")
+                    help="BOP models folder "
+                         "(default: data/default/models, else the procedural parts in data/parts_models)")
+    la.add_argument("--pipeline", type=Path, default=None, metavar="YAML",
+                    help="pipeline YAML (default: the built-in one)")
     la.add_argument("--policy", default=None, metavar="FILE|none",
-                    help="configurator policy (default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")
-    la.add_argument("--bag", type=Path, default=None, metavar="FILE", help="also start bag_replay_node on this MCAP bag")
+                    help="configurator policy "
+                         "(default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")
+    la.add_argument("--bag", type=Path, default=None, metavar="FILE",
+                    help="also start bag_replay_node on this MCAP bag")
     la.add_argument("--rate", type=float, default=None, metavar="R", help="bag_replay_node's replay rate")
     la.add_argument("--params-file", type=Path, default=None, metavar="YAML",
                     help="ROS params file passed to every node; the options above win over it")
-    la.add_argument("--log-dir", type=Path, default=None, metavar="DIR", help="also write each node's output to DIR/<node>.log")
+    la.add_argument("--log-dir", type=Path, default=None, metavar="DIR",
+                    help="also write each node's output to DIR/<node>.log")
     la.set_defaults(func=_cmd_launch)
 
 
@@ -254,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenes", type=int, default=4)
     s.add_argument("--images-per-scene", type=int, default=10)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--models", type=Path, default=None, help="a BOP models/ folder to place instead of the procedural parts")
+    s.add_argument("--models", type=Path, default=None,
+                   help="a BOP models/ folder to place instead of the procedural parts")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_synth)
 

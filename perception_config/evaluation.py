@@ -63,7 +63,8 @@ MM = 1000.0
 
 DEFINITIONS = {
     "ops_to_success": "operations up to and including the successful pick; successful episodes only",
-    "time_to_success": "seconds charged by the environment (failed picks at their robot cost); successful episodes only",
+    "time_to_success": "seconds charged by the environment (failed picks at their robot cost); "
+                       "successful episodes only",
     "episode_time": "seconds charged, all episodes (a failed episode at the time it used up)",
     "episode_cost": "minus the return: episode_time plus the truncation penalty of failed episodes",
     "success": "share of episodes with a successful pick within max_ops",
@@ -152,7 +153,8 @@ def _slug(name: str) -> str:
 # --------------------------------------------------------------------------- agents
 
 
-def fixed_sequences(pipeline: Pipeline, sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES) -> list[tuple[str, ...]]:
+def fixed_sequences(pipeline: Pipeline,
+                    sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES) -> list[tuple[str, ...]]:
     """The engineer sequences whose actions all exist in the pipeline."""
     names = set(pipeline.action_names)
     return [tuple(s) for s in sequences if set(s) <= names]
@@ -257,7 +259,8 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
     }
     search = getattr(agent, "last_result", None)  # the oracle's search of this episode
     if search is not None and hasattr(search, "exact"):
-        rec["search"] = {"found": bool(search.found), "exact": bool(search.exact), "evaluations": int(search.evaluations)}
+        rec["search"] = {"found": bool(search.found), "exact": bool(search.exact),
+                         "evaluations": int(search.evaluations)}
     if gt is not None:
         rec["initial_errors"] = _errors(initial, gt, model, K)
         rec["final_errors"] = _errors(final, gt, model, K)
@@ -537,7 +540,8 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
     """A plain-text table, grouped by lambda: mean time and ops to success (successful episodes),
     first-pick share, success share and mean episode time (all episodes). '*' marks the best
     fixed pipeline."""
-    header = f"{'lambda':>6}  {'agent':<34} {'time s':>8} {'ops':>6} {'1st pick':>8} {'success':>8} {'ep. time':>9} {'n':>5}"
+    header = (f"{'lambda':>6}  {'agent':<34} {'time s':>8} {'ops':>6} {'1st pick':>8} {'success':>8} "
+              f"{'ep. time':>9} {'n':>5}")
     lines = [header, "-" * len(header)]
 
     def num(x: float | None, fmt: str) -> str:

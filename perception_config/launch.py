@@ -375,7 +375,8 @@ class Launcher:
                 exited = child.proc.poll() is not None and not (child.reader and child.reader.is_alive())
                 remaining = deadline - time.monotonic()
                 if exited or remaining <= 0:
-                    why = f"exited ({describe_exit(child.proc.poll())})" if exited else f"printed no such line within {timeout} s"
+                    why = (f"exited ({describe_exit(child.proc.poll())})" if exited
+                           else f"printed no such line within {timeout} s")
                     raise AssertionError(f"{name} {why} while waiting for {text!r}:\n" + "\n".join(child.lines))
                 self._lines_changed.wait(min(remaining, 0.2))
 
@@ -422,9 +423,11 @@ def default_models(cwd: Path, say: Callable[[str], None]) -> Path:
         from .datasets.parts import write_models
 
         write_models(fallback)
-        say(f"models: {DEFAULT_MODELS} not found (./scripts/demo.sh synthesises it); wrote the procedural part models to {fallback}")
+        say(f"models: {DEFAULT_MODELS} not found (./scripts/demo.sh synthesises it); "
+            f"wrote the procedural part models to {fallback}")
     else:
-        say(f"models: {DEFAULT_MODELS} not found (./scripts/demo.sh synthesises it); using the procedural part models in {fallback}")
+        say(f"models: {DEFAULT_MODELS} not found (./scripts/demo.sh synthesises it); "
+            f"using the procedural part models in {fallback}")
     return fallback
 
 

@@ -386,7 +386,8 @@ def write_ply(
         frec["n"], frec["idx"] = 3, f
         body = vrec.tobytes() + frec.tobytes()
     else:
-        vlines = [" ".join(repr(float(a[i])) if t == "float" else str(int(a[i])) for _, t, a in cols) for i in range(len(v))]
+        vlines = [" ".join(repr(float(a[i])) if t == "float" else str(int(a[i])) for _, t, a in cols)
+                  for i in range(len(v))]
         flines = [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
         body = ("\n".join(vlines + flines) + "\n").encode("ascii")
     atomic_write(path, head + body)
@@ -604,14 +605,16 @@ def make_model(
         bbox_size = vertices.max(axis=0) - bbox_min
     pts, pn = sample_surface(vertices, faces, normals, n_points, seed=seed + int(obj_id))
     edges = sharp_edges(vertices, faces, edge_angle_deg)
-    ep, ed = sample_edges(vertices, edges, spacing=diameter / 200.0, max_points=max_edge_points, seed=seed + int(obj_id))
+    ep, ed = sample_edges(vertices, edges, spacing=diameter / 200.0, max_points=max_edge_points,
+                          seed=seed + int(obj_id))
     if symmetries is None:
         symmetries = symmetries_from_info(info, cont_step_deg)
     if colors is not None:
         colors = np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
         if len(colors) != len(vertices):
             raise ValueError(f"model {obj_id}: {len(colors)} colours for {len(vertices)} vertices")
-    arrays = [vertices, faces, normals, pts, pn, ep, ed, hull, bbox_min, bbox_size] + ([colors] if colors is not None else [])
+    arrays = ([vertices, faces, normals, pts, pn, ep, ed, hull, bbox_min, bbox_size]
+              + ([colors] if colors is not None else []))
     for a in arrays:
         a.flags.writeable = False  # shared through the cache
     return ObjectModel(

@@ -89,7 +89,7 @@ def plot_fig5(records: Sequence[dict[str, Any]], path: str | os.PathLike) -> Pat
             q3 = np.array([np.nan if r[key]["q3"] is None else r[key]["q3"] for r in rs], float)
             yerr = np.vstack([np.nan_to_num(med - q1), np.nan_to_num(q3 - med)])
             ax.errorbar(x, med, yerr=yerr, lw=lw, ms=5, capsize=3, elinewidth=0.9, label=label, **style)
-    for ax, key, title, share in panels:
+    for ax, _key, title, share in panels:
         ax.set_title(title + ("" if share else "  (median, bars q1-q3)"), fontsize=11)
         ax.set_xlabel("noise level lambda")
         ax.grid(True, alpha=0.3)
@@ -122,7 +122,8 @@ def silhouette(model: ObjectModel, pose: Pose, K: np.ndarray, width: int, height
     return mask
 
 
-def _crop_box(model: ObjectModel, gt: Pose, K: np.ndarray, scale: float = 1.6, min_half: int = 40) -> tuple[int, int, int]:
+def _crop_box(model: ObjectModel, gt: Pose, K: np.ndarray, scale: float = 1.6,
+              min_half: int = 40) -> tuple[int, int, int]:
     """A square crop (cx, cy, half size) around the object's projection at the ground truth."""
     uv = project(gt.transform(model.hull_points), K)
     uv = uv[np.all(np.isfinite(uv), axis=1)]
@@ -142,7 +143,8 @@ def _crop(img: np.ndarray, cx: int, cy: int, half: int, fill: float = 0) -> np.n
     return big[cy:cy + 2 * half, cx:cx + 2 * half]
 
 
-def _draw_masks(ax: Any, frame: Frame, box: tuple[int, int, int], masks: Sequence[tuple[np.ndarray, str, float]]) -> None:
+def _draw_masks(ax: Any, frame: Frame, box: tuple[int, int, int],
+                masks: Sequence[tuple[np.ndarray, str, float]]) -> None:
     cx, cy, half = box
     ax.imshow(_crop(frame.rgb, cx, cy, half, fill=40))
     for mask, colour, lw in masks:

@@ -80,7 +80,8 @@ def policy_settings(
             elif not _same(key, out[key], value):
                 raise ValueError(
                     f"policy {spec} was trained with {key}={value!r} but {source[key]} give {key}={out[key]!r}: "
-                    + ("evaluating on its training images would be meaningless" if key in ("split_seed", "test_fraction")
+                    + ("evaluating on its training images would be meaningless"
+                       if key in ("split_seed", "test_fraction")
                        else "run each policy with the settings it was trained with"))
     base = trained[0][1] if trained else EnvSettings()
     env = base.replace(**{**env_overrides, "max_ops": out["max_ops"]})

@@ -170,7 +170,8 @@ def _cast(
     rays[:, :, :3] = -pose.R.T @ pose.t
     u = np.arange(x, x + w, dtype=np.float64)
     v = np.arange(y, y + h, dtype=np.float64)
-    np.add((v[:, None] * M[1] + M[2])[:, None, :], (u[:, None] * M[0])[None, :, :], out=rays[:, :, 3:], casting="same_kind")
+    np.add((v[:, None] * M[1] + M[2])[:, None, :], (u[:, None] * M[0])[None, :, :], out=rays[:, :, 3:],
+           casting="same_kind")
     ans = raycasting_scene(model).cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
     depth = ans["t_hit"].numpy()
     normals = ans["primitive_normals"].numpy()
@@ -253,4 +254,5 @@ def depth_to_points(depth: np.ndarray, K: np.ndarray, offset: tuple[int, int] = 
     return np.stack([x, y, z], axis=1)
 
 
-__all__ = ["Rendering", "render", "render_box", "project", "projected_box", "raycasting_scene", "depth_to_points", "Box"]
+__all__ = ["Rendering", "render", "render_box", "project", "projected_box", "raycasting_scene", "depth_to_points",
+           "Box"]

@@ -256,7 +256,8 @@ def train(
     env = recipe.make()
     spec = EnvSpec.from_env(env)
     training_info = {
-        "dataset": recipe.dataset, "bop_split": split, "split_seed": int(split_seed), "test_fraction": float(test_fraction),
+        "dataset": recipe.dataset, "bop_split": split, "split_seed": int(split_seed),
+        "test_fraction": float(test_fraction),
         "train_image_keys": [list(k) for k in train_keys], "test_image_keys": [list(k) for k in test_keys],
         "train_episodes_available": len(env.source), "env_settings": settings.to_json(), "pipeline": recipe.pipeline,
         "seed": int(seed),
@@ -285,7 +286,8 @@ def train(
             raise PolicyError(f"checkpoint {ckpt_path} was trained with other environment settings "
                               f"({'; '.join(changed)}): resume with the same settings (lambda_range may change)")
         learner = build_agent(meta, tensors, spec, ckpt_path)
-        learner.load_checkpoint({k: v for k, v in tensors.items() if k.startswith("train/")}, meta.get("train_state", {}))
+        learner.load_checkpoint({k: v for k, v in tensors.items() if k.startswith("train/")},
+                                meta.get("train_state", {}))
         trainer = meta.get("trainer", {})
         done = int(trainer.get("episodes_done", 0))
         rng.bit_generator.state = trainer["rng"]
@@ -293,7 +295,8 @@ def train(
             history[k] = np.asarray(tensors.get(f"history/{k}", np.zeros(0))).tolist()
     elif isinstance(agent, Agent):
         if agent.spec.action_names != spec.action_names or agent.spec.observation_layout != spec.observation_layout:
-            raise ValueError("the agent was built for a different action set or observation layout than this environment")
+            raise ValueError("the agent was built for a different action set or observation layout "
+                             "than this environment")
         learner = agent
     else:
         kw = {"seed": seed, **(agent_kwargs or {})}
@@ -347,8 +350,8 @@ def train(
                 learner.update(trajectories)
                 for per_actor in trajectories:
                     for t in per_actor:
-                        for key, value in zip(HISTORY_FIELDS, (t.ret, t.time, float(t.success), float(t.first_pick_success),
-                                                              t.steps, t.noise_lambda)):
+                        for key, value in zip(HISTORY_FIELDS, (t.ret, t.time, float(t.success),
+                                                              float(t.first_pick_success), t.steps, t.noise_lambda)):
                             history[key].append(float(value))
                 n_new = sum(len(p) for p in trajectories)
                 done += n_new

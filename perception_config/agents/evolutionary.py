@@ -102,7 +102,8 @@ class EvolutionaryAgent(Agent):
 
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
         if len(trajectories) != len(self.population):
-            raise ValueError(f"got results for {len(trajectories)} individuals, the population has {len(self.population)}")
+            raise ValueError(f"got results for {len(trajectories)} individuals, "
+                             f"the population has {len(self.population)}")
         fitness = np.array([np.mean([t.ret for t in per]) for per in trajectories])
         order = np.argsort(-fitness, kind="stable")  # fittest first
         ranked = [self.population[i] for i in order]

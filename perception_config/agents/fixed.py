@@ -27,13 +27,15 @@ class FixedAgent(Agent):
                  restart: int = 0, after: str = "repeat", seed: int = 0) -> None:
         super().__init__(spec, seed)
         if sequence is None:
-            sequence = DEFAULT_SEQUENCE if set(DEFAULT_SEQUENCE) <= set(spec.action_names) else (spec.action_names[spec.pick_actions[0]],) if spec.pick_actions else ()
+            sequence = (DEFAULT_SEQUENCE if set(DEFAULT_SEQUENCE) <= set(spec.action_names)
+                        else (spec.action_names[spec.pick_actions[0]],) if spec.pick_actions else ())
         sequence = [str(s) for s in sequence]
         if not sequence:
             raise ValueError("a fixed agent needs a non-empty sequence of action names")
         unknown = [s for s in sequence if s not in spec.action_names]
         if unknown:
-            raise ValueError(f"fixed sequence names unknown action(s) {unknown}; the environment's actions are {list(spec.action_names)}")
+            raise ValueError(f"fixed sequence names unknown action(s) {unknown}; "
+                             f"the environment's actions are {list(spec.action_names)}")
         if after not in ("repeat", "pick"):
             raise ValueError(f"after must be 'repeat' or 'pick', got {after!r}")
         if not 0 <= int(restart) < len(sequence):

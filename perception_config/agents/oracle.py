@@ -83,7 +83,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
     action_cost = [math.inf] * len(names)  # the cheapest seconds seen per action (the fallback)
     evaluations, counter, exhausted = 0, 0, False
     # Queue entries: (cost, tiebreak, depth, path, per-action seconds, pose, snapshot).
-    heap: list[tuple[float, int, int, tuple[int, ...], tuple[float, ...], Any, Any]] = [(0.0, 0, 0, (), (), root_pose, root)]
+    heap: list[tuple[float, int, int, tuple[int, ...], tuple[float, ...], Any, Any]] = [
+        (0.0, 0, 0, (), (), root_pose, root)]
     seen: dict[Any, list[tuple[float, int]]] = {}
     try:
         while heap:
@@ -132,7 +133,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
     found = best < math.inf
     non_pick = [a for a in range(len(names)) if a not in pick_ids] or pick_ids
     cheapest = min(non_pick, key=lambda a: action_cost[a])
-    return OracleResult([names[a] for a in best_path], best, found, not exhausted, evaluations, list(best_times), cheapest)
+    return OracleResult([names[a] for a in best_path], best, found, not exhausted, evaluations, list(best_times),
+                        cheapest)
 
 
 class OracleAgent(Agent):
@@ -148,7 +150,8 @@ class OracleAgent(Agent):
 
     kind = "oracle"
 
-    def __init__(self, spec: EnvSpec, env: Any = None, node_budget: int = 2000, noop_tol: float = 1e-6, seed: int = 0) -> None:
+    def __init__(self, spec: EnvSpec, env: Any = None, node_budget: int = 2000, noop_tol: float = 1e-6,
+                 seed: int = 0) -> None:
         super().__init__(spec, seed)
         if node_budget < 1:
             raise ValueError(f"node_budget must be >= 1, got {node_budget}")

@@ -71,7 +71,8 @@ class PolicyGradientAgent(Agent):
         if baseline not in ("value", "mean"):
             raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
         if not (0.0 < gamma <= 1.0) or batch_episodes < 1 or hidden < 1:
-            raise ValueError(f"need 0 < gamma <= 1, batch_episodes >= 1, hidden >= 1; got {gamma}, {batch_episodes}, {hidden}")
+            raise ValueError("need 0 < gamma <= 1, batch_episodes >= 1, hidden >= 1; "
+                             f"got {gamma}, {batch_episodes}, {hidden}")
         torch.set_num_threads(1)  # tiny networks: threads only add overhead (and fight the workers)
         self.hidden, self.lr, self.value_lr, self.gamma = int(hidden), float(lr), float(value_lr), float(gamma)
         self.batch_episodes, self.entropy_coef = int(batch_episodes), float(entropy_coef)
@@ -131,7 +132,8 @@ class PolicyGradientAgent(Agent):
             for t in range(len(self.mean_baseline)):
                 at_t = g_np[step_idx == t]
                 if len(at_t):
-                    self.mean_baseline[t] = self.mean_decay * self.mean_baseline[t] + (1 - self.mean_decay) * at_t.mean()
+                    self.mean_baseline[t] = (self.mean_decay * self.mean_baseline[t]
+                                             + (1 - self.mean_decay) * at_t.mean())
         if len(advantages) > 1:
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
@@ -151,7 +153,8 @@ class PolicyGradientAgent(Agent):
     def hparams(self) -> dict[str, Any]:
         return {"hidden": self.hidden, "lr": self.lr, "value_lr": self.value_lr, "gamma": self.gamma,
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
-                "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip, "seed": self.seed}
+                "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
+                "seed": self.seed}
 
     def tensors(self) -> dict[str, np.ndarray]:
         return {f"policy.{k}": v.detach().numpy().copy() for k, v in self.policy.state_dict().items()}
@@ -173,7 +176,8 @@ class PolicyGradientAgent(Agent):
 
     def load_checkpoint(self, tensors: dict[str, np.ndarray], state: dict[str, Any]) -> None:
         """Value network, both optimizers' moments and the baseline from a checkpoint."""
-        self.value.load_state_dict({k: torch.from_numpy(np.array(tensors[f"train/value.{k}"])) for k in self.value.state_dict()})
+        self.value.load_state_dict({k: torch.from_numpy(np.array(tensors[f"train/value.{k}"]))
+                                    for k in self.value.state_dict()})
         _load_optim("optim", self.optimizer, tensors)
         _load_optim("value_optim", self.value_optimizer, tensors)
         self.mean_baseline = np.array(tensors["train/mean_baseline"], np.float64)

@@ -101,14 +101,16 @@ def check_compatible(meta: dict[str, Any], spec: EnvSpec, path: str | Path = "<p
     saved = EnvSpec.from_json(meta["env"])
     problems = []
     if list(saved.action_names) != list(spec.action_names):
-        problems.append("action set differs: " + _diff_lists("actions", list(saved.action_names), list(spec.action_names)))
+        problems.append("action set differs: "
+                        + _diff_lists("actions", list(saved.action_names), list(spec.action_names)))
     elif saved.actions and spec.actions and list(saved.actions) != list(spec.actions):
         changed = [f"{a['name']}: {a.get('block')} {a.get('params')} -> {b.get('block')} {b.get('params')}"
                    for a, b in zip(saved.actions, spec.actions) if a != b]
         problems.append("actions have the same names but different blocks or parameters: " + "; ".join(changed))
     if list(saved.observation_layout) != list(spec.observation_layout):
         problems.append("observation layout differs: "
-                        + _diff_lists("observation entries", list(saved.observation_layout), list(spec.observation_layout)))
+                        + _diff_lists("observation entries", list(saved.observation_layout),
+                                      list(spec.observation_layout)))
     if problems:
         raise PolicyError(f"policy {path} does not fit this environment: " + " | ".join(problems))
 
@@ -125,7 +127,8 @@ def save_agent(agent: Agent, path: str | Path, extra: dict[str, Any] | None = No
     return write_file(path, agent_meta(agent, extra), agent.tensors())
 
 
-def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvSpec, path: str | Path = "<policy>") -> Agent:
+def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvSpec,
+                path: str | Path = "<policy>") -> Agent:
     """An agent from file contents already checked against `spec`."""
     kind = meta["agent"]
     if kind not in AGENTS:

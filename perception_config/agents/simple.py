@@ -35,7 +35,8 @@ class SimpleAgent(Agent):
                  score_bins: int = 0, seed: int = 0) -> None:
         super().__init__(spec, seed)
         if not (0.0 <= xi_min <= 1.0 and 0.0 <= xi_start <= 1.0 and 0.0 < xi_decay <= 1.0):
-            raise ValueError(f"need 0 <= xi_min, xi_start <= 1 and 0 < xi_decay <= 1, got {xi_start}, {xi_min}, {xi_decay}")
+            raise ValueError("need 0 <= xi_min, xi_start <= 1 and 0 < xi_decay <= 1, "
+                             f"got {xi_start}, {xi_min}, {xi_decay}")
         if score_bins < 0:
             raise ValueError(f"score_bins must be >= 0, got {score_bins}")
         self.xi_start, self.xi_min, self.xi_decay = float(xi_start), float(xi_min), float(xi_decay)
@@ -109,7 +110,8 @@ class SimpleAgent(Agent):
             q = np.asarray(entry["q"], np.float64)
             n = np.asarray(entry["n"], np.int64)
             if q.shape != (self.spec.n_actions,) or n.shape != q.shape:
-                raise ValueError(f"memory entry {k} has {q.shape[0]} actions, the environment has {self.spec.n_actions}")
+                raise ValueError(f"memory entry {k} has {q.shape[0]} actions, "
+                                 f"the environment has {self.spec.n_actions}")
             self.q[k], self.n[k] = q, n
 
     def checkpoint(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

@@ -75,7 +75,8 @@ class BlockInput:
 
     `ground_truth` is given only to blocks that declare it (simulated initialisation, simulated
     pick). `frame` may be None for blocks that use no image (an operator node that has the
-    ground truth but no camera frame yet can still run simulated_init). `cache` holds per-frame precomputations (edge maps, point clouds) that several blocks
+    ground truth but no camera frame yet can still run simulated_init). `cache` holds per-frame
+    precomputations (edge maps, point clouds) that several blocks
     share; it belongs to the frame and is dropped with it. `rng` makes stochastic blocks seeded.
     """
 

@@ -201,7 +201,7 @@ class ChamferIcp(Block):
             Pm, Dm = P[idx], D[idx]
             mean_dist, matched = float(np.mean(d[near])), int(len(idx))
 
-            def evaluate(R_: np.ndarray, t_: np.ndarray):
+            def evaluate(R_: np.ndarray, t_: np.ndarray, *, Pm=Pm, Dm=Dm, target=target):
                 uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
                 return (uv_ - target).ravel(), J.reshape(-1, 6)
 

@@ -45,12 +45,14 @@ class D2CO(Block):
     lower_is_better = ("d2co_cost",)
     params = (
         Param("n_bins", 60, 8, 180, doc="orientation bins over [0, pi)"),
-        Param("penalty", 0.5, 0.0, 10.0, doc="tensor cost per bin of orientation difference (px); the notes: 0.5 works, 5 hurts"),
+        Param("penalty", 0.5, 0.0, 10.0,
+              doc="tensor cost per bin of orientation difference (px); the notes: 0.5 works, 5 hurts"),
         Param("max_distance", 30.0, 2.0, 200.0, doc="truncation of the chamfer distance (px): robustness to clutter"),
         Param("crop_margin", 40, 0, 400, doc="pixels around the hypothesis's box the tensor covers"),
         Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold"),
         Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
-        Param("depth_prior_mm", 5.0, 0.1, 1000.0, doc="depth shift (mm) that costs as much as every point 1 px: keeps the weakly observed depth"),
+        Param("depth_prior_mm", 5.0, 0.1, 1000.0,
+              doc="depth shift (mm) that costs as much as every point 1 px: keeps the weakly observed depth"),
         Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
         Param("mesh_edges", True, doc="use the model's visible sharp mesh edges besides the silhouette"),
         Param("huber_px", 2.0, 0.1, 50.0, doc="Huber threshold of the per-point cost (px)"),

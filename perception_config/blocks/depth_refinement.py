@@ -29,7 +29,8 @@ def model_centre(model: ObjectModel) -> np.ndarray:
     return np.asarray(model.bbox_min, dtype=np.float64) + np.asarray(model.bbox_size, dtype=np.float64) / 2.0
 
 
-def depth_offset(frame: Frame, model: ObjectModel, pose: Pose, max_diff: float, cache: dict | None = None) -> tuple[float, int, int]:
+def depth_offset(frame: Frame, model: ObjectModel, pose: Pose, max_diff: float,
+                 cache: dict | None = None) -> tuple[float, int, int]:
     """Median of (observed - rendered) depth over the rendered object pixels with valid observed
     depth and |difference| <= max_diff; returns (median in m or NaN, pixels used, object pixels)."""
     r = hypothesis_rendering(frame, model, pose, cache)
@@ -85,14 +86,16 @@ class DepthRefine(Block):
             if used < cfg["min_pixels"]:
                 if i == 0:
                     return BlockResult.fail(
-                        f"only {used} of {pixels} object pixels have observed depth within {max_diff:.3f} m (need {cfg['min_pixels']})")
+                        f"only {used} of {pixels} object pixels have observed depth within {max_diff:.3f} m "
+                        f"(need {cfg['min_pixels']})")
                 break
             pose = shift_along_ray(pose, centre, dz)
             total += dz
             passes += 1
             if abs(dz) < cfg["tolerance"]:
                 break
-        return BlockResult(ok=True, pose=pose, info={"shift": total, "passes": passes, "pixels_used": used, "object_pixels": pixels})
+        return BlockResult(ok=True, pose=pose,
+                           info={"shift": total, "passes": passes, "pixels_used": used, "object_pixels": pixels})
 
 
 __all__ = ["DepthRefine", "depth_offset", "shift_along_ray", "model_centre"]

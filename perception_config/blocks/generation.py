@@ -75,7 +75,8 @@ class SimulatedInit(Block):
     default_cost = 0.0005
     inputs = (MODEL, GROUND_TRUTH)
     params = (
-        Param("noise_lambda", 0.5, 0.0, LAMBDA_MAX, doc="noise level lambda (the paper sweeps 0.1 .. 1.0); 0 = ground truth"),
+        Param("noise_lambda", 0.5, 0.0, LAMBDA_MAX,
+              doc="noise level lambda (the paper sweeps 0.1 .. 1.0); 0 = ground truth"),
         Param("sigma_r", SIGMA_R, 0.0, math.pi, doc="rotation noise (rad) at lambda = 1"),
         Param("sigma_t", SIGMA_T, 0.0, 2.0, doc="translation noise as a share of the diameter at lambda = 1"),
         Param("max_retries", 100, 1, 10000, doc="re-draws when a draw ends behind the camera"),
@@ -138,7 +139,8 @@ class GlobalRegistration(Block):
 
     Its success on the real LM-O frame and the synthetic default is measured by
     benchmarks/bench_generation.py (figures: benchmarks/results/generation*.json and the
-    README); `min_verification` 0.6 is calibrated on those runs. Known failures: parts lying flat within `plane_distance` of the table (the bracket) are removed
+    README); `min_verification` 0.6 is calibrated on those runs. Known failures: parts lying
+    flat within `plane_distance` of the table (the bracket) are removed
     with the table; parts of a few cm (the 38 mm hexnut) give too few points for FPFH; a
     distractor of similar shape and colour that is not in the model set (a white box for the
     LM-O glue bottle) can win the verification.
@@ -155,16 +157,21 @@ class GlobalRegistration(Block):
         Param("n_polish", 4, 1, 50, doc="pre-verified candidates per cluster polished by ICP and verified again"),
         Param("icp_iterations", 15, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
         Param("flip_variants", True, doc="also try 180 deg flips about the model's principal axes"),
-        Param("max_clusters", 30, 1, 500, doc="clusters to try at most (the time budget usually ends the search first)"),
+        Param("max_clusters", 30, 1, 500,
+              doc="clusters to try at most (the time budget usually ends the search first)"),
         Param("min_extent", 0.25, 0.0, 1.0, doc="smallest plausible cluster size as a share of the diameter"),
         Param("max_extent", 1.3, 0.5, 5.0, doc="largest plausible cluster size as a share of the diameter"),
-        Param("merged_extent", 4.0, 0.5, 20.0, doc="larger clusters (touching objects) up to this share of the diameter are tried last"),
+        Param("merged_extent", 4.0, 0.5, 20.0,
+              doc="larger clusters (touching objects) up to this share of the diameter are tried last"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
         Param("violation_penalty", 1.0, 0.0, 10.0, doc="weight of free-space violations in verification"),
-        Param("colour_weight", 0.5, 0.0, 1.0, doc="how much colour disagreement lowers the verification (coloured models)"),
-        Param("explain_weight", 0.5, 0.0, 1.0, doc="how much uncovered cluster area under the hypothesis lowers the verification"),
-        Param("min_verification", 0.6, -1.0, 1.0, doc="below this verification score the block fails (calibration: see bench_generation)"),
+        Param("colour_weight", 0.5, 0.0, 1.0,
+              doc="how much colour disagreement lowers the verification (coloured models)"),
+        Param("explain_weight", 0.5, 0.0, 1.0,
+              doc="how much uncovered cluster area under the hypothesis lowers the verification"),
+        Param("min_verification", 0.6, -1.0, 1.0,
+              doc="below this verification score the block fails (calibration: see bench_generation)"),
         Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between steps)"),
     )
 
@@ -251,7 +258,8 @@ class GlobalRegistration(Block):
         scores = {"gen_verification": float(score), **{k: float(v) for k, v in details.items()}}
         if score < c["min_verification"]:
             return BlockResult(ok=False, pose=None, scores=scores, info=info, reason=(
-                f"global_registration: best candidate verifies at {score:.2f} < min_verification {c['min_verification']}"))
+                f"global_registration: best candidate verifies at {score:.2f} "
+                f"< min_verification {c['min_verification']}"))
         return BlockResult(ok=True, pose=pose, scores=scores, info=info)
 
     def _cluster_hypotheses(

@@ -79,11 +79,13 @@ class _IcpBase(Block):
     point_to_plane: ClassVar[bool]
     params = (
         Param("max_correspondence_distance", 0.03, 0.001, 0.2, doc="first-stage correspondence distance (m)"),
-        Param("final_distance", 0.006, 0.0005, 0.2, doc="last-stage correspondence distance (m); the schedule is geometric"),
+        Param("final_distance", 0.006, 0.0005, 0.2,
+              doc="last-stage correspondence distance (m); the schedule is geometric"),
         Param("stages", 3, 1, 8, doc="number of coarse-to-fine stages"),
         Param("max_iterations", 30, 1, 500, doc="ICP iterations per stage"),
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound: no new stage starts after it (s)"),
-        Param("min_fitness", 0.1, 0.0, 1.0, doc="below this share of visible model points with a correspondence: ok=False"),
+        Param("min_fitness", 0.1, 0.0, 1.0,
+              doc="below this share of visible model points with a correspondence: ok=False"),
         Param("min_points", 30, 3, 100000, doc="minimum visible model points, scene points and correspondences"),
         Param("max_scene_points", 4000, 100, 100000, doc="scene points budget (grid subsampling)"),
         Param("occlusion_filter", True, doc="drop model points hidden behind observed surfaces before each stage"),
@@ -99,7 +101,8 @@ class _IcpBase(Block):
         dists = distance_schedule(cfg["max_correspondence_distance"], cfg["final_distance"], cfg["stages"])
         vis = visible_surface(frame, model, pose, inp.cache)
         if len(vis) < cfg["min_points"]:
-            return BlockResult.fail(f"only {len(vis)} model points visible at the hypothesis (need {cfg['min_points']}): object outside the view?")
+            return BlockResult.fail(f"only {len(vis)} model points visible at the hypothesis "
+                                    f"(need {cfg['min_points']}): object outside the view?")
         scene = scene_patch(frame, model, pose, margin=dists[0], max_points=cfg["max_scene_points"],
                             with_normals=self.point_to_plane)
         if scene is None or len(scene) < cfg["min_points"]:
@@ -110,7 +113,8 @@ class _IcpBase(Block):
         src_all = vis.points - c
         target = _cloud(scene.points - c, scene.normals)
         T = np.eye(4)
-        criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=cfg["max_iterations"])
+        criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+                                               max_iteration=cfg["max_iterations"])
         result, used, stages_run = None, len(src_all), 0
         for d in dists:
             if stages_run and time.perf_counter() - start > cfg["max_seconds"]:
@@ -134,7 +138,8 @@ class _IcpBase(Block):
                 "source_points": used, "scene_points": len(scene), "correspondences": n_corr,
                 "timed_out": stages_run < len(dists)}
         if n_corr < cfg["min_points"] or fitness < cfg["min_fitness"]:
-            r = BlockResult.fail(f"ICP found too few correspondences ({n_corr}, fitness {fitness:.3f} < {cfg['min_fitness']})")
+            r = BlockResult.fail("ICP found too few correspondences "
+                                 f"({n_corr}, fitness {fitness:.3f} < {cfg['min_fitness']})")
             r.scores, r.info = scores, info
             return r
         # camera-frame increment: translate to the centre, apply T, translate back
@@ -160,7 +165,8 @@ class IcpPointToPlane(_IcpBase):
     default_cost = 0.02
     point_to_plane = True
     params = _IcpBase.params + (
-        Param("kernel", "tukey", choices=("tukey", "huber", "none"), doc="robust loss; width relative to the stage distance"),
+        Param("kernel", "tukey", choices=("tukey", "huber", "none"),
+              doc="robust loss; width relative to the stage distance"),
     )
 
     def _estimation(self, distance: float) -> _reg.TransformationEstimation:

@@ -42,7 +42,8 @@ class SimulatedPick(Block):
     default_cost = 0.5
     inputs = (POSE, MODEL, GROUND_TRUTH)
     params = (
-        Param("criterion", "mssd", choices=("mssd", "re_te"), doc="success test: BOP MSSD or rotation/translation error"),
+        Param("criterion", "mssd", choices=("mssd", "re_te"),
+              doc="success test: BOP MSSD or rotation/translation error"),
         Param("mssd_threshold", 0.1, 0.01, 1.0, doc="max MSSD as a share of the object diameter"),
         Param("max_re_deg", 5.0, 0.1, 180.0, doc="re_te: max rotation error, degrees"),
         Param("max_te", 0.05, 0.001, 1.0, doc="re_te: max translation error, metres"),

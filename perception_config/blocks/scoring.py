@@ -64,7 +64,8 @@ def contour_points(inp: BlockInput, grazing_cos: float) -> tuple[np.ndarray, np.
         graze = np.abs(np.einsum("ij,ij->i", rays, surf.normals)) < grazing_cos
         if graze.any():
             p = surf.points[graze]
-            parts.append(_unit_rows(surf.uv[graze], projected_directions(p, surf.normals[graze], K), 0.05 * f / p[:, 2]))
+            parts.append(_unit_rows(surf.uv[graze], projected_directions(p, surf.normals[graze], K),
+                                    0.05 * f / p[:, 2]))
     return np.concatenate([u for u, _ in parts]), np.concatenate([n for _, n in parts])
 
 
@@ -88,13 +89,15 @@ class PsiD(Block):
         obj = np.isfinite(r.depth)
         n = int(obj.sum()) if not r.empty else 0
         if n < self.config["min_pixels"]:
-            return BlockResult.fail(f"the hypothesis covers {n} image pixels (need {self.config['min_pixels']}): object outside the view?")
+            return BlockResult.fail(f"the hypothesis covers {n} image pixels "
+                                    f"(need {self.config['min_pixels']}): object outside the view?")
         obs = inp.frame.depth[r.crop_slices()][obj]
         missing = ~np.isfinite(obs)
         with np.errstate(invalid="ignore"):
             agree = np.abs(obs - r.depth[obj]) <= self.config["threshold"]
         m1, m2 = float(agree.sum()) / n, float(missing.sum()) / n
-        return BlockResult(ok=True, scores={"psi_d": m1 + m2, "psi_d_m1": m1, "psi_d_m2": m2}, info={"object_pixels": n})
+        return BlockResult(ok=True, scores={"psi_d": m1 + m2, "psi_d_m1": m1, "psi_d_m2": m2},
+                           info={"object_pixels": n})
 
 
 @register
@@ -108,8 +111,10 @@ class PsiC(Block):
     score_names = ("psi_c",)
     score_ranges = {"psi_c": (0.0, 1.0)}
     params = (
-        Param("min_gradient", 5.0, 0.0, 255.0, doc="gradient magnitude (grey levels / px) for a point to count; below it counts 0"),
-        Param("grazing_cos", 0.3, 0.0, 1.0, doc="surface samples with |cos(normal, ray)| below this are contour points"),
+        Param("min_gradient", 5.0, 0.0, 255.0,
+              doc="gradient magnitude (grey levels / px) for a point to count; below it counts 0"),
+        Param("grazing_cos", 0.3, 0.0, 1.0,
+              doc="surface samples with |cos(normal, ray)| below this are contour points"),
         Param("min_points", 10, 1, 100000, doc="minimum visible contour points"),
     )
 
@@ -120,7 +125,8 @@ class PsiC(Block):
             u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
             inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
         if int(inside.sum()) < self.config["min_points"]:
-            return BlockResult.fail(f"only {int(inside.sum())} model contour points project into the image (need {self.config['min_points']})")
+            return BlockResult.fail(f"only {int(inside.sum())} model contour points project into the image "
+                                    f"(need {self.config['min_points']})")
         u, v, n = u[inside].astype(np.intp), v[inside].astype(np.intp), n[inside]
         gx, gy = image_derivatives(inp.frame, inp.cache)
         gu, gv = gx[v, u].astype(np.float64), gy[v, u].astype(np.float64)
@@ -145,7 +151,8 @@ class IcpFitness(Block):
     lower_is_better = ("icp_rmse",)
     params = (
         Param("threshold", 0.01, 0.0005, 0.2, doc="inlier distance (m)"),
-        Param("max_scene_points", 8000, 100, 1000000, doc="scene points budget around the hypothesis (grid subsampling)"),
+        Param("max_scene_points", 8000, 100, 1000000,
+              doc="scene points budget around the hypothesis (grid subsampling)"),
         Param("min_points", 10, 1, 100000, doc="minimum visible model points"),
     )
 
@@ -153,7 +160,8 @@ class IcpFitness(Block):
         thr = self.config["threshold"]
         vis = visible_surface(inp.frame, inp.model, inp.pose, inp.cache)
         if len(vis) < self.config["min_points"]:
-            return BlockResult.fail(f"only {len(vis)} model points visible at the hypothesis (need {self.config['min_points']}): object outside the view?")
+            return BlockResult.fail(f"only {len(vis)} model points visible at the hypothesis "
+                                    f"(need {self.config['min_points']}): object outside the view?")
         scene = scene_patch(inp.frame, inp.model, inp.pose, margin=thr, max_points=self.config["max_scene_points"])
         if scene is None or len(scene) == 0:
             fitness, rmse, n_in = 0.0, thr, 0
@@ -164,7 +172,8 @@ class IcpFitness(Block):
             fitness = n_in / len(vis)
             rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if n_in else thr
         return BlockResult(ok=True, scores={"icp_fitness": float(fitness), "icp_rmse": float(rmse)},
-                           info={"visible_points": len(vis), "inliers": n_in, "scene_points": 0 if scene is None else len(scene)})
+                           info={"visible_points": len(vis), "inliers": n_in,
+                                 "scene_points": 0 if scene is None else len(scene)})
 
 
 __all__ = ["PsiD", "PsiC", "IcpFitness", "contour_points"]

@@ -799,7 +799,8 @@ def compute_gt_info(frame: Frame, delta: float = 0.015) -> list[dict[str, Any]]:
         r = render_box(o.model, o.gt, Kbig, 3 * W, 3 * H, margin=0)
         ys, xs = np.nonzero(r.mask >= 0)
         xs, ys = xs + r.offset[0] - W, ys + r.offset[1] - H
-        bbox_obj = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())] if xs.size else [-1] * 4
+        bbox_obj = ([int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())] if xs.size
+                    else [-1] * 4)
         inside = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
         xs, ys = xs[inside], ys[inside]
         z = r.depth[ys + H - r.offset[1], xs + W - r.offset[0]]
@@ -810,7 +811,8 @@ def compute_gt_info(frame: Frame, delta: float = 0.015) -> list[dict[str, Any]]:
         vx, vy = xs[visib], ys[visib]
         out.append({
             "bbox_obj": bbox_obj,
-            "bbox_visib": [int(vx.min()), int(vy.min()), int(vx.max() - vx.min()), int(vy.max() - vy.min())] if n_visib else [-1] * 4,
+            "bbox_visib": ([int(vx.min()), int(vy.min()), int(vx.max() - vx.min()), int(vy.max() - vy.min())]
+                           if n_visib else [-1] * 4),
             "px_count_all": n_all,
             "px_count_valid": int((dt > 0).sum()),
             "px_count_visib": n_visib,

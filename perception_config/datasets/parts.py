@@ -262,7 +262,8 @@ def _triangulate_regions(
                 keep &= ~_inside(cen, loops[h])
             simp = simp[keep]
             p = allp[simp]
-            cross = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0])
+            cross = ((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
+                     - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
             simp = np.where((cross < 0)[:, None], simp[:, [0, 2, 1]], simp)
             results.append((allp[:nreal], simp))
         if not missing:
@@ -541,7 +542,8 @@ def _hexnut() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     P = _Prism()
     hexagon = _circle(Rc, 6)  # corners at 0, 60, ... deg
     # subdivide the hexagon sides so the cap triangles are not needle-thin
-    hexagon = np.concatenate([[hexagon[i] + (hexagon[(i + 1) % 6] - hexagon[i]) * k / 4 for k in range(4)] for i in range(6)])
+    hexagon = np.concatenate([[hexagon[i] + (hexagon[(i + 1) % 6] - hexagon[i]) * k / 4 for k in range(4)]
+                              for i in range(6)])
     o = P.loop(hexagon)
     h = P.loop(_circle(rbore, 48))
     P.cap(0.0, o, [h], up=False)

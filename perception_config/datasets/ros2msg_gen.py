@@ -34,6 +34,7 @@ INTERFACES_PACKAGE = "perception_config_interfaces"
 REPO_MSG_DEFS = Path(__file__).resolve().parents[2] / "msg_defs"
 GENERATED = Path(__file__).resolve().parent / "ros2msg_schemas.py"
 DELIMITER = "=" * 80 + "\n"
+LINE_LENGTH = 120  # ruff.toml's line-length: the generated module is linted like the rest
 
 # rosbag2_cpp: first token of each line that is not a primitive type (arrays stripped).
 _FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
@@ -142,9 +143,29 @@ def rihs01_with_rosbags(type_name: str) -> str:
     return store.hash_rihs01(f"{_split(type_name)[0]}/msg/{_split(type_name)[1]}")
 
 
+def _pieces(line: str, width: int) -> list[str]:
+    """`line` cut, after spaces where it can be, into pieces whose repr is at most `width` long
+    (adjacent string literals: the value is the same, the module keeps to the line length)."""
+    pieces: list[str] = []
+    for token in re.split(r"(?<= )(?=\S)", line):
+        if pieces and len(repr(pieces[-1] + token)) <= width:
+            pieces[-1] += token
+            continue
+        while len(repr(token)) > width and len(token) > 1:  # a word longer than the width: cut it
+            cut = len(token) - 1
+            while cut > 1 and len(repr(token[:cut])) > width:
+                cut -= 1
+            pieces.append(token[:cut])
+            token = token[cut:]
+        pieces.append(token)
+    return pieces
+
+
 def _literal(text: str, indent: str) -> str:
     lines = text.splitlines(keepends=True) or [""]
-    return "(\n" + "".join(f"{indent}    {line!r}\n" for line in lines) + f"{indent})"
+    pad = f"{indent}    "
+    pieces = [piece for line in lines for piece in _pieces(line, LINE_LENGTH - len(pad))]
+    return "(\n" + "".join(f"{pad}{piece!r}\n" for piece in pieces) + f"{indent})"
 
 
 def render_module(types: tuple[str, ...] = TYPES) -> str:
@@ -161,7 +182,11 @@ def render_module(types: tuple[str, ...] = TYPES) -> str:
         out.append(f"    {t!r}: {_literal(full_text(t), '    ')},\n")
     out.append("}\n\nTYPE_HASHES: dict[str, str] = {\n")
     for t in types:
-        out.append(f"    {t!r}: {type_hash(t)!r},\n")
+        key, value = repr(t), repr(type_hash(t))
+        entry = f"    {key}: {value},"
+        if len(entry) > LINE_LENGTH:  # the hash on a line of its own
+            entry = f"    {key}:\n        {value},"
+        out.append(entry + "\n")
     out.append("}\n")
     return "".join(out)
 

@@ -296,7 +296,8 @@ SCHEMAS: dict[str, str] = {
     ),
     'perception_config_interfaces/msg/Hypothesis': (
         '# A pose hypothesis of one object in one camera frame.\n'
-        "# header.stamp names the camera frame the hypothesis refers to; header.frame_id is the camera's optical frame.\n"
+        "# header.stamp names the camera frame the hypothesis refers to; header.frame_id is the camera's optical "
+        'frame.\n'
         'std_msgs/Header header\n'
         '# BOP object id as a string (e.g. "5"), so non-numeric part names also fit.\n'
         'string object_id\n'
@@ -390,7 +391,10 @@ TYPE_HASHES: dict[str, str] = {
     'sensor_msgs/msg/Image': 'RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47',
     'sensor_msgs/msg/CameraInfo': 'RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275',
     'std_msgs/msg/String': 'RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18',
-    'perception_config_interfaces/msg/ObjectPoses': 'RIHS01_10abac0683ebaed61471f1c837abebcc509ab349baa73bb42aaf9bbbca63be69',
-    'perception_config_interfaces/msg/Hypothesis': 'RIHS01_cf614b56a2b2a61be07b33f9b7421e4ce877201bee15d57cae2df4d226104747',
-    'perception_config_interfaces/msg/OperatorTrace': 'RIHS01_1d62c282e062b42ada1a319e95563ccc2f9fc1cb384aab3754579aa8a4066961',
+    'perception_config_interfaces/msg/ObjectPoses':
+        'RIHS01_10abac0683ebaed61471f1c837abebcc509ab349baa73bb42aaf9bbbca63be69',
+    'perception_config_interfaces/msg/Hypothesis':
+        'RIHS01_cf614b56a2b2a61be07b33f9b7421e4ce877201bee15d57cae2df4d226104747',
+    'perception_config_interfaces/msg/OperatorTrace':
+        'RIHS01_1d62c282e062b42ada1a319e95563ccc2f9fc1cb384aab3754579aa8a4066961',
 }

@@ -246,7 +246,8 @@ def shade(
         ref2 = float(ref_dist) ** 2
     falloff = ref2 / dist2 * light_power
     direct = falloff * ndl
-    spec = falloff * ks * np.where(ndl > 0, np.exp(shininess * np.log(np.maximum(ndh, 1e-12))), 0.0) * (shininess + 8.0) / 32.0
+    spec = (falloff * ks * np.where(ndl > 0, np.exp(shininess * np.log(np.maximum(ndh, 1e-12))), 0.0)
+            * (shininess + 8.0) / 32.0)
     if lit is not None:
         direct = direct * lit
         spec = spec * lit
@@ -302,7 +303,8 @@ def make_texture(rng: np.random.Generator, kind: str, base: tuple[float, float, 
         grain = 0.5 + 0.5 * np.sin(2 * np.pi * (y * 60.0 + 3.0 * stretched))
         v = 0.82 + 0.18 * grain[..., None] + 0.12 * (n[..., None] - 0.5)
     elif kind == "concrete":
-        speck = (rng.random((size, size)) < 0.02).astype(np.float32) * rng.uniform(-0.25, 0.25, (size, size)).astype(np.float32)
+        speck = ((rng.random((size, size)) < 0.02).astype(np.float32)
+                 * rng.uniform(-0.25, 0.25, (size, size)).astype(np.float32))
         v = 0.75 + 0.45 * n[..., None] + speck[..., None]
     else:  # plastic
         v = 0.9 + 0.15 * n[..., None]

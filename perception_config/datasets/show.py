@@ -72,7 +72,8 @@ def show_frame(
     if im_id is None:
         im_id = ims[0]
     if im_id not in ims:
-        raise ValueError(f"image {im_id} is not in scene {scene_id} (images: {ims[:20]}{' ...' if len(ims) > 20 else ''})")
+        raise ValueError(f"image {im_id} is not in scene {scene_id} "
+                         f"(images: {ims[:20]}{' ...' if len(ims) > 20 else ''})")
     frame = ds.load_frame(scene_id, im_id)
     H, W = frame.height, frame.width
     names: dict[str, str] = {}
@@ -111,7 +112,7 @@ def show_frame(
 
     # contours of the full silhouettes (each object rendered with the others: its visible-
     # among-objects outline) and labels
-    for i, o in enumerate(objs):
+    for i, _o in enumerate(objs):
         m = (mask == i).astype(np.uint8)
         if not m.any():
             continue

@@ -71,7 +71,8 @@ _ENV_MATERIALS = {  # name: (texture kind, ks, shininess)
     "concrete": ("concrete", 0.02, 6.0),
 }
 _BIN_COLOURS = [(0.10, 0.25, 0.55), (0.45, 0.46, 0.48), (0.12, 0.40, 0.20), (0.70, 0.35, 0.08), (0.12, 0.12, 0.13)]
-_TABLE_COLOURS = {"wood": [(0.62, 0.45, 0.28), (0.75, 0.60, 0.42)], "concrete": [(0.55, 0.55, 0.53), (0.42, 0.43, 0.45)]}
+_TABLE_COLOURS = {"wood": [(0.62, 0.45, 0.28), (0.75, 0.60, 0.42)],
+                  "concrete": [(0.55, 0.55, 0.53), (0.42, 0.43, 0.45)]}
 
 
 # --------------------------------------------------------------------------- resting poses
@@ -131,7 +132,8 @@ def stable_poses(
     a, b, c = tri[:, 0] - com, tri[:, 1] - com, tri[:, 2] - com
     la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
     num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
-    den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb + np.einsum("ij,ij->i", b, c) * la
+    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb
+           + np.einsum("ij,ij->i", b, c) * la)
     omega = 2.0 * np.arctan2(num, den)  # solid angle of each hull triangle (Van Oosterom)
     eq = hull.equations
     scale = float(np.ptp(V, axis=0).max())
@@ -352,7 +354,8 @@ def _sample_camera(rng: np.random.Generator, scene: _Scene, K: np.ndarray, width
         uv = pc @ K.T
         uv = uv[:, :2] / uv[:, 2:3]
         m = CENTER_MARGIN_PX
-        if np.all(pc[:, 2] > 0.1) and np.all((uv[:, 0] >= m) & (uv[:, 0] < width - m) & (uv[:, 1] >= m) & (uv[:, 1] < height - m)):
+        if np.all(pc[:, 2] > 0.1) and np.all((uv[:, 0] >= m) & (uv[:, 0] < width - m)
+                                              & (uv[:, 1] >= m) & (uv[:, 1] < height - m)):
             return w2c
     raise RuntimeError("could not place a camera that sees every object centre")
 
@@ -589,7 +592,8 @@ def generate(
 
     out = Path(out)
     if scenes < 1 or images_per_scene < 1:
-        raise ValueError(f"need at least one scene and one image, got scenes={scenes} images_per_scene={images_per_scene}")
+        raise ValueError("need at least one scene and one image, "
+                         f"got scenes={scenes} images_per_scene={images_per_scene}")
     if width < 64 or height < 48:
         raise ValueError(f"image size {width}x{height} is too small")
     if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or _is_ours(out))):

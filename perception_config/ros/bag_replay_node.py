@@ -162,7 +162,8 @@ class BagReplayNode(Node):
     def _wait_for_subscribers(self) -> bool:
         deadline = time.monotonic() + self.wait_timeout
         while True:
-            short = [(self._pubs[t], n) for t, n in self._wait_counts.items() if self._pubs[t].get_subscription_count() < n]
+            short = [(self._pubs[t], n) for t, n in self._wait_counts.items()
+                     if self._pubs[t].get_subscription_count() < n]
             if not short:
                 return True
             if time.monotonic() > deadline:

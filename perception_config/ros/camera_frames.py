@@ -5,9 +5,9 @@ Subscribes to `camera/color/image_raw`, `camera/depth/image_raw` and `camera/cam
 image with the same header stamp make a frame (or the nearest depth within `sync_tolerance`
 seconds, for drivers that stamp them apart); K comes from the camera_info of that stamp (a
 frame waits for it once the camera has been seen to stamp camera_info like its images, as
-image_transport's camera publishers do), else from the latest camera_info (a static publisher). Frames are converted once, on arrival, and kept in a
-bounded `StampCache`, so a service request names its frame by stamp and large images cross the
-middleware once, not at every operator call.
+image_transport's camera publishers do), else from the latest camera_info (a static publisher).
+Frames are converted once, on arrival, and kept in a bounded `StampCache`, so a service request
+names its frame by stamp and large images cross the middleware once, not at every operator call.
 
 A frame that cannot be used (unsupported encoding, a step or data size that contradicts the
 image size, colour and depth of different sizes, a camera_info of another size or with a
@@ -133,7 +133,8 @@ class CameraFrames:
         stamp = stamp_to_nanoseconds(msg.header.stamp)
         with self._lock:
             if role == "depth" and self._tolerance_ns and stamp not in self._pending:
-                near = [s for s in self._pending if abs(s - stamp) <= self._tolerance_ns and "depth" not in self._pending[s]]
+                near = [s for s in self._pending
+                        if abs(s - stamp) <= self._tolerance_ns and "depth" not in self._pending[s]]
                 if near:  # file the depth under the colour image's stamp
                     stamp = min(near, key=lambda s: abs(s - stamp))
             self._pending.setdefault(stamp, {})[role] = msg
@@ -158,7 +159,8 @@ class CameraFrames:
             del self._pending[stamp]
         color = parts["color"]
         try:
-            item: CameraFrame | FrameError = CameraFrame(stamp, color.header.frame_id, assemble_frame(color, parts["depth"], info))
+            item: CameraFrame | FrameError = CameraFrame(stamp, color.header.frame_id,
+                                                         assemble_frame(color, parts["depth"], info))
             item.frame.stamp = stamp * 1e-9
         except ValueError as exc:
             item = FrameError(stamp, str(exc))

@@ -94,10 +94,12 @@ class ConfiguratorNode(Node):
                                    max_ops=p["max_ops"] or None)
         pipeline = load_pipeline(settings.pipeline)
         self.default_lambda = check_noise_lambda(p["noise_lambda"], "noise_lambda")
-        self.operators = RosOperators(pipeline, node_name=f"{self.get_name()}_operators", timeout=float(p["operator_timeout"]),
+        self.operators = RosOperators(pipeline, node_name=f"{self.get_name()}_operators",
+                                      timeout=float(p["operator_timeout"]),
                                       fused_scoring=bool(p["fused_scoring"]))
         # The policy's own settings (max_ops is part of its observation); time is measured here.
-        self.env = PerceptionConfigEnv(None, pipeline, settings.env.replace(time_mode="measured"), operators=self.operators)
+        self.env = PerceptionConfigEnv(None, pipeline, settings.env.replace(time_mode="measured"),
+                                       operators=self.operators)
         if policy:
             self.agent = load_agent(policy, self.env)
             self.agent_name = f"{self.agent.kind} policy {policy}"
@@ -109,7 +111,8 @@ class ConfiguratorNode(Node):
 
         self.pose_pub = self.create_publisher(PoseStamped, "perception/pose", 10)
         self.trace_pub = self.create_publisher(OperatorTrace, "perception/trace", 10)
-        self.create_service(EstimatePose, "estimate_pose", self._on_estimate, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
+                            callback_group=MutuallyExclusiveCallbackGroup())
 
         self.auto_objects = [o for o in p["auto_objects"] if o]
         self.auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
@@ -120,10 +123,11 @@ class ConfiguratorNode(Node):
         if p["auto"]:  # a new frame is seen on camera_info, or on the ground truth that names its objects
             topics = MutuallyExclusiveCallbackGroup()
             if self.auto_objects:
-                self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, camera_qos(p["camera_qos"]),
-                                         callback_group=topics)
+                self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info,
+                                         camera_qos(p["camera_qos"]), callback_group=topics)
             else:
-                self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10, callback_group=topics)
+                self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10,
+                                         callback_group=topics)
             self._auto_thread = threading.Thread(target=self._auto_loop, name="auto", daemon=True)
             self._auto_thread.start()
         self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops {self.env.max_ops}"
@@ -170,7 +174,8 @@ class ConfiguratorNode(Node):
         header = Header(frame_id=self.operators.frame_id)
         if self.operators.stamp is not None:
             header.stamp = self.operators.stamp
-        final = self.operators.pose_msg if self.operators.pose_msg is not None else info["pose"]  # as the operators answered it
+        # as the operators answered it
+        final = self.operators.pose_msg if self.operators.pose_msg is not None else info["pose"]
         response.hypothesis = make_hypothesis(header, object_id, final, info["scores"])
         response.picked = picked
         response.operations = names
@@ -240,7 +245,8 @@ class ConfiguratorNode(Node):
             for object_id in objects:
                 r = self.estimate(stamp, object_id)
                 self.get_logger().info(f"auto {stamp_text(stamp)} object {object_id}: "
-                                       f"{'picked' if r.picked else r.message} after {', '.join(r.operations)} ({r.elapsed:.3f} s)")
+                                       f"{'picked' if r.picked else r.message} after {', '.join(r.operations)} "
+                                       f"({r.elapsed:.3f} s)")
 
 
 def main(args: list[str] | None = None) -> None:

@@ -34,7 +34,8 @@ class GenerationNode(OperatorNode):
         self.declare_parameter("default_lambda", 0.5)
         self._rng = np.random.default_rng()
         self.serve(GenerateHypothesis, "generate_hypothesis", self._on_generate)
-        self.get_logger().info(f"serving generate_hypothesis (default {self.param('default_method') or self.pipeline.generator.name})")
+        self.get_logger().info("serving generate_hypothesis "
+                               f"(default {self.param('default_method') or self.pipeline.generator.name})")
 
     def _on_generate(self, request: GenerateHypothesis.Request, response: GenerateHypothesis.Response) -> None:
         method = request.method or self.param("default_method") or self.pipeline.generator.name

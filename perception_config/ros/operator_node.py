@@ -84,12 +84,13 @@ class OperatorNode(Node):
         self._deadline_timer = self.create_timer(0.01, self._check_deadlines, callback_group=self._wait_group)
         self._deadline_timer.cancel()
         topics = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraFrames(self, cache_size, self.param("camera_qos"), float(self.param("sync_tolerance")), topics,
-                                   on_arrival=self._arrived)
+        self.camera = CameraFrames(self, cache_size, self.param("camera_qos"), float(self.param("sync_tolerance")),
+                                   topics, on_arrival=self._arrived)
         self.ground_truth: StampCache[dict[str, Any]] | None = None
         if ground_truth:
             self.ground_truth = StampCache(cache_size)
-            self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10, callback_group=topics)
+            self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10,
+                                     callback_group=topics)
 
     def param(self, name: str) -> Any:
         return self.get_parameter(name).value
@@ -182,7 +183,8 @@ class OperatorNode(Node):
             raise FrameNotReady(f"no ground truth for {which} arrived on perception/ground_truth "
                                 f"within {float(self.param('frame_timeout')):g} s")
         if object_id not in item["poses"]:
-            raise ValueError(f"object {object_id!r} is not in the ground truth of that frame (objects: {sorted(item['poses'])})")
+            raise ValueError(f"object {object_id!r} is not in the ground truth of that frame "
+                             f"(objects: {sorted(item['poses'])})")
         try:
             return msg_to_pose(item["poses"][object_id]), item["header"]
         except ValueError as exc:
@@ -233,7 +235,8 @@ class OperatorNode(Node):
             header.frame_id = cam.frame_id
         gt = None
         if GROUND_TRUTH in block.inputs:
-            gt, gt_header = self.ground_truth_pose(stamp_ns if frame is None else stamp_to_nanoseconds(header.stamp), object_id)
+            gt, gt_header = self.ground_truth_pose(stamp_ns if frame is None else stamp_to_nanoseconds(header.stamp),
+                                                   object_id)
             if frame is None:
                 header = gt_header
         inp = BlockInput(frame=frame, model=model, pose=pose, ground_truth=gt,

@@ -48,7 +48,8 @@ class PickNode(OperatorNode):
         if not result.ok:
             raise ValueError(f"{self._pick_action}: {result.reason}")
         response.picked = bool(result.picked)
-        response.message = "picked" if result.picked else f"not picked ({', '.join(f'{k} {v:.4g}' for k, v in result.scores.items())})"
+        response.message = ("picked" if result.picked
+                            else f"not picked ({', '.join(f'{k} {v:.4g}' for k, v in result.scores.items())})")
 
     async def _forward(self, request: Pick.Request, response: Pick.Response) -> None:
         """Ask the robot cell; awaited, so the executor keeps serving topics meanwhile."""

@@ -71,7 +71,8 @@ def run_in_process(env: PerceptionConfigEnv, policy: Path | None, plan: list[dic
     return out
 
 
-def run_through_ros(plan: list[dict[str, Any]], stamps: dict[tuple[int, int], int], timeout: float = 120.0) -> list[dict[str, Any]]:
+def run_through_ros(plan: list[dict[str, Any]], stamps: dict[tuple[int, int], int],
+                    timeout: float = 120.0) -> list[dict[str, Any]]:
     node = rclpy.create_node(f"replay_check_{os.getpid()}")
     try:
         client = node.create_client(EstimatePose, "estimate_pose")
@@ -124,15 +125,17 @@ def replay_check(
     counts: dict[tuple[int, int, int], int] = {}
     for ek in env.source.episodes:
         counts[(ek.scene_id, ek.im_id, ek.obj_id)] = counts.get((ek.scene_id, ek.im_id, ek.obj_id), 0) + 1
-    plan = [{"episode": j, "scene_id": ek.scene_id, "im_id": ek.im_id, "obj_id": ek.obj_id, "lambda": float(noise_lambda),
-             "seed": episode_seed(seed, j)}
+    plan = [{"episode": j, "scene_id": ek.scene_id, "im_id": ek.im_id, "obj_id": ek.obj_id,
+             "lambda": float(noise_lambda), "seed": episode_seed(seed, j)}
             for j, ek in enumerate(env.source.episodes) if counts[(ek.scene_id, ek.im_id, ek.obj_id)] == 1]
 
     common: dict[str, Any] = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": max(30, len(keys) + 5)}
     if settings.pipeline:
         common["pipeline"] = str(Path(settings.pipeline).resolve())
-    specs = [NodeSpec(name, params=dict(common)) for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
-    specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""), "noise_lambda": float(noise_lambda),
+    specs = [NodeSpec(name, params=dict(common))
+             for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
+    specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""),
+                                                        "noise_lambda": float(noise_lambda),
                                                         "max_ops": settings.env.max_ops}))
     wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
     specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
@@ -147,7 +150,8 @@ def replay_check(
                 if launcher.wait(timeout=0.2) is not None:  # a node died: the launcher stopped them all
                     break
             if launcher.returncode("bag_replay_node") != 0 or set(launcher.running()) != servers:
-                raise RuntimeError(f"the replay did not finish cleanly (see {log_dir}): still running {launcher.running()}")
+                raise RuntimeError(f"the replay did not finish cleanly (see {log_dir}): "
+                                   f"still running {launcher.running()}")
             ros = run_through_ros(plan, stamps)
             if set(launcher.running()) != servers:
                 raise RuntimeError(f"a node died during the check (see {log_dir}): still running {launcher.running()}")
@@ -193,7 +197,8 @@ def _plot(path: Path, ros, local, summary) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     ax = axes[0]
-    ax.bar(["in-process", "through ROS"], [summary["success_in_process"], summary["success_ros"]], color=["tab:blue", "tab:orange"])
+    ax.bar(["in-process", "through ROS"], [summary["success_in_process"], summary["success_ros"]],
+           color=["tab:blue", "tab:orange"])
     ax.set_ylim(0, 1)
     ax.set_ylabel("episodes with a successful pick")
     ax.set_title(f"{summary['episodes']} episodes, {summary['identical_episodes']} identical")
@@ -233,7 +238,8 @@ def run_cli(args: Any) -> int:
     configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init()
     try:
-        s = replay_check(args.dataset, args.out, args.policy, args.pipeline, args.images, args.noise_lambda, rate=args.rate)
+        s = replay_check(args.dataset, args.out, args.policy, args.pipeline, args.images, args.noise_lambda,
+                         rate=args.rate)
     finally:
         rclpy.try_shutdown()
     print(format_summary(s))

@@ -1,8 +1,9 @@
 """The ROS backend of the environment's Operators interface (perception_config/operators.py).
 
 The same calls InProcessOperators makes, as service requests to the operator nodes: the
-generator at the start and for a generation action (generate_hypothesis), a refinement action (refine_hypothesis with
-the action's name), each with a seed drawn from the episode's streams exactly as in-process, the pick (pick), and the scoring set after each (score_hypothesis). The
+generator at the start and for a generation action (generate_hypothesis), a refinement action
+(refine_hypothesis with the action's name), each with a seed drawn from the episode's streams
+exactly as in-process, the pick (pick), and the scoring set after each (score_hypothesis). The
 hypothesis lives here and travels with each request; the images stay in the operator nodes,
 named by the frame's stamp (the generator resolves "latest" and every later call uses the
 stamp it answered with).
@@ -46,7 +47,8 @@ from ..geometry import Pose
 from ..operators import Episode, StepOutcome, draw_seed, refiner_stream
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 
-SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis", "pick": "pick"}
+SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis",
+            "pick": "pick"}
 NODES = {"generate": "generation_node", "refine": "refinement_node", "score": "scoring_node", "pick": "pick_node"}
 
 
@@ -121,7 +123,8 @@ class RosOperators:
         try:
             pose = msg_to_pose(pose_from.pose)
         except ValueError as exc:
-            return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}", elapsed=float(response.elapsed))
+            return BlockResult(ok=False, reason=f"the node answered an unusable pose: {exc}",
+                               elapsed=float(response.elapsed))
         scores = dict(zip(pose_from.score_names, pose_from.scores))  # when asked for (fused scoring)
         return BlockResult(ok=True, pose=pose, scores=scores, elapsed=float(response.elapsed),
                            info={"pose_msg": pose_from.pose})
@@ -186,7 +189,8 @@ class RosOperators:
             return self._outcome(action, BlockResult.fail("no hypothesis to work on"), started)
         if act.kind == Kind.REFINEMENT:
             res = self._call("refine", RefineHypothesis.Request(hypothesis=self._hypothesis(), method=action,
-                                                                 seed=draw_seed(self.refiner_rng), score=self.fused_scoring))
+                                                                 seed=draw_seed(self.refiner_rng),
+                                                                 score=self.fused_scoring))
             return self._outcome(action, self._result(res, res.hypothesis if res.success else None), started)
         if act.kind == Kind.PICK:
             res = self._call("pick", Pick.Request(hypothesis=self._hypothesis()))

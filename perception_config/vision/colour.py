@@ -50,7 +50,8 @@ def hue_histogram(rgb: np.ndarray) -> np.ndarray | None:
         return None
     ch = ch[ok]
     grey = np.linalg.norm(ch, axis=1) < GREY_RADIUS
-    sector = 1 + (np.floor((np.arctan2(ch[:, 1], ch[:, 0]) + math.pi) / (2 * math.pi) * HUE_BINS).astype(int) % HUE_BINS)
+    sector = 1 + (np.floor((np.arctan2(ch[:, 1], ch[:, 0]) + math.pi) / (2 * math.pi) * HUE_BINS).astype(int)
+                  % HUE_BINS)
     h = np.bincount(np.where(grey, 0, sector), minlength=HUE_BINS + 1).astype(np.float64)
     # Spread each hue sector over its neighbours: a hue near a sector boundary (the LM-O duck's
     # model and image fall on either side of one) must not look like another colour.
@@ -59,7 +60,8 @@ def hue_histogram(rgb: np.ndarray) -> np.ndarray | None:
     return h / h.sum()
 
 
-_MODEL_COLOURS: "weakref.WeakKeyDictionary[ObjectModel, tuple[np.ndarray, np.ndarray | None]]" = weakref.WeakKeyDictionary()
+_MODEL_COLOURS: "weakref.WeakKeyDictionary[ObjectModel, tuple[np.ndarray, np.ndarray | None]]" = (
+    weakref.WeakKeyDictionary())
 
 
 def model_point_colours(model: ObjectModel) -> tuple[np.ndarray, np.ndarray | None] | None:

@@ -77,7 +77,8 @@ def silhouette_points(rendering: Rendering) -> tuple[np.ndarray, np.ndarray]:
     return uv, np.stack([gx, gy], axis=1).astype(np.float64)
 
 
-def canny_edges(frame: Frame, cache: dict | None, low: float = 40.0, high: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+def canny_edges(frame: Frame, cache: dict | None, low: float = 40.0,
+                high: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
     """(edges uint8 HxW, direction float32 HxW in [0, pi) along the edge), cached per frame."""
     key = f"edges:canny:{low}:{high}"
     if cache is not None and key in cache and cache[key][0] is frame.rgb:
@@ -217,7 +218,8 @@ class TensorCache:
         cx, cy, cw, ch = crop
         e = edges[cy:cy + ch, cx:cx + cw]
         n_edges = int(np.count_nonzero(e))
-        dct = directional_chamfer_tensor(e, direction[cy:cy + ch, cx:cx + cw], n_bins, penalty, max_distance) if n_edges else None
+        dct = (directional_chamfer_tensor(e, direction[cy:cy + ch, cx:cx + cw], n_bins, penalty, max_distance)
+               if n_edges else None)
         if n_edges:
             entries.append((frame.rgb, params, crop, dct, n_edges))
             del entries[:-TensorCache.SIZE]

@@ -86,7 +86,8 @@ def icp_polish(
     for k, dist in enumerate(distances):
         est = reg.TransformationEstimationPointToPoint() if k == 0 else reg.TransformationEstimationPointToPlane()
         pts, nrm = visible_model_points(model, Pose.from_matrix(T))
-        res = reg.registration_icp(point_cloud(pts, nrm), target, dist, T, est, reg.ICPConvergenceCriteria(max_iteration=iterations))
+        res = reg.registration_icp(point_cloud(pts, nrm), target, dist, T, est,
+                                   reg.ICPConvergenceCriteria(max_iteration=iterations))
         if res.fitness > 0:
             T = np.asarray(res.transformation).copy()
         fitness, rmse = float(res.fitness), float(res.inlier_rmse)

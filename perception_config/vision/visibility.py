@@ -74,7 +74,8 @@ def default_visibility_tolerance(model: ObjectModel) -> float:
     return max(0.003, 0.03 * model.diameter)
 
 
-def visible_mask(points_cam: np.ndarray, rendering: Rendering, K: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+def visible_mask(points_cam: np.ndarray, rendering: Rendering, K: np.ndarray,
+                 tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Which camera-frame points are visible in the rendering, and their pixel coordinates.
 
     A point is visible when it is not farther than `tol` behind the nearest rendered depth in
@@ -112,7 +113,8 @@ class VisiblePoints:
         return int(len(self.index))
 
 
-def _visible(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, which: str, tol: float | None) -> VisiblePoints:
+def _visible(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, which: str,
+             tol: float | None) -> VisiblePoints:
     tol = default_visibility_tolerance(model) if tol is None else float(tol)
     name = _SURFACE_KEY if which == "surface" else _EDGES_KEY
     key = _pose_key(model, pose, tol)
@@ -129,12 +131,14 @@ def _visible(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, w
     return out
 
 
-def visible_surface(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None, tol: float | None = None) -> VisiblePoints:
+def visible_surface(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None,
+                    tol: float | None = None) -> VisiblePoints:
     """The model's surface samples (with normals) visible from `pose`; cached per frame."""
     return _visible(frame, model, pose, cache, "surface", tol)
 
 
-def visible_edges(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None, tol: float | None = None) -> VisiblePoints:
+def visible_edges(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None,
+                  tol: float | None = None) -> VisiblePoints:
     """The model's sharp-edge samples visible from `pose`; `normals` holds the 3D edge
     directions (camera frame) for these. Cached per frame."""
     return _visible(frame, model, pose, cache, "edges", tol)

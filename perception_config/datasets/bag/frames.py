@@ -155,7 +155,8 @@ class _Assembler:
         gt = parts.get("gt")
         if gt is not None:
             if len(gt.object_ids) != len(gt.poses):
-                raise self._err(t.ground_truth or "", stamp, f"{len(gt.object_ids)} object_ids but {len(gt.poses)} poses")
+                raise self._err(t.ground_truth or "", stamp,
+                                f"{len(gt.object_ids)} object_ids but {len(gt.poses)} poses")
             for oid, p in zip(gt.object_ids, gt.poses):
                 try:
                     obj_id = int(oid)

@@ -254,7 +254,8 @@ def make_decoder(ch: _ChannelInfo, path: Path) -> Callable[[bytes], Any]:
     try:
         return generate_dynamic(name, text)[name]
     except Exception as exc:
-        raise BagFormatError(f"{path}: topic {ch.topic}: cannot parse the message definition of {name} ({exc})") from None
+        raise BagFormatError(f"{path}: topic {ch.topic}: "
+                             f"cannot parse the message definition of {name} ({exc})") from None
 
 
 def iter_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:

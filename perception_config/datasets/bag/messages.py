@@ -36,7 +36,8 @@ def _image_view(msg: Any, dtype: np.dtype, channels: int) -> np.ndarray:
             f"step {step} is smaller than width {w} x {channels * dtype.itemsize} bytes per {enc} pixel = {row}")
     n = len(msg.data)
     if n != step * h:
-        raise ImageFormatError(f"{enc} image {w}x{h} has {n} data bytes, expected step x height = {step} x {h} = {step * h}")
+        raise ImageFormatError(f"{enc} image {w}x{h} has {n} data bytes, "
+                               f"expected step x height = {step} x {h} = {step * h}")
     buf = np.frombuffer(msg.data, dtype=np.uint8).reshape(h, step)[:, :row]
     if dtype.itemsize > 1:
         dtype = dtype.newbyteorder(">" if msg.is_bigendian else "<")

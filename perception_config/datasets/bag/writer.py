@@ -174,7 +174,8 @@ class BagWriter:
             raise ValueError(f"rate_hz must be a positive number, got {rate_hz}")
         if depth_encoding not in ("16UC1", "32FC1"):
             raise ValueError(f"depth_encoding must be '16UC1' or '32FC1', got {depth_encoding!r}")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE, "": CompressionType.NONE}
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE,
+                "": CompressionType.NONE}
         if compression not in comp:
             raise ValueError(f"compression must be one of zstd, lz4, none; got {compression!r}")
         self.rate_hz = float(rate_hz)
