@@ -1,4 +1,4 @@
-"""Shared fixtures: the real LM-O sample (skipped when ../shared is absent), a procedural box
+"""Shared fixtures: the real LM-O samples (skipped when ../shared is absent), a procedural box
 model, and the rclpy client node of cross-process ROS tests."""
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from ros_helpers import pick_domain_id
 
 # The repo and ../shared are siblings: /work/main and /work/shared.
 LMO_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo"
+LMO_RGB_ROOT = LMO_ROOT.with_name("lmo-rgb")
 
 # ROS processes of this test session get a domain of their own (set before rclpy loads).
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
@@ -33,6 +34,33 @@ def lmo_root() -> Path:
     if not (LMO_ROOT / "models" / "models_info.json").exists():
         pytest.skip(f"real LM-O sample not available at {LMO_ROOT}")
     return LMO_ROOT
+
+
+@pytest.fixture(scope="session")
+def lmo_dataset(lmo_root: Path):
+    """The LM-O sample as a BopDataset (test split: scene 2, image 3)."""
+    from perception_config.datasets.bop import BopDataset
+
+    return BopDataset(lmo_root, "test")
+
+
+@pytest.fixture(scope="session")
+def lmo_frame(lmo_dataset):
+    """The sample's one real RGB-D frame (scene 2, image 3) with the 8 object models, loaded once.
+    Shared by the whole session, so its images are read-only: a test that wants to change one
+    works on a copy."""
+    frame = lmo_dataset.load_frame(2, 3)
+    for array in (frame.rgb, frame.depth, frame.K):
+        array.flags.writeable = False
+    return frame
+
+
+@pytest.fixture(scope="session")
+def lmo_rgb_root() -> Path:
+    """Twenty real LM-O RGB frames without depth (BOP layout); skipped in a clone without ../shared."""
+    if not (LMO_RGB_ROOT / "models" / "models_info.json").exists():
+        pytest.skip(f"real LM-O RGB frames not available at {LMO_RGB_ROOT}")
+    return LMO_RGB_ROOT
 
 
 @pytest.fixture(scope="session")

@@ -53,10 +53,8 @@ def test_refiner_reduces_image_error_on_synthetic_frames(name, need):
     assert improved >= need, f"{name} improved {improved}/10"
 
 
-def test_d2co_on_the_real_lmo_frame(lmo_root):
-    from perception_config.datasets.bop import BopDataset
-
-    frame = BopDataset(lmo_root).load_frame(2, 3)
+def test_d2co_on_the_real_lmo_frame(lmo_frame):
+    frame = lmo_frame
     block, rng, cache = create("d2co"), np.random.default_rng(0), {}
     before, after = [], []
     for obj in frame.objects:
