@@ -1,5 +1,5 @@
-"""Shared fixtures: the real LM-O samples (skipped when ../shared is absent), a procedural box
-model, and the rclpy client node of cross-process ROS tests."""
+"""Shared fixtures: the real LM-O samples (skipped when ../shared is absent), the tiny synthetic
+dataset, a procedural box model, and the rclpy client node of cross-process ROS tests."""
 from __future__ import annotations
 
 import os
@@ -61,6 +61,15 @@ def lmo_rgb_root() -> Path:
     if not (LMO_RGB_ROOT / "models" / "models_info.json").exists():
         pytest.skip(f"real LM-O RGB frames not available at {LMO_RGB_ROOT}")
     return LMO_RGB_ROOT
+
+
+@pytest.fixture(scope="session")
+def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny synthetic BOP dataset (2 scenes x 2 images, seed 0), generated once per session
+    and shared with rl_helpers.make_env. Tests only read it."""
+    from rl_helpers import tiny_dataset
+
+    return tiny_dataset(tmp_path_factory)
 
 
 @pytest.fixture(scope="session")

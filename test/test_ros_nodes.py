@@ -14,7 +14,7 @@ import pytest
 
 from perception_config.geometry import Pose, rotation_angle
 from frames import perturbed_pose
-from rl_helpers import PIPELINE, pipeline_file, tiny_dataset
+from rl_helpers import PIPELINE, pipeline_file
 from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
 
 OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
@@ -27,10 +27,10 @@ def stamp_ns(i: int) -> int:
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(synthetic_dataset, tmp_path_factory):
     from perception_config.datasets.bop import BopDataset
 
-    root = tiny_dataset(tmp_path_factory)
+    root = synthetic_dataset
     ds = BopDataset(root, split="test")
     keys = ds.image_keys()
     return {"root": root, "dataset": ds, "keys": keys, "pipeline": pipeline_file(tmp_path_factory, PIPELINE)}

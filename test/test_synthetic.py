@@ -14,9 +14,9 @@ W, H = 640, 480
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("synth") / "ds"
-    return generate(out, scenes=2, images_per_scene=2, seed=0, progress=False)
+def dataset(synthetic_dataset: Path) -> Path:
+    """The session's tiny synthetic dataset (conftest.py): 2 scenes x 2 images, seed 0."""
+    return synthetic_dataset
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def _files(root: Path) -> dict[str, bytes]:
 
 def test_is_a_complete_bop_dataset(dataset, bop):
     assert not (dataset / ".incomplete").exists()
-    assert not list(dataset.parent.glob(".ds.incomplete-*"))
+    assert not list(dataset.parent.glob(f".{dataset.name}.incomplete-*"))
     cam = json.loads((dataset / "camera.json").read_text())
     assert (cam["width"], cam["height"], cam["depth_scale"]) == (W, H, DEPTH_SCALE)
     assert cam["fx"] == pytest.approx(LINEMOD_K[0, 0])
