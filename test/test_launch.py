@@ -44,6 +44,7 @@ def parts_models(tmp_path_factory) -> Path:
     return write_models(tmp_path_factory.mktemp("parts") / "models")
 
 
+@pytest.mark.ros
 def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(ros_node, parts_models, tmp_path,
                                                                                  monkeypatch):
     from perception_config_interfaces.srv import GenerateHypothesis
@@ -205,6 +206,7 @@ def _cleanup(launcher: "_Cli", pid: int | None) -> None:
         os.kill(pid, signal.SIGKILL)
 
 
+@pytest.mark.ros
 def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
     launcher = _Cli(["--nodes", "generation", "--models", str(parts_models), "--log-dir", str(tmp_path / "logs")], tmp_path)
     pid = None
@@ -222,6 +224,7 @@ def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
     assert "serving generate_hypothesis" in (tmp_path / "logs" / "generation_node.log").read_text()
 
 
+@pytest.mark.ros
 def test_cli_reports_a_killed_node_as_died_and_exits_1(parts_models, tmp_path):
     launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
     pid = None
@@ -236,6 +239,7 @@ def test_cli_reports_a_killed_node_as_died_and_exits_1(parts_models, tmp_path):
     assert "[launch] generation_node died (exit code -9: killed by SIGKILL)" in launcher.output()
 
 
+@pytest.mark.ros
 def test_nodes_do_not_outlive_a_killed_launcher(parts_models, tmp_path):
     launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
     pid = None

@@ -10,6 +10,8 @@ import pytest
 
 from rl_helpers import pipeline_file, tiny_dataset
 
+pytestmark = pytest.mark.ros
+
 
 @pytest.fixture(scope="module")
 def policy(tmp_path_factory):

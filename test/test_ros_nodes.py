@@ -17,6 +17,8 @@ from frames import perturbed_pose
 from rl_helpers import PIPELINE, pipeline_file
 from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
 
+pytestmark = pytest.mark.ros
+
 OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
 BASE_SEC = 1_700_000_000
 LAMBDA = 0.5
