@@ -2,8 +2,11 @@
 depth image and a shaded RGB image, so blocks can be tested without a dataset on disk."""
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 
+from perception_config.blocks.base import Block, BlockInput, BlockResult
 from perception_config.geometry import Pose, exp_so3
 from perception_config.models import ObjectModel, make_model
 from perception_config.render import render
@@ -74,6 +77,18 @@ def perturbed_pose(gt: Pose, rng: np.random.Generator, deg: float | tuple[float,
     if isinstance(mm, tuple):
         mm = rng.uniform(*mm)
     return Pose(exp_so3(w / np.linalg.norm(w) * np.radians(deg)) @ gt.R, gt.t + d / np.linalg.norm(d) * mm * 1e-3)
+
+
+def refine_perturbed(block: Block, frame: Frame, model: ObjectModel, gt: Pose, rng: np.random.Generator, n: int = 10,
+                     cache: dict | None = None, **perturbation) -> Iterator[tuple[Pose, BlockResult]]:
+    """Run `block` from `n` starts perturbed_pose(gt, rng, **perturbation), the i-th call seeded
+    with i, all sharing `cache`; each call must succeed. Yields (start, result)."""
+    cache = {} if cache is None else cache
+    for i in range(n):
+        start = perturbed_pose(gt, rng, **perturbation)
+        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
+        assert r.ok, r.reason
+        yield start, r
 
 
 def mean_point_distance(model: ObjectModel, a: Pose, b: Pose) -> float:
