@@ -15,7 +15,7 @@ import pytest
 from perception_config.geometry import Pose, rotation_angle
 from frames import perturbed_pose
 from rl_helpers import PIPELINE, pipeline_file
-from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
+from ros_helpers import NodeProcess, call, publish_when_matched, record_estimates, wait_for_service
 
 pytestmark = pytest.mark.ros
 
@@ -167,8 +167,6 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
 def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data, request):
     """estimate_pose over every object of every published frame (fixed pipeline, lambda 0.5,
     seeded): the same operators chosen and the same pick outcomes as the env in-process."""
-    from geometry_msgs.msg import PoseStamped
-    from perception_config_interfaces.msg import OperatorTrace
     from perception_config_interfaces.srv import EstimatePose
 
     from perception_config.agents import make_agent
@@ -176,10 +174,7 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     from perception_config.env import PerceptionConfigEnv
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
-    traces, poses = [], []
-    subs = [ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 10),
-            ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 10)]
-    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])  # the session node stays clean
+    traces, poses = record_estimates(ros_node, request)
     env = PerceptionConfigEnv(data["root"], data["pipeline"], time_mode="cost_table", min_visib_fract=0.3)
     agent = make_agent("fixed", env)
     stamps = {key: stamp_ns(i) for i, key in enumerate(data["keys"])}
