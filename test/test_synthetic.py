@@ -21,6 +21,16 @@ def bop(synthetic_dataset):
     return BopDataset(synthetic_dataset, "test")
 
 
+def _rendered_images(bop):
+    """Each image of the dataset: its frame, its scene_gt_info entries, and a render of its objects
+    alone (no bin)."""
+    from perception_config.render import render
+
+    for s, i in bop.image_keys():
+        f = bop.load_frame(s, i)
+        yield f, bop.gt_info(s, i), render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
+
+
 def _files(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
@@ -96,13 +106,10 @@ def test_gt_centres_project_inside_the_image(bop):
 def test_gt_info_matches_masks(bop):
     """px counts and boxes re-rendered here agree with scene_gt_info; visibility is exact."""
     from perception_config.datasets.bop import compute_gt_info
-    from perception_config.render import render, render_box
+    from perception_config.render import render_box
 
     diffs = []
-    for s, i in bop.image_keys():
-        f = bop.load_frame(s, i)
-        infos = bop.gt_info(s, i)
-        r = render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
+    for f, infos, r in _rendered_images(bop):
         bop19 = compute_gt_info(f)  # bop_toolkit's calc_gt_info from the noisy depth
         for k, (o, e) in enumerate(zip(f.objects, infos)):
             assert e["visib_fract"] == pytest.approx(e["px_count_visib"] / e["px_count_all"])
@@ -181,14 +188,9 @@ def test_depth_steps_make_shadows_and_edge_dropout():
 def test_dataset_shiny_parts_miss_more_depth(bop):
     import cv2
 
-    from perception_config.render import render
-
     materials = json.loads((bop.models_dir / "parts.json").read_text())
     miss = {"matte": [0, 0], "shiny": [0, 0]}
-    for s, i in bop.image_keys():
-        f = bop.load_frame(s, i)
-        infos = bop.gt_info(s, i)
-        r = render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
+    for f, infos, r in _rendered_images(bop):
         for k, (o, e) in enumerate(zip(f.objects, infos)):
             if e["visib_fract"] < 0.9:
                 continue
