@@ -28,12 +28,17 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def _shared_data(root: Path, what: str) -> Path:
+    """`root`, a BOP folder of ../shared; the test is skipped in a clone without it."""
+    if not (root / "models" / "models_info.json").exists():
+        pytest.skip(f"{what} not available at {root}")
+    return root
+
+
 @pytest.fixture(scope="session")
 def lmo_root() -> Path:
-    """The real BOP LM-O sample; the test is skipped in a clone without ../shared."""
-    if not (LMO_ROOT / "models" / "models_info.json").exists():
-        pytest.skip(f"real LM-O sample not available at {LMO_ROOT}")
-    return LMO_ROOT
+    """The real BOP LM-O sample (one RGB-D frame)."""
+    return _shared_data(LMO_ROOT, "real LM-O sample")
 
 
 @pytest.fixture(scope="session")
@@ -57,10 +62,8 @@ def lmo_frame(lmo_dataset):
 
 @pytest.fixture(scope="session")
 def lmo_rgb_root() -> Path:
-    """Twenty real LM-O RGB frames without depth (BOP layout); skipped in a clone without ../shared."""
-    if not (LMO_RGB_ROOT / "models" / "models_info.json").exists():
-        pytest.skip(f"real LM-O RGB frames not available at {LMO_RGB_ROOT}")
-    return LMO_RGB_ROOT
+    """Twenty real LM-O RGB frames without depth (BOP layout)."""
+    return _shared_data(LMO_RGB_ROOT, "real LM-O RGB frames")
 
 
 @pytest.fixture(scope="session")
