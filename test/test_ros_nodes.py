@@ -94,6 +94,16 @@ def client(ros_node, cell, srv_type, name, process):
     return c
 
 
+def operator_clients(ros_node, cell):
+    """Clients of the four operator services, each waited for: generate, refine, score, pick."""
+    from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+
+    return (client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node"),
+            client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node"),
+            client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node"),
+            client(ros_node, cell, Pick, "pick", "pick_node"))
+
+
 def hypothesis(stamp: int, object_id: int, pose: Pose):
     from perception_config_interfaces.msg import Hypothesis
 
@@ -117,10 +127,7 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
 
     from perception_config.ros.conversions import msg_to_pose
 
-    gen = client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node")
-    ref = client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
-    sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
-    pick = client(ros_node, cell, Pick, "pick", "pick_node")
+    gen, ref, sco, pick = operator_clients(ros_node, cell)
     stamp = stamp_ns(0)
     frame = cell["frames"][stamp]
     obj = frame.objects[0]
@@ -236,10 +243,7 @@ def _bad_frames(good):
 def test_bad_input_answers_false_with_a_message_and_the_nodes_keep_serving(ros_node, cell, data):
     from perception_config_interfaces.srv import EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
 
-    sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
-    ref = client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
-    gen = client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node")
-    pick = client(ros_node, cell, Pick, "pick", "pick_node")
+    gen, ref, sco, pick = operator_clients(ros_node, cell)
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     good_stamp = stamp_ns(0)
     frame = cell["frames"][good_stamp]
