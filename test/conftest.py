@@ -1,5 +1,5 @@
-"""Shared fixtures: the real LM-O sample (skipped when ../shared is absent), a procedural box
-model, and the rclpy client node of cross-process ROS tests."""
+"""Shared fixtures: the real LM-O samples (skipped when ../shared is absent), the tiny synthetic
+dataset, a procedural box model, and the rclpy client node of cross-process ROS tests."""
 from __future__ import annotations
 
 import os
@@ -14,6 +14,7 @@ from ros_helpers import pick_domain_id
 
 # The repo and ../shared are siblings: /work/main and /work/shared.
 LMO_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo"
+LMO_RGB_ROOT = LMO_ROOT.with_name("lmo-rgb")
 
 # ROS processes of this test session get a domain of their own (set before rclpy loads).
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
@@ -27,12 +28,51 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def _shared_data(root: Path, what: str) -> Path:
+    """`root`, a BOP folder of ../shared; the test is skipped in a clone without it."""
+    if not (root / "models" / "models_info.json").exists():
+        pytest.skip(f"{what} not available at {root}")
+    return root
+
+
 @pytest.fixture(scope="session")
 def lmo_root() -> Path:
-    """The real BOP LM-O sample; the test is skipped in a clone without ../shared."""
-    if not (LMO_ROOT / "models" / "models_info.json").exists():
-        pytest.skip(f"real LM-O sample not available at {LMO_ROOT}")
-    return LMO_ROOT
+    """The real BOP LM-O sample (one RGB-D frame)."""
+    return _shared_data(LMO_ROOT, "real LM-O sample")
+
+
+@pytest.fixture(scope="session")
+def lmo_dataset(lmo_root: Path):
+    """The LM-O sample as a BopDataset (test split: scene 2, image 3)."""
+    from perception_config.datasets.bop import BopDataset
+
+    return BopDataset(lmo_root, "test")
+
+
+@pytest.fixture(scope="session")
+def lmo_frame(lmo_dataset):
+    """The sample's one real RGB-D frame (scene 2, image 3) with the 8 object models, loaded once.
+    Shared by the whole session, so its images are read-only: a test that wants to change one
+    works on a copy."""
+    frame = lmo_dataset.load_frame(2, 3)
+    for array in (frame.rgb, frame.depth, frame.K):
+        array.flags.writeable = False
+    return frame
+
+
+@pytest.fixture(scope="session")
+def lmo_rgb_root() -> Path:
+    """Twenty real LM-O RGB frames without depth (BOP layout)."""
+    return _shared_data(LMO_RGB_ROOT, "real LM-O RGB frames")
+
+
+@pytest.fixture(scope="session")
+def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny synthetic BOP dataset (2 scenes x 2 images, seed 0), generated once per session
+    and shared with rl_helpers.make_env. Tests only read it."""
+    from rl_helpers import tiny_dataset
+
+    return tiny_dataset(tmp_path_factory)
 
 
 @pytest.fixture(scope="session")

@@ -2,8 +2,11 @@
 depth image and a shaded RGB image, so blocks can be tested without a dataset on disk."""
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 
+from perception_config.blocks.base import Block, BlockInput, BlockResult
 from perception_config.geometry import Pose, exp_so3
 from perception_config.models import ObjectModel, make_model
 from perception_config.render import render
@@ -56,12 +59,43 @@ def synthetic_frame(
     return Frame(rgb=rgb, depth=depth.astype(np.float32), K=K, stamp=1.0, objects=objects)
 
 
-def perturbed_pose(gt: Pose, rng: np.random.Generator, deg: float = 5.0, mm: float = 5.0) -> Pose:
-    """`gt` rotated by exactly `deg` about a random axis and shifted by exactly `mm` in a random direction."""
+def random_box_scene(seed: int, **frame_kw) -> tuple[ObjectModel, Pose, Frame]:
+    """The box at a rotation drawn from `seed`, 0.7 m in front of the camera, in a frame rendered
+    with that seed (`frame_kw` go to synthetic_frame)."""
+    model = box_model()
+    gt = Pose(exp_so3(np.random.default_rng(seed).normal(size=3)), [0.02, -0.01, 0.7])
+    return model, gt, synthetic_frame([model], [gt], seed=seed, **frame_kw)
+
+
+def perturbed_pose(gt: Pose, rng: np.random.Generator, deg: float | tuple[float, float] = 5.0,
+                   mm: float | tuple[float, float] = 5.0) -> Pose:
+    """`gt` rotated by exactly `deg` about a random axis and shifted by exactly `mm` in a random
+    direction; a (low, high) pair draws the amount uniformly (after the axis and the direction)."""
     w, d = rng.normal(size=3), rng.normal(size=3)
+    if isinstance(deg, tuple):
+        deg = rng.uniform(*deg)
+    if isinstance(mm, tuple):
+        mm = rng.uniform(*mm)
     return Pose(exp_so3(w / np.linalg.norm(w) * np.radians(deg)) @ gt.R, gt.t + d / np.linalg.norm(d) * mm * 1e-3)
+
+
+def refine_perturbed(block: Block, frame: Frame, model: ObjectModel, gt: Pose, rng: np.random.Generator, n: int = 10,
+                     cache: dict | None = None, **perturbation) -> Iterator[tuple[Pose, BlockResult]]:
+    """Run `block` from `n` starts perturbed_pose(gt, rng, **perturbation), the i-th call seeded
+    with i, all sharing `cache`; each call must succeed. Yields (start, result)."""
+    cache = {} if cache is None else cache
+    for i in range(n):
+        start = perturbed_pose(gt, rng, **perturbation)
+        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
+        assert r.ok, r.reason
+        yield start, r
 
 
 def mean_point_distance(model: ObjectModel, a: Pose, b: Pose) -> float:
     """ADD (m): mean distance of the model's points under the two poses."""
     return float(np.mean(np.linalg.norm(a.transform(model.points) - b.transform(model.points), axis=1)))
+
+
+def well_visible(frame: Frame, min_visib: float) -> list[SceneObject]:
+    """The frame's objects of which more than `min_visib` is visible (BOP's visib_fract)."""
+    return [o for o in frame.objects if o.visib_fract is not None and o.visib_fract > min_visib]

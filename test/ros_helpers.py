@@ -96,6 +96,21 @@ def publish_when_matched(node, publisher, msg, subscribers: int = 1, timeout: fl
     publisher.publish(msg)
 
 
+def record_estimates(node, request, depth: int = 10) -> tuple[list, list]:
+    """Lists that collect the configurator's published estimates (perception/trace OperatorTrace,
+    perception/pose PoseStamped) on the test's node, unsubscribed when the test ends: the session
+    node stays clean."""
+    from geometry_msgs.msg import PoseStamped
+    from perception_config_interfaces.msg import OperatorTrace
+
+    traces: list = []
+    poses: list = []
+    subs = [node.create_subscription(OperatorTrace, "perception/trace", traces.append, depth),
+            node.create_subscription(PoseStamped, "perception/pose", poses.append, depth)]
+    request.addfinalizer(lambda: [node.destroy_subscription(s) for s in subs])
+    return traces, poses
+
+
 def call(node, client, request, timeout: float = 10.0):
     """Call a service from the test's node and spin until the answer (or fail after `timeout`)."""
     import rclpy

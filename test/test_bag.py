@@ -306,10 +306,8 @@ def test_cli_bag_info_and_write(small_bag, tmp_path, capsys):
     assert len(list(read_bag(tmp_path / "o.mcap"))) == 2
 
 
-def test_real_lmo_frame_round_trip(lmo_root, tmp_path):
-    from perception_config.datasets.bop import BopDataset
-
-    ds = BopDataset(lmo_root)
+def test_real_lmo_frame_round_trip(lmo_root, lmo_dataset, tmp_path):
+    ds = lmo_dataset
     n = write_bag(lmo_root, tmp_path / "lmo", progress=False)
     out = list(read_bag(tmp_path / "lmo"))
     assert n == len(out) == len(ds.image_keys())

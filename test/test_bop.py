@@ -83,10 +83,9 @@ def test_tiny_dataset_reads_back(tiny: Path) -> None:
     assert [f.im_id for f in ds.frames(with_models=False)] == [0, 2, 4, 0, 2, 4]
 
 
-def test_lmo_frame_in_metres(lmo_root: Path) -> None:
-    ds = BopDataset(lmo_root)
+def test_lmo_frame_in_metres(lmo_dataset: BopDataset, lmo_frame) -> None:
+    ds, f = lmo_dataset, lmo_frame
     assert ds.image_keys() == [(2, 3)]
-    f = ds.load_frame(2, 3)
     assert [o.obj_id for o in f.objects] == [1, 5, 6, 8, 9, 10, 11, 12]
     assert 0.5 < float(np.nanmedian(f.depth)) < 2.0
     assert np.isnan(f.depth).any() and not (f.depth == 0).any()
@@ -97,8 +96,8 @@ def test_lmo_frame_in_metres(lmo_root: Path) -> None:
     assert ds.load_frame(2, 3, with_models=False).objects[0].model is None
 
 
-def test_lmo_scene_round_trip(lmo_root: Path, tmp_path: Path) -> None:
-    src = BopDataset(lmo_root)
+def test_lmo_scene_round_trip(lmo_root: Path, lmo_dataset: BopDataset, tmp_path: Path) -> None:
+    src = lmo_dataset
     out = tmp_path / "copy"
     write_models_info(out / "models", src.models_info)
     for p in (lmo_root / "models").glob("*.ply"):
@@ -132,10 +131,9 @@ def test_lmo_scene_round_trip(lmo_root: Path, tmp_path: Path) -> None:
     assert not list(out.rglob("*.tmp"))
 
 
-def test_lmo_compute_gt_info_agrees_with_bop(lmo_root: Path) -> None:
-    ds = BopDataset(lmo_root)
-    ours = compute_gt_info(ds.load_frame(2, 3))
-    for a, b in zip(ours, ds.gt_info(2, 3), strict=True):
+def test_lmo_compute_gt_info_agrees_with_bop(lmo_dataset: BopDataset, lmo_frame) -> None:
+    ours = compute_gt_info(lmo_frame)
+    for a, b in zip(ours, lmo_dataset.gt_info(2, 3), strict=True):
         assert a["visib_fract"] == pytest.approx(b["visib_fract"], abs=0.02)
         assert a["px_count_all"] == pytest.approx(b["px_count_all"], rel=0.02)
         assert np.abs(np.subtract(a["bbox_obj"], b["bbox_obj"])).max() <= 2

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose
+from frames import box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose, refine_perturbed
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.blocks.chamfer import edge_distance
@@ -34,12 +34,8 @@ def test_edge_distance_labels_point_at_the_nearest_edge_pixel():
 def test_chamfer_icp_improves_the_3d_error_without_depth_drift():
     model, gt = box_model(), default_pose()
     frame = synthetic_frame([model], [gt], seed=2)
-    block, rng, cache = create("chamfer_icp"), np.random.default_rng(3), {}
     better, depth_moves = 0, []
-    for i in range(10):
-        start = _perturbed(gt, rng)
-        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
-        assert r.ok, r.reason
+    for start, r in refine_perturbed(create("chamfer_icp"), frame, model, gt, np.random.default_rng(3)):
         better += _add(model, r.pose, gt) < _add(model, start, gt)
         depth_moves.append(abs(r.pose.t[2] - start.t[2]))
     assert better >= 7, f"chamfer_icp improved {better}/10"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import K_LINEMOD, box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose
+from frames import K_LINEMOD, box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose, refine_perturbed
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.geometry import exp_so3
@@ -31,12 +31,9 @@ def test_projection_jacobian_matches_finite_differences():
 def test_d2co_reduces_the_3d_pose_error_of_perturbed_hypotheses():
     model, gt = box_model(), default_pose()
     frame = synthetic_frame([model], [gt], seed=3)
-    block, rng, cache = create("d2co"), np.random.default_rng(7), {}
+    cache: dict = {}
     better, costs = 0, []
-    for i in range(10):
-        start = _perturbed(gt, rng)
-        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
-        assert r.ok, r.reason
+    for start, r in refine_perturbed(create("d2co"), frame, model, gt, np.random.default_rng(7), cache=cache):
         better += _add(model, r.pose, gt) < _add(model, start, gt)
         costs.append((r.info["cost_before"], r.scores["d2co_cost"]))
     assert better >= 7, f"d2co improved {better}/10"

@@ -5,16 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, synthetic_frame
+from frames import mean_point_distance, perturbed_pose, random_box_scene, well_visible
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.depth_refinement import DepthRefine, model_centre, shift_along_ray
 from perception_config.geometry import Pose, exp_so3, rotation_angle
 from perception_config.render import project
 from perception_config.scene import Frame
-
-
-def add_error(model, a: Pose, b: Pose) -> float:
-    return float(np.linalg.norm(a.transform(model.points) - b.transform(model.points), axis=1).mean())
 
 
 def depth_error(model, a: Pose, b: Pose) -> float:
@@ -34,18 +30,6 @@ def along_ray(pose: Pose, model, rng: np.random.Generator) -> Pose:
                 p.t + lateral / np.linalg.norm(lateral) * rng.uniform(0.001, 0.002))
 
 
-def general(pose: Pose, rng: np.random.Generator) -> Pose:
-    axis, d = rng.normal(size=3), rng.normal(size=3)
-    return Pose(exp_so3(axis / np.linalg.norm(axis) * np.radians(rng.uniform(5, 10))) @ pose.R,
-                pose.t + d / np.linalg.norm(d) * rng.uniform(0.01, 0.02))
-
-
-def scene(seed: int):
-    model = box_model()
-    gt = Pose(exp_so3(np.random.default_rng(seed).normal(size=3)), [0.02, -0.01, 0.7])
-    return model, gt, synthetic_frame([model], [gt], seed=seed)
-
-
 def test_registered_with_params() -> None:
     assert REGISTRY["depth_refine"] is DepthRefine and DepthRefine.kind == Kind.REFINEMENT
     names = {p.name for p in DepthRefine.params}
@@ -55,7 +39,7 @@ def test_registered_with_params() -> None:
 
 
 def test_shift_along_ray_keeps_the_centre_on_its_ray() -> None:
-    model, gt, frame = scene(0)
+    model, gt, frame = random_box_scene(0)
     moved = shift_along_ray(gt, model_centre(model), 0.05)
     c = model_centre(model)[None]
     np.testing.assert_allclose(project(moved.transform(c), frame.K), project(gt.transform(c), frame.K), atol=1e-9)
@@ -67,11 +51,11 @@ def test_recovers_depth_error_on_synthetic_frames() -> None:
     block = DepthRefine()
     better = 0
     for k in range(10):
-        model, gt, frame = scene(k % 5)
+        model, gt, frame = random_box_scene(k % 5)
         start = along_ray(gt, model, np.random.default_rng(k))
         r = block(BlockInput(frame=frame, model=model, pose=start))
         assert r.ok, r.reason
-        better += add_error(model, r.pose, gt) < add_error(model, start, gt) and abs(depth_error(model, r.pose, gt)) < 0.003
+        better += mean_point_distance(model, r.pose, gt) < mean_point_distance(model, start, gt) and abs(depth_error(model, r.pose, gt)) < 0.003
         np.testing.assert_allclose(r.pose.R, start.R)  # only the translation moves
     assert better >= 9, better
 
@@ -82,8 +66,8 @@ def test_reduces_depth_error_of_general_perturbations_on_average() -> None:
     block = DepthRefine()
     before, after = [], []
     for k in range(10):
-        model, gt, frame = scene(k % 5)
-        start = general(gt, np.random.default_rng(50 + k))
+        model, gt, frame = random_box_scene(k % 5)
+        start = perturbed_pose(gt, np.random.default_rng(50 + k), (5.0, 10.0), (10.0, 20.0))
         r = block(BlockInput(frame=frame, model=model, pose=start))
         assert r.ok, r.reason
         before.append(abs(depth_error(model, start, gt)))
@@ -92,34 +76,26 @@ def test_reduces_depth_error_of_general_perturbations_on_average() -> None:
 
 
 def test_keeps_the_ground_truth() -> None:
-    model, gt, frame = scene(3)
+    model, gt, frame = random_box_scene(3)
     r = DepthRefine()(BlockInput(frame=frame, model=model, pose=gt))
     assert r.ok and abs(depth_error(model, r.pose, gt)) < 5e-4
 
 
-def test_recovers_depth_error_on_real_lmo_frame(lmo_root) -> None:
-    try:
-        from perception_config.datasets.bop import BopDataset
-
-        frame = BopDataset(lmo_root, "test").load_frame(2, 3)
-    except ImportError as exc:
-        pytest.skip(f"BOP loader not available: {exc}")
+def test_recovers_depth_error_on_real_lmo_frame(lmo_frame) -> None:
     block, cache = DepthRefine(), {}
     better = trials = 0
-    for i, o in enumerate(o for o in frame.objects if o.visib_fract and o.visib_fract > 0.9):
-        U, _, Vt = np.linalg.svd(o.gt.R)  # LM-O rotations are orthonormal only to ~2e-3
-        gt = Pose(U @ Vt, o.gt.t)
+    for i, o in enumerate(well_visible(lmo_frame, 0.9)):
         rng = np.random.default_rng(10 + i)
         for _ in range(3):
-            start = along_ray(gt, o.model, rng)
-            r = block(BlockInput(frame=frame, model=o.model, pose=start, cache=cache))
+            start = along_ray(o.gt, o.model, rng)
+            r = block(BlockInput(frame=lmo_frame, model=o.model, pose=start, cache=cache))
             trials += 1
-            better += r.ok and add_error(o.model, r.pose, gt) < add_error(o.model, start, gt)
+            better += r.ok and mean_point_distance(o.model, r.pose, o.gt) < mean_point_distance(o.model, start, o.gt)
     assert trials >= 12 and better >= 0.8 * trials, (better, trials)
 
 
 def test_bad_inputs_fail_with_a_reason() -> None:
-    model, gt, frame = scene(0)
+    model, gt, frame = random_box_scene(0)
     block = DepthRefine()
 
     def run(f: Frame, pose: Pose, b: DepthRefine = block) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, default_pose, perturbed_pose as _perturbed, synthetic_frame
+from frames import box_model, default_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.geometry import Pose
@@ -43,29 +43,20 @@ def test_crop_box_is_aligned_and_clipped():
 def test_refiner_reduces_image_error_on_synthetic_frames(name, need):
     model, gt = box_model(), default_pose(0.6)
     frame = synthetic_frame([model], [gt], seed=1)
-    block, rng, cache = create(name), np.random.default_rng(0), {}
     improved = 0
-    for i in range(10):
-        start = _perturbed(gt, rng)
-        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
-        assert r.ok, r.reason
+    for start, r in refine_perturbed(create(name), frame, model, gt, np.random.default_rng(0)):
         improved += _px_error(model, frame.K, r.pose, gt) < _px_error(model, frame.K, start, gt)
     assert improved >= need, f"{name} improved {improved}/10"
 
 
-def test_d2co_on_the_real_lmo_frame(lmo_root):
-    from perception_config.datasets.bop import BopDataset
-
-    frame = BopDataset(lmo_root).load_frame(2, 3)
+def test_d2co_on_the_real_lmo_frame(lmo_frame):
+    frame = lmo_frame
     block, rng, cache = create("d2co"), np.random.default_rng(0), {}
     before, after = [], []
     for obj in frame.objects:
         if obj.visib_fract is None or obj.visib_fract < 0.8:
             continue
-        for i in range(4):
-            start = _perturbed(obj.gt, rng, deg=8.0, mm=8.0)
-            r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache, rng=np.random.default_rng(i)))
-            assert r.ok, r.reason
+        for start, r in refine_perturbed(block, frame, obj.model, obj.gt, rng, n=4, cache=cache, deg=8.0, mm=8.0):
             before.append(_px_error(obj.model, frame.K, start, obj.gt))
             after.append(_px_error(obj.model, frame.K, r.pose, obj.gt))
     assert len(before) >= 8

@@ -45,10 +45,9 @@ class UniformAgent:
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    from perception_config.datasets.synthetic import generate
-
-    return generate(tmp_path_factory.mktemp("eval") / "synth", scenes=2, images_per_scene=2, seed=0, progress=False)
+def dataset(synthetic_dataset: Path) -> Path:
+    """The session's tiny synthetic dataset (conftest.py)."""
+    return synthetic_dataset
 
 
 @pytest.fixture(scope="module")

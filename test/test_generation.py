@@ -230,15 +230,12 @@ def test_global_registration_finds_the_right_object_among_others(parts):
     assert r.info["clusters_tried"] >= 1 and r.info["candidates_verified"] >= 1
 
 
-def test_global_registration_on_the_real_lmo_frame(lmo_root):
+def test_global_registration_on_the_real_lmo_frame(lmo_frame):
     """The duck (obj 9) in the cluttered real LM-O frame: its region is among the first three
     of the many object-sized ones (hue ranking: yellow), and the pose is right. Three clusters and an ample budget keep the
     search exhaustive, hence deterministic on a loaded machine."""
-    from perception_config.datasets.bop import BopDataset
-
-    frame = BopDataset(lmo_root, "test").load_frame(2, 3)
-    duck = frame.object(9)
-    r = run(GlobalRegistration(max_seconds=30.0, max_clusters=3), frame, duck.model, seed=1)
+    duck = lmo_frame.object(9)
+    r = run(GlobalRegistration(max_seconds=30.0, max_clusters=3), lmo_frame, duck.model, seed=1)
     assert r.ok, r.reason
     assert add_share(r.pose, duck.gt, duck.model) < 0.1
     assert r.info["clusters_tried"] == 3 and r.info["clusters_plausible"] > 20  # the ranking did the work

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, synthetic_frame
+from frames import box_model, mean_point_distance, perturbed_pose, random_box_scene, synthetic_frame, well_visible
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.icp import IcpPointToPlane, IcpPointToPoint, distance_schedule, unoccluded
 from perception_config.geometry import Pose, exp_so3
@@ -13,41 +13,11 @@ from perception_config.scene import Frame
 BLOCKS = [IcpPointToPoint, IcpPointToPlane]
 
 
-def perturbed(pose: Pose, deg: float, metres: float, rng: np.random.Generator) -> Pose:
-    """The pose rotated by exactly `deg` about a random axis (model centre fixed) and moved by
-    exactly `metres` in a random direction."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    d = rng.normal(size=3)
-    d /= np.linalg.norm(d)
-    return Pose(exp_so3(axis * np.radians(deg)) @ pose.R, pose.t + d * metres)
-
-
-def add_error(model, a: Pose, b: Pose) -> float:
-    return float(np.linalg.norm(a.transform(model.points) - b.transform(model.points), axis=1).mean())
-
-
-def scene(seed: int):
-    model = box_model()
-    gt = Pose(exp_so3(np.random.default_rng(seed).normal(size=3)), [0.02, -0.01, 0.7])
-    return model, gt, synthetic_frame([model], [gt], seed=seed)
-
-
-def lmo_objects(lmo_root, min_visib: float = 0.9):
-    try:
-        from perception_config.datasets.bop import BopDataset
-
-        frame = BopDataset(lmo_root, "test").load_frame(2, 3)
-    except ImportError as exc:  # bop.py not there yet
-        pytest.skip(f"BOP loader not available: {exc}")
-    out = []
-    for o in frame.objects:
-        if o.visib_fract is not None and o.visib_fract > min_visib:
-            # LM-O stores rotations orthonormal only to ~2e-3, which Pose.is_valid rejects
-            U, _, Vt = np.linalg.svd(o.gt.R)
-            out.append((o.model, Pose(U @ Vt, o.gt.t)))
-    assert len(out) >= 4
-    return frame, out
+def lmo_objects(frame: Frame) -> list:
+    """The objects of the real LM-O frame that are more than 90 % visible: at least 4 of its 8."""
+    objects = well_visible(frame, 0.9)
+    assert len(objects) >= 4
+    return objects
 
 
 def test_registered_with_params() -> None:
@@ -78,13 +48,13 @@ def test_improves_perturbed_pose_on_synthetic_frames(cls) -> None:
     block = cls()
     better = converged = 0
     for k in range(10):
-        model, gt, frame = scene(k % 3)
+        model, gt, frame = random_box_scene(k % 3)
         rng = np.random.default_rng(100 + k)
-        start = perturbed(gt, rng.uniform(5, 10), rng.uniform(0.01, 0.02), rng)
+        start = perturbed_pose(gt, rng, rng.uniform(5, 10), rng.uniform(10, 20))
         r = block(BlockInput(frame=frame, model=model, pose=start))
         assert r.ok, r.reason
         assert 0 <= r.scores["icp_fitness"] <= 1 and r.scores["icp_rmse"] >= 0
-        before, after = add_error(model, start, gt), add_error(model, r.pose, gt)
+        before, after = mean_point_distance(model, start, gt), mean_point_distance(model, r.pose, gt)
         better += after < before
         converged += after < 0.1 * model.diameter
     assert better >= 9 and converged >= 8, (better, converged)
@@ -94,53 +64,51 @@ def test_point_to_plane_converges_from_15deg_2cm() -> None:
     block = IcpPointToPlane()
     converged = 0
     for k in range(10):
-        model, gt, frame = scene(k % 5)
-        start = perturbed(gt, 15.0, 0.02, np.random.default_rng(200 + k))
+        model, gt, frame = random_box_scene(k % 5)
+        start = perturbed_pose(gt, np.random.default_rng(200 + k), 15.0, 20.0)
         r = block(BlockInput(frame=frame, model=model, pose=start))
-        converged += r.ok and add_error(model, r.pose, gt) < 0.1 * model.diameter
+        converged += r.ok and mean_point_distance(model, r.pose, gt) < 0.1 * model.diameter
     assert converged >= 8, converged
 
 
 @pytest.mark.parametrize("cls", BLOCKS)
-def test_improves_perturbed_pose_on_real_lmo_frame(lmo_root, cls) -> None:
-    frame, objects = lmo_objects(lmo_root)
+def test_improves_perturbed_pose_on_real_lmo_frame(lmo_frame, cls) -> None:
     block, cache = cls(), {}
     better = trials = 0
-    for i, (model, gt) in enumerate(objects):
+    for i, o in enumerate(lmo_objects(lmo_frame)):
         rng = np.random.default_rng(300 + i)
         for _ in range(3):
-            start = perturbed(gt, rng.uniform(5, 10), rng.uniform(0.01, 0.02), rng)
-            r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache))
+            start = perturbed_pose(o.gt, rng, rng.uniform(5, 10), rng.uniform(10, 20))
+            r = block(BlockInput(frame=lmo_frame, model=o.model, pose=start, cache=cache))
             trials += 1
-            better += r.ok and add_error(model, r.pose, gt) < add_error(model, start, gt)
+            better += r.ok and mean_point_distance(o.model, r.pose, o.gt) < mean_point_distance(o.model, start, o.gt)
     assert better >= 0.8 * trials, (better, trials)
 
 
-def test_point_to_plane_converges_on_real_lmo_frame(lmo_root) -> None:
-    frame, objects = lmo_objects(lmo_root)
+def test_point_to_plane_converges_on_real_lmo_frame(lmo_frame) -> None:
     block, cache = IcpPointToPlane(), {}
     converged = trials = 0
-    for i, (model, gt) in enumerate(objects):
+    for i, o in enumerate(lmo_objects(lmo_frame)):
         rng = np.random.default_rng(400 + i)
         for _ in range(3):
-            start = perturbed(gt, 15.0, 0.02, rng)
-            r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache))
+            start = perturbed_pose(o.gt, rng, 15.0, 20.0)
+            r = block(BlockInput(frame=lmo_frame, model=o.model, pose=start, cache=cache))
             trials += 1
-            converged += r.ok and add_error(model, r.pose, gt) < 0.1 * model.diameter
+            converged += r.ok and mean_point_distance(o.model, r.pose, o.gt) < 0.1 * o.model.diameter
     assert converged >= 0.8 * trials, (converged, trials)
 
 
 def test_coarse_then_fine_presets() -> None:
     coarse = IcpPointToPlane(max_correspondence_distance=0.03, final_distance=0.015, stages=2)
     fine = IcpPointToPlane(max_correspondence_distance=0.01, final_distance=0.005, stages=2)
-    model, gt, frame = scene(1)
-    start = perturbed(gt, 10.0, 0.015, np.random.default_rng(7))
+    model, gt, frame = random_box_scene(1)
+    start = perturbed_pose(gt, np.random.default_rng(7), 10.0, 15.0)
     cache: dict = {}
     r1 = coarse(BlockInput(frame=frame, model=model, pose=start, cache=cache))
     assert r1.ok, r1.reason
     r2 = fine(BlockInput(frame=frame, model=model, pose=r1.pose, cache=cache))
     assert r2.ok, r2.reason
-    e0, e1, e2 = (add_error(model, p, gt) for p in (start, r1.pose, r2.pose))
+    e0, e1, e2 = (mean_point_distance(model, p, gt) for p in (start, r1.pose, r2.pose))
     assert e1 < e0 and e2 <= e1 + 1e-4 and e2 < 0.003, (e0, e1, e2)
 
 
@@ -158,9 +126,9 @@ def test_occlusion_filter_keeps_pose_of_half_occluded_object() -> None:
         block = IcpPointToPlane(occlusion_filter=flag)
         errs = []
         for k in range(5):
-            start = perturbed(gt, 5.0, 0.01, np.random.default_rng(500 + k))
+            start = perturbed_pose(gt, np.random.default_rng(500 + k), 5.0, 10.0)
             r = block(BlockInput(frame=frame, model=model, pose=start))
-            errs.append(add_error(model, r.pose, gt) if r.ok else np.inf)
+            errs.append(mean_point_distance(model, r.pose, gt) if r.ok else np.inf)
         errors[flag] = np.median(errs)
     assert errors[True] < 0.1 * model.diameter < errors[False], errors
 
@@ -175,7 +143,7 @@ def test_unoccluded_mask() -> None:
 
 @pytest.mark.parametrize("cls", BLOCKS)
 def test_bad_inputs_fail_with_a_reason(cls) -> None:
-    model, gt, frame = scene(0)
+    model, gt, frame = random_box_scene(0)
     block = cls()
 
     def run(f: Frame, pose: Pose) -> str:
@@ -198,8 +166,8 @@ def test_bad_inputs_fail_with_a_reason(cls) -> None:
 
 
 def test_time_bound_stops_after_the_first_stage() -> None:
-    model, gt, frame = scene(2)
-    start = perturbed(gt, 5.0, 0.01, np.random.default_rng(9))
+    model, gt, frame = random_box_scene(2)
+    start = perturbed_pose(gt, np.random.default_rng(9), 5.0, 10.0)
     r = IcpPointToPlane(max_seconds=0.001, stages=4)(BlockInput(frame=frame, model=model, pose=start))
     assert r.ok, r.reason
     assert r.info["stages_run"] < 4 and r.info["timed_out"]

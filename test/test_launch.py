@@ -3,6 +3,7 @@ and by the CLI, prefixed log streaming, clean SIGINT shutdown, a dead node repor
 console script refused, and the defaults of the full node set resolved without spawning it."""
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -44,6 +45,7 @@ def parts_models(tmp_path_factory) -> Path:
     return write_models(tmp_path_factory.mktemp("parts") / "models")
 
 
+@pytest.mark.ros
 def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(ros_node, parts_models, tmp_path,
                                                                                  monkeypatch):
     from perception_config_interfaces.srv import GenerateHypothesis
@@ -205,16 +207,25 @@ def _cleanup(launcher: "_Cli", pid: int | None) -> None:
         os.kill(pid, signal.SIGKILL)
 
 
-def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
-    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models), "--log-dir", str(tmp_path / "logs")], tmp_path)
+@contextlib.contextmanager
+def _serving_generation_node(parts_models: Path, cwd: Path, *options: str):
+    """`launch --nodes generation` as a process, once its node serves: (launcher, node pid).
+    Whatever happens in the block, both are gone after it."""
+    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models), *options], cwd)
     pid = None
     try:
         pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
         launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
-        os.killpg(launcher.proc.pid, signal.SIGINT)  # a terminal's Ctrl-C: the launcher's group only
-        code = launcher.finish()
+        yield launcher, pid
     finally:
         _cleanup(launcher, pid)
+
+
+@pytest.mark.ros
+def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
+    with _serving_generation_node(parts_models, tmp_path, "--log-dir", str(tmp_path / "logs")) as (launcher, pid):
+        os.killpg(launcher.proc.pid, signal.SIGINT)  # a terminal's Ctrl-C: the launcher's group only
+        code = launcher.finish()
     text = launcher.output()
     assert code == 0, text
     assert "[launch] stopping all nodes" in text and "[launch] generation_node exited (exit code 0)" in text
@@ -222,34 +233,24 @@ def test_cli_ctrl_c_stops_the_node_cleanly_and_exits_0(parts_models, tmp_path):
     assert "serving generate_hypothesis" in (tmp_path / "logs" / "generation_node.log").read_text()
 
 
+@pytest.mark.ros
 def test_cli_reports_a_killed_node_as_died_and_exits_1(parts_models, tmp_path):
-    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
-    pid = None
-    try:
-        pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
-        launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
+    with _serving_generation_node(parts_models, tmp_path) as (launcher, pid):
         os.kill(pid, signal.SIGKILL)
         code = launcher.finish()
-    finally:
-        _cleanup(launcher, pid)
     assert code == 1, launcher.output()
     assert "[launch] generation_node died (exit code -9: killed by SIGKILL)" in launcher.output()
 
 
+@pytest.mark.ros
 def test_nodes_do_not_outlive_a_killed_launcher(parts_models, tmp_path):
-    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models)], tmp_path)
-    pid = None
-    try:
-        pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
-        launcher.wait_for(r"^\[generation_node\] .*serving generate_hypothesis")
+    with _serving_generation_node(parts_models, tmp_path) as (launcher, pid):
         os.killpg(launcher.proc.pid, signal.SIGKILL)  # the launcher's group: not the node's session
         launcher.finish()
         deadline = time.monotonic() + 10
         while not _gone(pid) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert _gone(pid), "the node outlived its launcher"
-    finally:
-        _cleanup(launcher, pid)
 
 
 # -- default resolution of the full node set (command lines only; nothing is spawned) -----------

@@ -323,10 +323,8 @@ def test_average_recalls_on_hand_made_arrays() -> None:
 # --------------------------------------------------------------------------- real LM-O
 
 
-def test_lmo_ground_truth_and_a_10mm_shift(lmo_root) -> None:
-    from perception_config.datasets.bop import BopDataset
-
-    frame = BopDataset(lmo_root, "test").load_frame(2, 3)
+def test_lmo_ground_truth_and_a_10mm_shift(lmo_frame) -> None:
+    frame = lmo_frame
     assert len(frame.objects) == 8
     fx = frame.K[0, 0]
     for obj in frame.objects:

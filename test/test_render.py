@@ -1,7 +1,6 @@
 """Renderer: analytic depth, occlusion, cropping, and agreement with real LM-O depth."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -128,10 +127,8 @@ def test_depth_to_points_lies_on_the_model(make_box) -> None:
     np.testing.assert_allclose(np.abs(pts / (size / 2)).max(axis=1), 1.0, atol=1e-3)
 
 
-def test_lmo_ground_truth_render_matches_real_depth(lmo_root: Path) -> None:
-    from perception_config.datasets.bop import BopDataset
-
-    frame = BopDataset(lmo_root).load_frame(2, 3)
+def test_lmo_ground_truth_render_matches_real_depth(lmo_dataset, lmo_frame) -> None:
+    frame = lmo_frame
     r = render([o.model for o in frame.objects], [o.gt for o in frame.objects], frame.K, frame.width, frame.height)
     both = np.isfinite(r.depth) & np.isfinite(frame.depth)
     diff = np.abs(r.depth[both] - frame.depth[both])
@@ -140,7 +137,7 @@ def test_lmo_ground_truth_render_matches_real_depth(lmo_root: Path) -> None:
     assert both.sum() > 10000
     assert med < 0.010
     # occlusion among the 8 models explains part of BOP's visibility: visible <= ours <= all
-    for i, (o, info) in enumerate(zip(frame.objects, BopDataset(lmo_root).gt_info(2, 3))):
+    for i, (o, info) in enumerate(zip(frame.objects, lmo_dataset.gt_info(2, 3))):
         ours = int((r.mask == i).sum())
         assert 0.95 * info["px_count_visib"] <= ours <= 1.02 * info["px_count_all"], o.obj_id
         rb = render_box(o.model, o.gt, frame.K, frame.width, frame.height)

@@ -9,6 +9,9 @@ import json
 import pytest
 
 from rl_helpers import pipeline_file, tiny_dataset
+from ros_helpers import record_estimates
+
+pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +57,6 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
     import time
 
     import rclpy
-    from geometry_msgs.msg import PoseStamped
-    from perception_config_interfaces.msg import OperatorTrace
 
     from perception_config.datasets.bag import write_bag
     from perception_config.datasets.bop import BopDataset
@@ -66,10 +67,7 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
     expected = sum(len(ds.gt(*key)) for key in ds.image_keys())
     bag = tmp_path / "scenes.mcap"
     write_bag(root, bag, progress=False)
-    traces, poses = [], []
-    subs = [ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 50),
-            ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 50)]
-    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])  # the session node stays clean
+    traces, poses = record_estimates(ros_node, request, depth=50)
     common = {"models_dir": str(root / "models"), "pipeline": str(pipeline_file(tmp_path_factory))}
     specs = [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "auto_every_frame": True, "noise_lambda": 0.3}))

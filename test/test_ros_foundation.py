@@ -100,6 +100,7 @@ def _publish_ground_truth(ros_node, stamp_sec: int, poses: dict[str, Pose]):
     return pub
 
 
+@pytest.mark.ros
 def test_generate_hypothesis_across_processes(ros_node, generation_node):
     from perception_config_interfaces.srv import GenerateHypothesis
 
@@ -143,6 +144,7 @@ def test_generate_hypothesis_across_processes(ros_node, generation_node):
     assert latest.success and abs(latest.hypothesis.pose.position.y - 0.1) < 1e-9
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize(
     "kwargs, expected",
     [

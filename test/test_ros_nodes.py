@@ -14,8 +14,10 @@ import pytest
 
 from perception_config.geometry import Pose, rotation_angle
 from frames import perturbed_pose
-from rl_helpers import PIPELINE, pipeline_file, tiny_dataset
-from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
+from rl_helpers import PIPELINE, pipeline_file
+from ros_helpers import NodeProcess, call, publish_when_matched, record_estimates, wait_for_service
+
+pytestmark = pytest.mark.ros
 
 OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
 BASE_SEC = 1_700_000_000
@@ -27,10 +29,10 @@ def stamp_ns(i: int) -> int:
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(synthetic_dataset, tmp_path_factory):
     from perception_config.datasets.bop import BopDataset
 
-    root = tiny_dataset(tmp_path_factory)
+    root = synthetic_dataset
     ds = BopDataset(root, split="test")
     keys = ds.image_keys()
     return {"root": root, "dataset": ds, "keys": keys, "pipeline": pipeline_file(tmp_path_factory, PIPELINE)}
@@ -92,6 +94,16 @@ def client(ros_node, cell, srv_type, name, process):
     return c
 
 
+def operator_clients(ros_node, cell):
+    """Clients of the four operator services, each waited for: generate, refine, score, pick."""
+    from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+
+    return (client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node"),
+            client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node"),
+            client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node"),
+            client(ros_node, cell, Pick, "pick", "pick_node"))
+
+
 def hypothesis(stamp: int, object_id: int, pose: Pose):
     from perception_config_interfaces.msg import Hypothesis
 
@@ -115,10 +127,7 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
 
     from perception_config.ros.conversions import msg_to_pose
 
-    gen = client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node")
-    ref = client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
-    sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
-    pick = client(ros_node, cell, Pick, "pick", "pick_node")
+    gen, ref, sco, pick = operator_clients(ros_node, cell)
     stamp = stamp_ns(0)
     frame = cell["frames"][stamp]
     obj = frame.objects[0]
@@ -165,8 +174,6 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
 def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data, request):
     """estimate_pose over every object of every published frame (fixed pipeline, lambda 0.5,
     seeded): the same operators chosen and the same pick outcomes as the env in-process."""
-    from geometry_msgs.msg import PoseStamped
-    from perception_config_interfaces.msg import OperatorTrace
     from perception_config_interfaces.srv import EstimatePose
 
     from perception_config.agents import make_agent
@@ -174,10 +181,7 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     from perception_config.episode_loop import acting_seed, play_episode
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
-    traces, poses = [], []
-    subs = [ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 10),
-            ros_node.create_subscription(PoseStamped, "perception/pose", poses.append, 10)]
-    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])  # the session node stays clean
+    traces, poses = record_estimates(ros_node, request)
     env = PerceptionConfigEnv(data["root"], data["pipeline"], time_mode="cost_table", min_visib_fract=0.3)
     agent = make_agent("fixed", env)
     stamps = {key: stamp_ns(i) for i, key in enumerate(data["keys"])}
@@ -233,10 +237,7 @@ def _bad_frames(good):
 def test_bad_input_answers_false_with_a_message_and_the_nodes_keep_serving(ros_node, cell, data):
     from perception_config_interfaces.srv import EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
 
-    sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
-    ref = client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
-    gen = client(ros_node, cell, GenerateHypothesis, "generate_hypothesis", "generation_node")
-    pick = client(ros_node, cell, Pick, "pick", "pick_node")
+    gen, ref, sco, pick = operator_clients(ros_node, cell)
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     good_stamp = stamp_ns(0)
     frame = cell["frames"][good_stamp]

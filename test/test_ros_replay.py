@@ -17,6 +17,8 @@ from perception_config.geometry import Pose, exp_so3, rotation_angle
 from perception_config.scene import Frame, SceneObject
 from ros_helpers import VENV_BIN, NodeProcess, ros_test_env
 
+pytestmark = pytest.mark.ros
+
 N_FRAMES, RATE_HZ, W, H = 5, 10.0, 64, 48
 STAMPS = [RECORDING_EPOCH_NS + round(i * 1e9 / RATE_HZ) for i in range(N_FRAMES)]
 TOPICS = {  # relative topic name -> message type (imported lazily: rclpy is loaded by the ros_node fixture)

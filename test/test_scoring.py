@@ -5,27 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, synthetic_frame
+from frames import box_model, perturbed_pose, random_box_scene, well_visible
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.scoring import IcpFitness, PsiC, PsiD
-from perception_config.geometry import Pose, exp_so3
+from perception_config.geometry import Pose
 from perception_config.render import project, render
 from perception_config.scene import Frame
 from perception_config.vision.edges import image_derivatives, projected_directions
 
 SCORERS = {"psi_d": PsiD, "psi_c": PsiC, "icp_fitness": IcpFitness}
-
-
-def perturbed(pose: Pose, rng: np.random.Generator) -> Pose:
-    axis, d = rng.normal(size=3), rng.normal(size=3)
-    return Pose(exp_so3(axis / np.linalg.norm(axis) * np.radians(rng.uniform(5, 10))) @ pose.R,
-                pose.t + d / np.linalg.norm(d) * rng.uniform(0.01, 0.02))
-
-
-def scene(seed: int, **kw):
-    model = box_model()
-    gt = Pose(exp_so3(np.random.default_rng(seed).normal(size=3)), [0.02, -0.01, 0.7])
-    return model, gt, synthetic_frame([model], [gt], seed=seed, **kw)
 
 
 def scores(frame, model, pose, cache=None) -> dict[str, float]:
@@ -47,7 +35,7 @@ def test_registered_as_scoring_blocks() -> None:
 
 
 def test_psi_d_components_on_constructed_depth() -> None:
-    model, gt, frame = scene(0, depth_noise=0.0)
+    model, gt, frame = random_box_scene(0, depth_noise=0.0)
     r = render([model], [gt], frame.K, frame.width, frame.height)
     obj = np.isfinite(r.depth)
 
@@ -73,7 +61,7 @@ def test_psi_d_components_on_constructed_depth() -> None:
 
 
 def test_psi_c_high_on_edges_zero_on_a_flat_image() -> None:
-    model, gt, frame = scene(1)
+    model, gt, frame = random_box_scene(1)
     r = PsiC()(BlockInput(frame=frame, model=model, pose=gt))
     assert r.ok and r.scores["psi_c"] > 0.8, r.scores
     flat = Frame(np.full_like(frame.rgb, 128), frame.depth, frame.K)
@@ -96,7 +84,7 @@ def test_projected_directions_match_finite_differences() -> None:
 
 
 def test_icp_fitness_definition() -> None:
-    model, gt, frame = scene(2, depth_noise=0.0)
+    model, gt, frame = random_box_scene(2, depth_noise=0.0)
     r = IcpFitness()(BlockInput(frame=frame, model=model, pose=gt))
     assert r.ok and r.scores["icp_fitness"] > 0.97 and r.scores["icp_rmse"] < 0.002, r.scores
     away = Pose(gt.R, gt.t + [0.0, 0.0, 0.04])  # 4 cm behind: beyond the 1 cm threshold
@@ -110,31 +98,23 @@ def test_icp_fitness_definition() -> None:
 def test_ground_truth_ranks_above_perturbed_on_synthetic_frames() -> None:
     wins = {"psi_d": 0, "psi_c": 0, "icp_fitness": 0}
     for k in range(10):
-        model, gt, frame = scene(k % 5)
+        model, gt, frame = random_box_scene(k % 5)
         cache: dict = {}
         s_gt = scores(frame, model, gt, cache)
-        s_bad = scores(frame, model, perturbed(gt, np.random.default_rng(k)), cache)
+        s_bad = scores(frame, model, perturbed_pose(gt, np.random.default_rng(k), (5.0, 10.0), (10.0, 20.0)), cache)
         for name in wins:
             wins[name] += s_gt[name] > s_bad[name]
     assert all(w >= 9 for w in wins.values()), wins
 
 
-def test_ground_truth_ranks_above_perturbed_on_real_lmo_frame(lmo_root) -> None:
-    try:
-        from perception_config.datasets.bop import BopDataset
-
-        frame = BopDataset(lmo_root, "test").load_frame(2, 3)
-    except ImportError as exc:
-        pytest.skip(f"BOP loader not available: {exc}")
+def test_ground_truth_ranks_above_perturbed_on_real_lmo_frame(lmo_frame) -> None:
     wins = {"psi_d": 0, "psi_c": 0, "icp_fitness": 0}
     trials, cache = 0, {}
-    for i, o in enumerate(o for o in frame.objects if o.visib_fract and o.visib_fract > 0.9):
-        U, _, Vt = np.linalg.svd(o.gt.R)  # LM-O rotations are orthonormal only to ~2e-3
-        gt = Pose(U @ Vt, o.gt.t)
-        s_gt = scores(frame, o.model, gt, cache)
+    for i, o in enumerate(well_visible(lmo_frame, 0.9)):
+        s_gt = scores(lmo_frame, o.model, o.gt, cache)
         rng = np.random.default_rng(20 + i)
         for _ in range(4):
-            s_bad = scores(frame, o.model, perturbed(gt, rng), cache)
+            s_bad = scores(lmo_frame, o.model, perturbed_pose(o.gt, rng, (5.0, 10.0), (10.0, 20.0)), cache)
             trials += 1
             for name in wins:
                 wins[name] += s_gt[name] > s_bad[name]
@@ -144,8 +124,8 @@ def test_ground_truth_ranks_above_perturbed_on_real_lmo_frame(lmo_root) -> None:
 
 
 def test_cache_shares_one_render_and_gives_the_same_scores() -> None:
-    model, gt, frame = scene(4)
-    pose = perturbed(gt, np.random.default_rng(3))
+    model, gt, frame = random_box_scene(4)
+    pose = perturbed_pose(gt, np.random.default_rng(3), (5.0, 10.0), (10.0, 20.0))
     cache: dict = {}
     shared = scores(frame, model, pose, cache)
     assert len(cache["visibility:render"]) == 1
@@ -157,7 +137,7 @@ def test_cache_shares_one_render_and_gives_the_same_scores() -> None:
 
 @pytest.mark.parametrize("name", sorted(SCORERS))
 def test_bad_inputs_fail_with_a_reason(name) -> None:
-    model, gt, frame = scene(0)
+    model, gt, frame = random_box_scene(0)
     block = SCORERS[name]()
 
     def fails(f: Frame, pose: Pose) -> str:

@@ -14,16 +14,21 @@ W, H = 640, 480
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("synth") / "ds"
-    return generate(out, scenes=2, images_per_scene=2, seed=0, progress=False)
-
-
-@pytest.fixture(scope="module")
-def bop(dataset):
+def bop(synthetic_dataset):
+    """The session's synthetic dataset (conftest.py: 2 scenes x 2 images, seed 0) as a BopDataset."""
     from perception_config.datasets.bop import BopDataset
 
-    return BopDataset(dataset, "test")
+    return BopDataset(synthetic_dataset, "test")
+
+
+def _rendered_images(bop):
+    """Each image of the dataset: its frame, its scene_gt_info entries, and a render of its objects
+    alone (no bin)."""
+    from perception_config.render import render
+
+    for s, i in bop.image_keys():
+        f = bop.load_frame(s, i)
+        yield f, bop.gt_info(s, i), render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -33,10 +38,10 @@ def _files(root: Path) -> dict[str, bytes]:
 # --------------------------------------------------------------------------- format
 
 
-def test_is_a_complete_bop_dataset(dataset, bop):
-    assert not (dataset / ".incomplete").exists()
-    assert not list(dataset.parent.glob(".ds.incomplete-*"))
-    cam = json.loads((dataset / "camera.json").read_text())
+def test_is_a_complete_bop_dataset(synthetic_dataset, bop):
+    assert not (synthetic_dataset / ".incomplete").exists()
+    assert not list(synthetic_dataset.parent.glob(f".{synthetic_dataset.name}.incomplete-*"))
+    cam = json.loads((synthetic_dataset / "camera.json").read_text())
     assert (cam["width"], cam["height"], cam["depth_scale"]) == (W, H, DEPTH_SCALE)
     assert cam["fx"] == pytest.approx(LINEMOD_K[0, 0])
     assert bop.scene_ids() == [0, 1]
@@ -44,10 +49,10 @@ def test_is_a_complete_bop_dataset(dataset, bop):
     assert bop.obj_ids() == [1, 2, 3, 4, 5, 6]
     for s in (0, 1):
         for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
-            assert (dataset / "test" / f"{s:06d}" / name).is_file()
-    targets = json.loads((dataset / "test_targets_bop19.json").read_text())
+            assert (synthetic_dataset / "test" / f"{s:06d}" / name).is_file()
+    targets = json.loads((synthetic_dataset / "test_targets_bop19.json").read_text())
     assert targets and {"im_id", "obj_id", "scene_id", "inst_count"} <= set(targets[0])
-    info = json.loads((dataset / "dataset_info.json").read_text())
+    info = json.loads((synthetic_dataset / "dataset_info.json").read_text())
     assert info["generator"] == synthetic.GENERATOR_NAME
 
 
@@ -101,13 +106,10 @@ def test_gt_centres_project_inside_the_image(bop):
 def test_gt_info_matches_masks(bop):
     """px counts and boxes re-rendered here agree with scene_gt_info; visibility is exact."""
     from perception_config.datasets.bop import compute_gt_info
-    from perception_config.render import render, render_box
+    from perception_config.render import render_box
 
     diffs = []
-    for s, i in bop.image_keys():
-        f = bop.load_frame(s, i)
-        infos = bop.gt_info(s, i)
-        r = render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
+    for f, infos, r in _rendered_images(bop):
         bop19 = compute_gt_info(f)  # bop_toolkit's calc_gt_info from the noisy depth
         for k, (o, e) in enumerate(zip(f.objects, infos)):
             assert e["visib_fract"] == pytest.approx(e["px_count_visib"] / e["px_count_all"])
@@ -186,14 +188,9 @@ def test_depth_steps_make_shadows_and_edge_dropout():
 def test_dataset_shiny_parts_miss_more_depth(bop):
     import cv2
 
-    from perception_config.render import render
-
     materials = json.loads((bop.models_dir / "parts.json").read_text())
     miss = {"matte": [0, 0], "shiny": [0, 0]}
-    for s, i in bop.image_keys():
-        f = bop.load_frame(s, i)
-        infos = bop.gt_info(s, i)
-        r = render([o.model for o in f.objects], [o.gt for o in f.objects], f.K, W, H)
+    for f, infos, r in _rendered_images(bop):
         for k, (o, e) in enumerate(zip(f.objects, infos)):
             if e["visib_fract"] < 0.9:
                 continue
@@ -209,20 +206,20 @@ def test_dataset_shiny_parts_miss_more_depth(bop):
 # --------------------------------------------------------------------------- determinism, atomicity
 
 
-def test_same_seed_same_bytes(dataset, tmp_path):
+def test_same_seed_same_bytes(synthetic_dataset, tmp_path):
     again = generate(tmp_path / "again", scenes=2, images_per_scene=2, seed=0, progress=False)
-    a, b = _files(dataset), _files(again)
+    a, b = _files(synthetic_dataset), _files(again)
     assert a.keys() == b.keys()
     different = [k for k in a if a[k] != b[k]]
     assert different == []
 
 
-def test_other_seed_other_data(dataset, tmp_path):
+def test_other_seed_other_data(synthetic_dataset, tmp_path):
     other = generate(tmp_path / "other", scenes=1, images_per_scene=1, seed=1, progress=False)
-    a = (dataset / "test/000000/rgb/000000.png").read_bytes()
+    a = (synthetic_dataset / "test/000000/rgb/000000.png").read_bytes()
     assert (other / "test/000000/rgb/000000.png").read_bytes() != a
     # the models are the same parts whatever the seed
-    assert (other / "models/models_info.json").read_bytes() == (dataset / "models/models_info.json").read_bytes()
+    assert (other / "models/models_info.json").read_bytes() == (synthetic_dataset / "models/models_info.json").read_bytes()
 
 
 def test_interrupted_run_leaves_no_dataset(tmp_path, monkeypatch):
@@ -273,20 +270,20 @@ def test_stable_poses_of_a_box():
 # --------------------------------------------------------------------------- show, CLI, other models
 
 
-def test_show_frame_writes_a_two_panel_png(dataset, tmp_path):
+def test_show_frame_writes_a_two_panel_png(synthetic_dataset, tmp_path):
     import cv2
 
     from perception_config.datasets.show import show_frame
 
-    out = show_frame(dataset, tmp_path / "show.png")
+    out = show_frame(synthetic_dataset, tmp_path / "show.png")
     img = cv2.imread(str(out))
     assert img.shape == (H, 2 * W, 3)
-    out2 = show_frame(dataset, tmp_path / "sub" / "s.png", scene_id=1, im_id=1)
+    out2 = show_frame(synthetic_dataset, tmp_path / "sub" / "s.png", scene_id=1, im_id=1)
     assert cv2.imread(str(out2)).shape == (H, 2 * W, 3)
     with pytest.raises(ValueError, match="scene 7"):
-        show_frame(dataset, tmp_path / "x.png", scene_id=7)
+        show_frame(synthetic_dataset, tmp_path / "x.png", scene_id=7)
     with pytest.raises(ValueError, match="image 9"):
-        show_frame(dataset, tmp_path / "x.png", scene_id=0, im_id=9)
+        show_frame(synthetic_dataset, tmp_path / "x.png", scene_id=0, im_id=9)
 
 
 def test_cli_synth_and_show(tmp_path, capsys):
