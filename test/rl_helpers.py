@@ -16,8 +16,10 @@ _CACHE: dict[str, Path] = {}
 PIPELINE = """\
 generator: {block: simulated_init, params: {noise_lambda: 0.5}}
 actions:
-  - {name: icp_coarse, block: icp_point_to_plane, params: {max_correspondence_distance: 0.03, final_distance: 0.01, stages: 2, max_seconds: 10.0}}
-  - {name: icp_fine, block: icp_point_to_plane, params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
+  - {name: icp_coarse, block: icp_point_to_plane,
+     params: {max_correspondence_distance: 0.03, final_distance: 0.01, stages: 2, max_seconds: 10.0}}
+  - {name: icp_fine, block: icp_point_to_plane,
+     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
   - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}
   - {name: regenerate, block: simulated_init}
   - {name: pick, block: simulated_pick}
@@ -25,8 +27,8 @@ scoring: [psi_d, psi_c, icp_fitness]
 """
 
 # The same blocks, another action set (order and one action differ): policies must not load.
-OTHER_PIPELINE = PIPELINE.replace("  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}\n", "").replace(
-    "{name: icp_fine,", "{name: icp_finest,")
+OTHER_PIPELINE = (PIPELINE.replace("  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}\n", "")
+                  .replace("{name: icp_fine,", "{name: icp_finest,"))
 
 # Without ICP: Open3D's ICP is not bitwise reproducible (run to run, its poses differ by ~1e-17 m,
 # which Gymnasium's check_env sees in the info's float64 scores); everything else is.

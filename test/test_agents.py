@@ -7,13 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from rl_helpers import OTHER_PIPELINE, OTHER_SCORES_PIPELINE, make_env
-
-from perception_config.agents import (AGENTS, EnvSpec, PolicyError, load_agent, make_agent, oracle_search,
-                                      save_agent)
+from perception_config.agents import AGENTS, EnvSpec, PolicyError, load_agent, make_agent, oracle_search, save_agent
 from perception_config.agents.base import returns_to_go
 from perception_config.agents.policy_io import read_file
 from perception_config.episode_loop import play_episode
+from rl_helpers import OTHER_PIPELINE, OTHER_SCORES_PIPELINE, make_env
 
 # (episode index, lambda, episode seed) of the tiny dataset used by several tests.
 EPISODES = [(i, lam, 100 + i) for i in range(0, 6, 2) for lam in (0.3, 0.8)]
@@ -57,7 +55,8 @@ def test_fixed_agent_sequence_restart_and_validation(env):
     names = [spec.action_names[agent.act(None, {"steps": t})] for t in range(7)]
     assert names == ["icp_coarse", "icp_fine", "pick", "icp_fine", "pick", "icp_fine", "pick"]
     agent = make_agent("fixed", spec, sequence=["icp_coarse", "pick"], after="pick")
-    assert [spec.action_names[agent.act(None, {"steps": t})] for t in range(4)] == ["icp_coarse", "pick", "pick", "pick"]
+    assert ([spec.action_names[agent.act(None, {"steps": t})] for t in range(4)]
+            == ["icp_coarse", "pick", "pick", "pick"])
     with pytest.raises(ValueError, match="icp_turbo.*environment's actions are"):
         make_agent("fixed", spec, sequence=["icp_coarse", "icp_turbo", "pick"])
     with pytest.raises(ValueError, match="restart"):
@@ -137,7 +136,8 @@ def test_same_names_other_parameters_is_a_clear_error(env, tmp_path_factory, tmp
     from rl_helpers import PIPELINE
 
     path = save_agent(_agent("pg", env), tmp_path / "pg.safetensors")
-    changed = make_env(tmp_path_factory, PIPELINE.replace("final_distance: 0.003", "final_distance: 0.002"), "changed.yaml")
+    changed = make_env(tmp_path_factory, PIPELINE.replace("final_distance: 0.003", "final_distance: 0.002"),
+                       "changed.yaml")
     with pytest.raises(PolicyError, match="icp_fine.*0.003.*0.002"):
         load_agent(path, changed)
 
@@ -161,7 +161,8 @@ def test_corrupt_policy_file_is_a_clear_error(env, tmp_path):
     from perception_config.agents.policy_io import write_file
 
     tensors["policy.fc1.weight"] = tensors["policy.fc1.weight"][:, :3]
-    bad = write_file(tmp_path / "bad_shapes.safetensors", {k: v for k, v in meta.items() if k not in ("format", "version")}, tensors)
+    bad = write_file(tmp_path / "bad_shapes.safetensors",
+                     {k: v for k, v in meta.items() if k not in ("format", "version")}, tensors)
     with pytest.raises(PolicyError, match="bad_shapes.*corrupt"):
         load_agent(bad, env)
     with pytest.raises(PolicyError, match="does not exist"):

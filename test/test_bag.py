@@ -187,8 +187,10 @@ def test_write_bag_from_bop_dataset_and_metadata(tmp_path):
     assert meta["duration"]["nanoseconds"] == 5 * 200_000_000
     topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
     assert topics["/camera/depth/image_raw"]["topic_metadata"]["type"] == "sensor_msgs/msg/Image"
-    assert topics["/perception/ground_truth"]["topic_metadata"]["type"] == "perception_config_interfaces/msg/ObjectPoses"
-    assert all(t["message_count"] == 6 and t["topic_metadata"]["serialization_format"] == "cdr" for t in topics.values())
+    assert (topics["/perception/ground_truth"]["topic_metadata"]["type"]
+            == "perception_config_interfaces/msg/ObjectPoses")
+    assert all(t["message_count"] == 6 and t["topic_metadata"]["serialization_format"] == "cdr"
+               for t in topics.values())
     assert meta["custom_data"]["split"] == "test"
 
     info = bag_info(tmp_path / "rec")
@@ -219,7 +221,8 @@ def test_mcap_layout_is_rosbag2(small_bag):
         seen = {}
         for _schema, channel, message, msg in r.iter_decoded_messages():
             assert message.log_time == message.publish_time
-            assert message.log_time == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec if hasattr(msg, "header") else True
+            assert (message.log_time == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+                    if hasattr(msg, "header") else True)
             if hasattr(msg, "header"):
                 assert msg.header.frame_id == "camera_color_optical_frame"
             seen[channel.topic] = msg
@@ -355,8 +358,10 @@ def _rosbags_camera_bag(path: Path, color_enc: str, depth_enc: str, n: int = 4, 
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as wr:
         c_col = wr.add_connection("/camera/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=ts)
         c_info = wr.add_connection("/camera/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
-        c_dep = wr.add_connection("/camera/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image", typestore=ts)
-        c_dinfo = wr.add_connection("/camera/camera/aligned_depth_to_color/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+        c_dep = wr.add_connection("/camera/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image",
+                                  typestore=ts)
+        c_dinfo = wr.add_connection("/camera/camera/aligned_depth_to_color/camera_info", "sensor_msgs/msg/CameraInfo",
+                                    typestore=ts)
         c_raw = wr.add_connection("/camera/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", typestore=ts)
         c_ir = wr.add_connection("/camera/camera/infra1/image_rect_raw", "sensor_msgs/msg/Image", typestore=ts)
         for i in range(n):
@@ -381,12 +386,20 @@ def _rosbags_camera_bag(path: Path, color_enc: str, depth_enc: str, n: int = 4, 
                 darr = mm
             td = t + jitter_ns
             # log times: later than the stamps; the depth of a frame arrives before its colour
-            wr.write(c_raw, td + 1_000_000, ts.serialize_cdr(image(td, "16UC1", mm[:, :-2], "camera_depth_optical_frame"), "sensor_msgs/msg/Image"))
-            wr.write(c_dep, td + 2_000_000, ts.serialize_cdr(image(td, depth_enc, darr, "camera_color_optical_frame"), "sensor_msgs/msg/Image"))
-            wr.write(c_dinfo, td + 2_000_000, ts.serialize_cdr(info(td, "camera_color_optical_frame", w, h), "sensor_msgs/msg/CameraInfo"))
-            wr.write(c_ir, t + 2_500_000, ts.serialize_cdr(image(t, "mono8", rgb[:, :, 0], "camera_infra1_optical_frame"), "sensor_msgs/msg/Image"))
-            wr.write(c_col, t + 3_000_000, ts.serialize_cdr(image(t, color_enc, carr, "camera_color_optical_frame"), "sensor_msgs/msg/Image"))
-            wr.write(c_info, t + 3_000_000, ts.serialize_cdr(info(t, "camera_color_optical_frame", w, h), "sensor_msgs/msg/CameraInfo"))
+            wr.write(c_raw, td + 1_000_000,
+                     ts.serialize_cdr(image(td, "16UC1", mm[:, :-2], "camera_depth_optical_frame"),
+                                      "sensor_msgs/msg/Image"))
+            wr.write(c_dep, td + 2_000_000, ts.serialize_cdr(image(td, depth_enc, darr, "camera_color_optical_frame"),
+                                                             "sensor_msgs/msg/Image"))
+            wr.write(c_dinfo, td + 2_000_000, ts.serialize_cdr(info(td, "camera_color_optical_frame", w, h),
+                                                               "sensor_msgs/msg/CameraInfo"))
+            wr.write(c_ir, t + 2_500_000,
+                     ts.serialize_cdr(image(t, "mono8", rgb[:, :, 0], "camera_infra1_optical_frame"),
+                                      "sensor_msgs/msg/Image"))
+            wr.write(c_col, t + 3_000_000, ts.serialize_cdr(image(t, color_enc, carr, "camera_color_optical_frame"),
+                                                            "sensor_msgs/msg/Image"))
+            wr.write(c_info, t + 3_000_000, ts.serialize_cdr(info(t, "camera_color_optical_frame", w, h),
+                                                             "sensor_msgs/msg/CameraInfo"))
             expect.append(Frame(rgb, depth, K, stamp=t / 1e9))
     return expect
 
@@ -434,7 +447,8 @@ def _custom_bag(path: Path, color: dict, depth: dict, info: dict | None = None, 
         s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", SCHEMAS["sensor_msgs/msg/CameraInfo"])
         w.write_message("/camera/color/image_raw", s_img, {"header": hdr, **color}, log_time=stamp)
         w.write_message("/camera/depth/image_raw", s_img, {"header": hdr, **depth}, log_time=stamp)
-        ci = bagmod.camera_info_fields(np.array([[100.0, 0, 4], [0, 100, 3], [0, 0, 1]]), color["width"], color["height"])
+        ci = bagmod.camera_info_fields(np.array([[100.0, 0, 4], [0, 100, 3], [0, 0, 1]]), color["width"],
+                                       color["height"])
         ci.update(info or {})
         w.write_message("/camera/camera_info", s_info, {"header": hdr, **ci}, log_time=stamp)
     return path
@@ -468,10 +482,13 @@ def test_padded_step_and_big_endian_are_decoded():
 @pytest.mark.parametrize("case,color,depth,info,topic,match", [
     ("step", {**_rgb(), "step": 20}, _depth(), None, "/camera/color/image_raw", "step 20 is smaller"),
     ("size", {**_rgb(), "data": _rgb()["data"][:-3]}, _depth(), None, "/camera/color/image_raw", "data bytes"),
-    ("encoding", {**_rgb(), "encoding": "yuv422"}, _depth(), None, "/camera/color/image_raw", "unsupported colour encoding 'yuv422'"),
-    ("depth_encoding", _rgb(), {**_depth(), "encoding": "8UC1"}, None, "/camera/depth/image_raw", "unsupported depth encoding"),
+    ("encoding", {**_rgb(), "encoding": "yuv422"}, _depth(), None, "/camera/color/image_raw",
+     "unsupported colour encoding 'yuv422'"),
+    ("depth_encoding", _rgb(), {**_depth(), "encoding": "8UC1"}, None, "/camera/depth/image_raw",
+     "unsupported depth encoding"),
     ("mismatch", _rgb(), _depth(4, 8), None, "/camera/depth/image_raw", "8x4 but colour image"),
-    ("info_size", _rgb(), _depth(), {"width": 640, "height": 480}, "/camera/camera_info", "640x480 images but the images are 8x6"),
+    ("info_size", _rgb(), _depth(), {"width": 640, "height": 480}, "/camera/camera_info",
+     "640x480 images but the images are 8x6"),
     ("info_k", _rgb(), _depth(), {"k": [0.0] * 9}, "/camera/camera_info", "no valid intrinsics"),
 ])
 def test_malformed_images_raise_clear_errors(tmp_path, case, color, depth, info, topic, match):

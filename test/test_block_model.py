@@ -13,13 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rl_helpers import tiny_dataset
-
 import perception_config.blocks as blocks_package
 from perception_config.blocks import REGISTRY, block_modules, load_all
 from perception_config.blocks.base import MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
 from perception_config.env import PerceptionConfigEnv
 from perception_config.geometry import LAMBDA_MAX, Pose, check_noise_lambda
+from rl_helpers import tiny_dataset
 
 
 @register
@@ -117,7 +116,8 @@ def test_block_modules_are_discovered_not_listed():
     for name, cls in shipped.items():  # every shipped block describes itself
         assert math.isfinite(cls.default_cost) and cls.default_cost >= 0, name
         assert set(cls.score_ranges) <= set(cls.score_names) and set(cls.lower_is_better) <= set(cls.score_names), name
-    assert {"simulated_init", "global_registration", "d2co", "icp_point_to_plane", "psi_d", "simulated_pick"} <= set(shipped)
+    assert {"simulated_init", "global_registration", "d2co", "icp_point_to_plane", "psi_d",
+            "simulated_pick"} <= set(shipped)
 
 
 def test_the_blocks_command_lists_a_new_block(capsys):

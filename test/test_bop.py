@@ -11,9 +11,21 @@ import pytest
 
 from frames import box_mesh
 from perception_config.datasets.bop import (
-    BopDataset, BopFormatError, BopResult, CameraInfo, SceneWriter, compute_gt_info, load_json,
-    load_models_info, read_depth, read_results_csv, read_rgb, write_depth, write_frame,
-    write_models_info, write_results_csv,
+    BopDataset,
+    BopFormatError,
+    BopResult,
+    CameraInfo,
+    SceneWriter,
+    compute_gt_info,
+    load_json,
+    load_models_info,
+    read_depth,
+    read_results_csv,
+    read_rgb,
+    write_depth,
+    write_frame,
+    write_models_info,
+    write_results_csv,
 )
 from perception_config.geometry import Pose, exp_so3
 from perception_config.models import PlyError, load_model, write_ply

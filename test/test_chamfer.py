@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose, refine_perturbed
+from frames import box_model, default_pose, mean_point_distance, perturbed_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.blocks.chamfer import edge_distance
-
 from perception_config.scene import Frame
-
 
 _perturbed, _add = perturbed_pose, mean_point_distance
 

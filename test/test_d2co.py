@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import K_LINEMOD, box_model, default_pose, synthetic_frame, mean_point_distance, perturbed_pose, refine_perturbed
+from frames import (
+    K_LINEMOD,
+    box_model,
+    default_pose,
+    mean_point_distance,
+    perturbed_pose,
+    refine_perturbed,
+    synthetic_frame,
+)
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.geometry import exp_so3
 from perception_config.vision.edges import TensorCache
 from perception_config.vision.pose_solver import project_with_jacobian, update_pose
-
 
 _perturbed, _add = perturbed_pose, mean_point_distance
 

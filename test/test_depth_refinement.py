@@ -55,7 +55,8 @@ def test_recovers_depth_error_on_synthetic_frames() -> None:
         start = along_ray(gt, model, np.random.default_rng(k))
         r = block(BlockInput(frame=frame, model=model, pose=start))
         assert r.ok, r.reason
-        better += mean_point_distance(model, r.pose, gt) < mean_point_distance(model, start, gt) and abs(depth_error(model, r.pose, gt)) < 0.003
+        better += (mean_point_distance(model, r.pose, gt) < mean_point_distance(model, start, gt)
+                   and abs(depth_error(model, r.pose, gt)) < 0.003)
         np.testing.assert_allclose(r.pose.R, start.R)  # only the translation moves
     assert better >= 9, better
 

@@ -16,7 +16,8 @@ from perception_config.vision.edges import crop_box, directional_chamfer_tensor
 
 def _px_error(model, K, est: Pose, gt: Pose) -> float:
     """Mean image distance (px) of the model's points: what edges can observe."""
-    return float(np.mean(np.linalg.norm(project(est.transform(model.points), K) - project(gt.transform(model.points), K), axis=1)))
+    return float(np.mean(np.linalg.norm(project(est.transform(model.points), K)
+                                        - project(gt.transform(model.points), K), axis=1)))
 
 
 def test_directional_chamfer_tensor_distance_and_orientation():
@@ -36,7 +37,8 @@ def test_crop_box_is_aligned_and_clipped():
     frame = synthetic_frame([box_model()], [default_pose()], seed=0)
     x, y, w, h = crop_box(frame, (100, 50, 60, 40), margin=40, align=32)
     assert x % 32 == 0 and y % 32 == 0 and x <= 60 and y <= 10 and x + w >= 200 and y + h >= 130
-    assert crop_box(frame, (600, 450, 40, 30), margin=40, align=32)[0] + crop_box(frame, (600, 450, 40, 30), 40, 32)[2] <= 640
+    assert (crop_box(frame, (600, 450, 40, 30), margin=40, align=32)[0]
+            + crop_box(frame, (600, 450, 40, 30), 40, 32)[2] <= 640)
 
 
 @pytest.mark.parametrize("name, need", [("d2co", 8), ("chamfer", 8), ("chamfer_icp", 6)])

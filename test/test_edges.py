@@ -26,7 +26,8 @@ def test_tensor_is_the_cyclic_min_over_orientation_bins():
         img = np.full((h, w), 255, np.uint8)
         img[ys[bins == b], xs[bins == b]] = 0
         base[b] = np.minimum(cv2.distanceTransform(img, cv2.DIST_L2, 5), cap)
-    ref = np.stack([np.min([base[q] + pen * min(abs(b - q), n - abs(b - q)) for q in range(n)], axis=0) for b in range(n)])
+    ref = np.stack([np.min([base[q] + pen * min(abs(b - q), n - abs(b - q)) for q in range(n)], axis=0)
+                    for b in range(n)])
     np.testing.assert_allclose(dct, np.minimum(ref, cap), atol=1e-5)
 
 

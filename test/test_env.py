@@ -7,10 +7,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from rl_helpers import BITWISE_PIPELINE, make_env, pipeline_file, tiny_dataset
-
 from perception_config.blocks import load_all
 from perception_config.env import PerceptionConfigEnv
+from rl_helpers import BITWISE_PIPELINE, make_env, pipeline_file, tiny_dataset
 
 
 @pytest.fixture(scope="module")

@@ -16,12 +16,17 @@ import pytest
 from perception_config.agents.base import EnvSpec
 from perception_config.agents.policy_io import PolicyError, save_agent
 from perception_config.agents.random import RandomAgent
+from perception_config.blocks.pipeline import load_pipeline
 from perception_config.datasets.bop import BopDataset, read_results_csv
 from perception_config.episodes import split_image_keys
 from perception_config.evaluation import (
-    DEFAULT_FIXED_SEQUENCES, episode_plan, evaluate, fixed_sequences, format_table, summarise,
+    DEFAULT_FIXED_SEQUENCES,
+    episode_plan,
+    evaluate,
+    fixed_sequences,
+    format_table,
+    summarise,
 )
-from perception_config.blocks.pipeline import load_pipeline
 from perception_config.policy_settings import policy_settings
 from perception_config.settings import EnvSettings
 
@@ -125,10 +130,12 @@ def test_episodes_are_paired_across_agents(run):
         assert len(eps) == n_agents
         first = eps[0]
         for e in eps[1:]:
-            assert (e["episode"], e["scene_id"], e["im_id"], e["obj_id"]) == (first["episode"], first["scene_id"], first["im_id"], first["obj_id"])
+            assert (e["episode"], e["scene_id"], e["im_id"], e["obj_id"]) == (first["episode"], first["scene_id"],
+                                                                              first["im_id"], first["obj_id"])
             assert e["initial_pose"] == first["initial_pose"]
     # the same episodes (and seeds) at every lambda, with hypotheses further off at higher lambda
-    plans = {lam: sorted((e["episode"], e["episode_seed"]) for e in run["episodes"] if e["agent"] == "oracle" and e["lambda"] == lam)
+    plans = {lam: sorted((e["episode"], e["episode_seed"]) for e in run["episodes"]
+                         if e["agent"] == "oracle" and e["lambda"] == lam)
              for lam in LAMBDAS}
     assert plans[LAMBDAS[0]] == plans[LAMBDAS[1]]
 
@@ -167,7 +174,8 @@ def test_bop_csv_per_agent_and_lambda_parses(run, dataset):
         assert np.allclose(row.pose.R @ row.pose.R.T, np.eye(3), atol=1e-6)
         assert 0.0 <= row.score <= 1.0
         # bop_toolkit wants one time per image: the sum over the image's episodes
-        assert math.isclose(row.time, sum(e["time"] for e in eps if (e["scene_id"], e["im_id"]) == (row.scene_id, row.im_id)))
+        assert math.isclose(row.time, sum(e["time"] for e in eps
+                                          if (e["scene_id"], e["im_id"]) == (row.scene_id, row.im_id)))
     finals = sorted(tuple(np.round(e["final_pose"]["t"], 6)) for e in eps)
     assert sorted(tuple(np.round(r.pose.t, 6)) for r in rows) == finals
 

@@ -232,8 +232,8 @@ def test_global_registration_finds_the_right_object_among_others(parts):
 
 def test_global_registration_on_the_real_lmo_frame(lmo_frame):
     """The duck (obj 9) in the cluttered real LM-O frame: its region is among the first three
-    of the many object-sized ones (hue ranking: yellow), and the pose is right. Three clusters and an ample budget keep the
-    search exhaustive, hence deterministic on a loaded machine."""
+    of the many object-sized ones (hue ranking: yellow), and the pose is right. Three clusters and an ample budget
+    keep the search exhaustive, hence deterministic on a loaded machine."""
     duck = lmo_frame.object(9)
     r = run(GlobalRegistration(max_seconds=30.0, max_clusters=3), lmo_frame, duck.model, seed=1)
     assert r.ok, r.reason

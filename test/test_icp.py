@@ -177,7 +177,12 @@ def test_visible_surface_of_a_box_facing_the_camera() -> None:
     """Helpers in visibility.py: with the box square to the camera on the optical axis the front
     face (model z = -15 mm) is visible, plus side-face points within the z-buffer tolerance of
     the silhouette, nothing deeper; depth-grid normals of a plane are its normal."""
-    from perception_config.vision.visibility import default_visibility_tolerance, grid_normals, scene_patch, visible_surface
+    from perception_config.vision.visibility import (
+        default_visibility_tolerance,
+        grid_normals,
+        scene_patch,
+        visible_surface,
+    )
 
     model = box_model()
     pose = Pose(np.eye(3), [0.0, 0.0, 0.7])

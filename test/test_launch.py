@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from perception_config import cli
-from perception_config import launch
+from perception_config import cli, launch
 from perception_config.launch import Launcher, NodeSpec, param_value, resolve_nodes
 from ros_helpers import call, wait_for_service
 
@@ -58,7 +57,8 @@ def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(
         "/**:\n  ros__parameters:\n    frame_timeout: 0.25\n"
     )
     out = io.StringIO()
-    launcher = Launcher([NodeSpec("generation_node", params={"models_dir": str(parts_models)}, params_file=params_file)],
+    launcher = Launcher([NodeSpec("generation_node", params={"models_dir": str(parts_models)},
+                                  params_file=params_file)],
                         log_dir=tmp_path / "logs", out=out)
     with launcher:
         launcher.wait_for_line("generation_node", "serving generate_hypothesis", timeout=30)
@@ -95,7 +95,8 @@ def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(
 
 # -- supervision logic with small stand-in executables (fast, no ROS) --------------------------
 def test_a_dead_node_stops_the_others_and_a_finished_bag_replay_does_not(tmp_path):
-    polite = _script(tmp_path / "polite", "trap 'echo got SIGINT; exit 0' INT\necho up\nwhile true; do sleep 0.05; done\n")
+    polite = _script(tmp_path / "polite",
+                     "trap 'echo got SIGINT; exit 0' INT\necho up\nwhile true; do sleep 0.05; done\n")
     stubborn = _script(tmp_path / "stubborn", "trap '' INT\necho up\nwhile true; do sleep 0.05; done\n")
     bag = _script(tmp_path / "bag_replay_node", "echo replayed 3 frames\n")
     crash = _script(tmp_path / "crash", "sleep 0.3\necho boom\nexit 3\n")
@@ -159,9 +160,11 @@ class _Cli:
         env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
         # Its own process group, like a shell job: killpg below is a terminal's Ctrl-C.
         self.proc = subprocess.Popen([sys.executable, "-m", "perception_config.cli", "launch", *args], cwd=cwd, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     start_new_session=True)
         self.lines: list[str] = []
-        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True)
+        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
+                                        daemon=True)
         self._reader.start()
 
     def wait_for(self, pattern: str, timeout: float = 30.0) -> re.Match:
@@ -179,7 +182,7 @@ class _Cli:
         try:
             code = self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            raise AssertionError(f"the launcher did not exit within {timeout} s:\n{self.output()}")
+            raise AssertionError(f"the launcher did not exit within {timeout} s:\n{self.output()}") from None
         self._reader.join(5)
         return code
 

@@ -180,7 +180,8 @@ def test_mspd_of_an_image_plane_shift() -> None:
     assert e == pytest.approx(fx * dx / (z - HALF[2]), abs=1e-9)
     # a vertical shift uses fy
     est_v = Pose(np.eye(3), [0.0, dx, z])
-    assert M.mspd(est_v.R, est_v.t, gt.R, gt.t, K_LINEMOD, plane, None) == pytest.approx(K_LINEMOD[1, 1] * dx / z, abs=1e-9)
+    assert M.mspd(est_v.R, est_v.t, gt.R, gt.t, K_LINEMOD, plane, None) == pytest.approx(K_LINEMOD[1, 1] * dx / z,
+                                                                                          abs=1e-9)
     assert M.mspd(gt.R, gt.t, gt.R, gt.t, K_LINEMOD, CORNERS, None) == 0.0
 
 
@@ -260,7 +261,7 @@ def test_vsd_matches_bop_toolkit_transcription_with_occlusion_and_missing_depth(
     depth[v0 - 40:v0 + 40, u0 - 60:u0] = gt.t[2] - 0.1
     depth[v0 - 10:v0 + 30, u0 + 5:u0 + 30] = np.nan
     rng = np.random.default_rng(5)
-    for k in range(3):
+    for _ in range(3):
         est = Pose(exp_so3(rng.normal(0, 0.05, 3)) @ gt.R, gt.t + rng.normal(0, 0.004, 3))
         got = M.vsd(est.R, est.t, gt.R, gt.t, depth, K_LINEMOD, 0.015, M.VSD_TAUS, True, model.diameter, model)
         want = reference_vsd(est, gt, depth, K_LINEMOD, 0.015, M.VSD_TAUS, model)

@@ -12,7 +12,14 @@ from scipy.spatial import cKDTree
 from frames import box_mesh
 from perception_config.geometry import Pose, exp_so3
 from perception_config.models import (
-    MM, PlyError, load_model, make_model, read_ply_mesh, sharp_edges, symmetries_from_info, write_ply,
+    MM,
+    PlyError,
+    load_model,
+    make_model,
+    read_ply_mesh,
+    sharp_edges,
+    symmetries_from_info,
+    write_ply,
 )
 
 LMO_IDS = [1, 5, 6, 8, 9, 10, 11, 12]

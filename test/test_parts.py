@@ -5,7 +5,12 @@ import numpy as np
 import pytest
 
 from perception_config.datasets.parts import (
-    MATERIALS, build_parts, check_closed_oriented, signed_volume, symmetry_transforms, write_models,
+    MATERIALS,
+    build_parts,
+    check_closed_oriented,
+    signed_volume,
+    symmetry_transforms,
+    write_models,
 )
 from perception_config.models import sample_surface, symmetries_from_info
 

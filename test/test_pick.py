@@ -36,16 +36,19 @@ def sym_box():
     return make_model(2, v, f, symmetries=FLIPS, n_points=500)
 
 
-def pick(block, frame, model, pose, gt=default_pose()):
+GT = default_pose()
+
+
+def pick(block, frame, model, pose, gt=GT):
     return block(BlockInput(frame=frame, model=model, pose=pose, ground_truth=gt))
 
 
-def shifted(d: float, gt: Pose = default_pose(), direction=(1.0, 0.0, 0.0)) -> Pose:
+def shifted(d: float, gt: Pose = GT, direction=(1.0, 0.0, 0.0)) -> Pose:
     u = np.asarray(direction) / np.linalg.norm(direction)
     return Pose(gt.R, gt.t + d * u)
 
 
-def rotated(angle: float, axis=(0.0, 0.0, 1.0), gt: Pose = default_pose()) -> Pose:
+def rotated(angle: float, axis=(0.0, 0.0, 1.0), gt: Pose = GT) -> Pose:
     u = np.asarray(axis, float) / np.linalg.norm(axis)
     return gt.compose(Pose(exp_so3(u * angle), np.zeros(3)))
 

@@ -1,7 +1,6 @@
 """Renderer: analytic depth, occlusion, cropping, and agreement with real LM-O depth."""
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
@@ -27,7 +26,8 @@ def test_box_facing_camera_has_analytic_depth(make_box) -> None:
     u1, v1 = np.floor(uv.max(axis=0) - 1e-6).astype(int)
     inside = r.depth[v0:v1 + 1, u0:u1 + 1]
     np.testing.assert_allclose(inside, front, atol=1e-6)
-    np.testing.assert_allclose(r.normals[v0:v1 + 1, u0:u1 + 1], np.broadcast_to([0, 0, -1], inside.shape + (3,)), atol=1e-6)
+    np.testing.assert_allclose(r.normals[v0:v1 + 1, u0:u1 + 1], np.broadcast_to([0, 0, -1], inside.shape + (3,)),
+                               atol=1e-6)
     assert np.all(r.mask[v0:v1 + 1, u0:u1 + 1] == 0)
     # background: NaN depth, zero normals, -1 mask; no object pixel outside the projected box
     assert np.isnan(r.depth[0, 0]) and r.mask[0, 0] == -1 and not r.normals[0, 0].any()

@@ -24,7 +24,8 @@ def policy(tmp_path_factory):
 
     settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
     return train(tiny_dataset(tmp_path_factory), "pg", out, 16, settings=settings, seed=0,
-                 pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1, agent_kwargs={"batch_episodes": 8})
+                 pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1,
+                 agent_kwargs={"batch_episodes": 8})
 
 
 def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_factory, tmp_path, policy):
@@ -70,7 +71,8 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
     traces, poses = record_estimates(ros_node, request, depth=50)
     common = {"models_dir": str(root / "models"), "pipeline": str(pipeline_file(tmp_path_factory))}
     specs = [NodeSpec(n, params=common) for n in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
-    specs.append(NodeSpec("configurator_node", params={**common, "auto": True, "auto_every_frame": True, "noise_lambda": 0.3}))
+    specs.append(NodeSpec("configurator_node",
+                          params={**common, "auto": True, "auto_every_frame": True, "noise_lambda": 0.3}))
     with open(tmp_path / "launch.log", "w") as log, Launcher(specs, log_dir=tmp_path / "logs", out=log) as launcher:
         for spec in specs:
             launcher.wait_for_line(spec.name, "serving", timeout=60)
@@ -84,7 +86,8 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
         # truth (generation, pick, and the configurator, which takes nothing else).
         wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
         replay = Launcher([NodeSpec("bag_replay_node", params={
-            "bag": str(bag), "rate": 0.2, "wait_for": wait_for + ["perception/ground_truth:3"], "start_delay": 0.5})], out=log)
+            "bag": str(bag), "rate": 0.2, "wait_for": wait_for + ["perception/ground_truth:3"],
+            "start_delay": 0.5})], out=log)
         with replay:
             deadline = time.monotonic() + 60
             while (len(traces) < expected or len(poses) < expected) and time.monotonic() < deadline:

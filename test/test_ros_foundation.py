@@ -15,7 +15,11 @@ from ros_helpers import NodeProcess, call, wait_for_service
 def test_interfaces_import_with_fields():
     from perception_config_interfaces.msg import Hypothesis, ObjectPoses, OperatorTrace
     from perception_config_interfaces.srv import (
-        EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis,
+        EstimatePose,
+        GenerateHypothesis,
+        Pick,
+        RefineHypothesis,
+        ScoreHypothesis,
     )
 
     h = Hypothesis(object_id="5", scores=[0.5, 0.25], score_names=["psi_c", "psi_d"])
@@ -62,7 +66,6 @@ def test_a_pose_reads_back_from_its_message_as_operators_keep_it():
 @pytest.fixture(scope="module")
 def generation_node(tmp_path_factory):
     from frames import box_mesh
-
     from perception_config.models import write_ply
 
     models = tmp_path_factory.mktemp("models")
@@ -72,7 +75,8 @@ def generation_node(tmp_path_factory):
         write_ply(models / f"obj_{obj_id:06d}.ply", v, f)
         info[str(obj_id)] = {"diameter": diameter}
     (models / "models_info.json").write_text(json.dumps(info))
-    node = NodeProcess("generation_node", {"models_dir": str(models), "frame_timeout": 0.5}, tmp_path_factory.mktemp("logs"))
+    node = NodeProcess("generation_node", {"models_dir": str(models), "frame_timeout": 0.5},
+                       tmp_path_factory.mktemp("logs"))
     yield node
     code = node.stop()
     assert code == 0, f"generation_node did not stop cleanly on SIGINT (exit {code}):\n{node.output()}"
@@ -161,7 +165,8 @@ def test_bad_requests_answer_false_and_the_node_keeps_serving(ros_node, generati
     client = ros_node.create_client(GenerateHypothesis, "generate_hypothesis")
     wait_for_service(ros_node, client, process=generation_node)
     _publish_ground_truth(ros_node, 200, {"3": Pose(np.eye(3), [0.0, 0.0, 0.7])})
-    req = GenerateHypothesis.Request(object_id=kwargs["obj"], noise_lambda=kwargs["lam"], method=kwargs.get("method", ""))
+    req = GenerateHypothesis.Request(object_id=kwargs["obj"], noise_lambda=kwargs["lam"],
+                                     method=kwargs.get("method", ""))
     req.frame.stamp.sec = kwargs.get("sec", 200)
     bad = call(ros_node, client, req)
     assert not bad.success and expected in bad.message

@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from perception_config.geometry import Pose, rotation_angle
 from frames import perturbed_pose
+from perception_config.geometry import Pose, rotation_angle
 from rl_helpers import PIPELINE, pipeline_file
 from ros_helpers import NodeProcess, call, publish_when_matched, record_estimates, wait_for_service
 
@@ -42,19 +42,26 @@ def data(synthetic_dataset, tmp_path_factory):
 def cell(data, tmp_path_factory, ros_node):
     """The four operator nodes and a configurator (fixed pipeline), with every frame published."""
     from perception_config_interfaces.msg import ObjectPoses
+    from sensor_msgs.msg import CameraInfo, Image
 
     from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
-    from sensor_msgs.msg import CameraInfo, Image
 
     logs = tmp_path_factory.mktemp("logs")
     common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0}
     nodes = {name: NodeProcess(name, common, logs) for name in OPERATORS}
-    nodes["configurator_node"] = NodeProcess("configurator_node", {**common, "operator_timeout": 5.0, "noise_lambda": LAMBDA}, logs)
+    nodes["configurator_node"] = NodeProcess("configurator_node",
+                                             {**common, "operator_timeout": 5.0, "noise_lambda": LAMBDA}, logs)
     try:
         # Publish only once every node serves: a publisher can see a subscription match before the
         # subscriber has matched the publisher, and then the first samples come late (after a
         # reliability heartbeat, up to 3 s).
-        from perception_config_interfaces.srv import EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+        from perception_config_interfaces.srv import (
+            EstimatePose,
+            GenerateHypothesis,
+            Pick,
+            RefineHypothesis,
+            ScoreHypothesis,
+        )
 
         for srv, name, node_name in ((GenerateHypothesis, "generate_hypothesis", "generation_node"),
                                      (RefineHypothesis, "refine_hypothesis", "refinement_node"),
@@ -144,7 +151,8 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
 
     # Refinement: the pipeline's icp_coarse preset, the same result as the block in-process.
     start = perturbed_pose(obj.gt, np.random.default_rng(3), deg=5.0, mm=5.0)
-    res = call(ros_node, ref, RefineHypothesis.Request(hypothesis=hypothesis(stamp, obj.obj_id, start), method="icp_coarse"))
+    res = call(ros_node, ref, RefineHypothesis.Request(hypothesis=hypothesis(stamp, obj.obj_id, start),
+                                                       method="icp_coarse"))
     assert res.success, res.message
     params = {"max_correspondence_distance": 0.03, "final_distance": 0.01, "stages": 2, "max_seconds": 10.0}
     want = in_process(data, frame, obj, "icp_point_to_plane", params, pose=start).pose
@@ -216,9 +224,9 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
 
 def _bad_frames(good):
     """(name, colour, depth, camera_info, expected message) of unusable frames."""
-    from perception_config.ros.conversions import frame_to_msgs
-
     import copy
+
+    from perception_config.ros.conversions import frame_to_msgs
 
     out = []
     c, d, i = frame_to_msgs(good, 0)
@@ -235,7 +243,13 @@ def _bad_frames(good):
 
 
 def test_bad_input_answers_false_with_a_message_and_the_nodes_keep_serving(ros_node, cell, data):
-    from perception_config_interfaces.srv import EstimatePose, GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
+    from perception_config_interfaces.srv import (
+        EstimatePose,
+        GenerateHypothesis,
+        Pick,
+        RefineHypothesis,
+        ScoreHypothesis,
+    )
 
     gen, ref, sco, pick = operator_clients(ros_node, cell)
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
@@ -266,14 +280,16 @@ def test_bad_input_answers_false_with_a_message_and_the_nodes_keep_serving(ros_n
     nan = Pose(obj.gt.R, np.array([math.nan, 0.0, 0.5]))
     assert "NaN" in score(good_stamp, pose=nan).message
     assert "unknown object id '77'" in score(good_stamp, object_id=77).message
-    res = call(ros_node, ref, RefineHypothesis.Request(hypothesis=hypothesis(good_stamp, obj.obj_id, obj.gt), method="magic"))
+    res = call(ros_node, ref, RefineHypothesis.Request(hypothesis=hypothesis(good_stamp, obj.obj_id, obj.gt),
+                                                       method="magic"))
     assert not res.success and "unknown method 'magic'" in res.message and "icp_coarse" in res.message
     res = call(ros_node, gen, GenerateHypothesis.Request(object_id="77", noise_lambda=0.2))
     assert not res.success and "unknown object id" in res.message
     res = call(ros_node, pick, Pick.Request(hypothesis=hypothesis(good_stamp, obj.obj_id, nan)))
     assert not res.success and "NaN" in res.message
     # The configurator: an unknown object, a lambda out of range, a frame that never arrives.
-    for kwargs, expected in (({"object_id": "77"}, "unknown object id"), ({"object_id": str(obj.obj_id), "noise_lambda": math.nan}, "noise_lambda"),
+    for kwargs, expected in (({"object_id": "77"}, "unknown object id"),
+                             ({"object_id": str(obj.obj_id), "noise_lambda": math.nan}, "noise_lambda"),
                              ({"object_id": str(obj.obj_id), "stamp": stamp_ns(999)}, "no ground truth")):
         req = EstimatePose.Request(object_id=kwargs["object_id"], noise_lambda=kwargs.get("noise_lambda", -1.0))
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(kwargs.get("stamp", good_stamp), 1_000_000_000)

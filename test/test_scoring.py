@@ -80,7 +80,8 @@ def test_projected_directions_match_finite_differences() -> None:
     p = rng.normal(size=(20, 3)) * 0.1 + [0, 0, 0.8]
     d = rng.normal(size=(20, 3))
     eps = 1e-6
-    np.testing.assert_allclose(projected_directions(p, d, K), (project(p + eps * d, K) - project(p, K)) / eps, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(projected_directions(p, d, K), (project(p + eps * d, K) - project(p, K)) / eps,
+                               rtol=1e-4, atol=1e-3)
 
 
 def test_icp_fitness_definition() -> None:

@@ -219,7 +219,8 @@ def test_other_seed_other_data(synthetic_dataset, tmp_path):
     a = (synthetic_dataset / "test/000000/rgb/000000.png").read_bytes()
     assert (other / "test/000000/rgb/000000.png").read_bytes() != a
     # the models are the same parts whatever the seed
-    assert (other / "models/models_info.json").read_bytes() == (synthetic_dataset / "models/models_info.json").read_bytes()
+    assert ((other / "models/models_info.json").read_bytes()
+            == (synthetic_dataset / "models/models_info.json").read_bytes())
 
 
 def test_interrupted_run_leaves_no_dataset(tmp_path, monkeypatch):

@@ -8,14 +8,13 @@ import signal
 import numpy as np
 import pytest
 
-from rl_helpers import make_env, pipeline_file, tiny_dataset
-
-from perception_config.agents import load_agent, make_agent
-from perception_config.episode_loop import play_episode
-from perception_config.agents.policy_io import read_file
 from perception_config import training
+from perception_config.agents import load_agent, make_agent
+from perception_config.agents.policy_io import read_file
+from perception_config.episode_loop import play_episode
 from perception_config.settings import EnvSettings, settings_from_policy_meta
 from perception_config.training import CHECKPOINT, CURVE, train
+from rl_helpers import make_env, pipeline_file, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
