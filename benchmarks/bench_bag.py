@@ -28,6 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.datasets.bag import iter_messages, read_bag, write_frames  # noqa: E402
 from perception_config.scene import Frame  # noqa: E402
 
@@ -101,7 +102,7 @@ def main() -> int:
     ok = min(r["read_fps"] for r in results["runs"]) >= 30.0
     print(f"replay reading target >= 30 frames/s: {'met' if ok else 'NOT met'}")
     if args.out:
-        args.out.write_text(json.dumps(results, indent=2))
+        atomic_write(args.out, json.dumps(results, indent=2) + "\n")
     return 0
 
 

@@ -33,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.blocks.base import BlockInput  # noqa: E402
 from perception_config.blocks.generation import GlobalRegistration, SimulatedInit  # noqa: E402
 from perception_config.metrics import add, pose_mssd  # noqa: E402
@@ -152,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             out["results"].append({"data": name, "budget_s": budget, "summary": s, "rows": rows})
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=2, default=float) + "\n")
+        atomic_write(args.out, json.dumps(out, indent=2, default=float) + "\n")
         print(f"wrote {args.out}")
     if tmp is not None:
         tmp.cleanup()

@@ -26,6 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.geometry import Pose, exp_so3  # noqa: E402
 from perception_config.models import ObjectModel, make_model  # noqa: E402
 
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
                "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                            "open3d": o3d.__version__}}
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=2) + "\n")
+        atomic_write(args.out, json.dumps(out, indent=2) + "\n")
         print(f"wrote {args.out}")
     return 0
 

@@ -1,9 +1,15 @@
 #!/usr/bin/env bash
-# Set up (idempotent) and run the whole test suite. Extra arguments go to pytest.
+# Set up (idempotent), run the lint gate (ruff, ruff.toml), then the whole test suite.
+# Extra arguments go to pytest.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup_env.sh"
 cd "$ROOT"
+echo "[lint] ruff check (rules: ruff.toml)"
+if ! "$VENV/bin/ruff" check --quiet .; then
+  echo "[lint] failed: fix the lines listed above (ruff.toml holds the rules)" >&2
+  exit 1
+fi
 # One core per process keeps timing tests and worker pools honest on a 2-core machine.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 exec "$PY" -m pytest test -ra -p no:cacheprovider -p no:dash --timeout=600 "$@"

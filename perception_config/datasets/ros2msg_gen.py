@@ -21,6 +21,8 @@ import re
 import sys
 from pathlib import Path
 
+from ..atomic_file import atomic_write
+
 # The types the bag writer needs, plus our other messages (a recorder of the nodes' outputs).
 TYPES = (
     "sensor_msgs/msg/Image",
@@ -193,7 +195,7 @@ def render_module(types: tuple[str, ...] = TYPES) -> str:
 
 def main() -> int:
     text = render_module()
-    GENERATED.write_text(text, encoding="utf-8")
+    atomic_write(GENERATED, text)
     print(f"wrote {GENERATED} ({len(TYPES)} types)")
     return 0
 

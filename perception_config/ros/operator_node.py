@@ -11,9 +11,9 @@ Every operator node declares these parameters (and its own):
 A request names its frame by stamp (a hypothesis' header.stamp; zero = the latest frame). The
 blocks run in the service callback; their per-frame precomputations are kept per cached frame.
 
-Executor: single-threaded (measured: about 1.3 ms less per service call than rclpy's
-multi-threaded executor, whose thread hand-offs cost more than they bring to nodes that serve
-one request at a time). A request whose frame (or ground truth) has not arrived yet does not
+Executor: single-threaded (rclpy's multi-threaded executor's thread hand-offs cost more per
+service call than they bring to nodes that serve one request at a time; per-call figures in
+benchmarks/results/ros.json). A request whose frame (or ground truth) has not arrived yet does not
 block the thread: the service callback is a coroutine that awaits the next arrival or
 `frame_timeout`, while the executor keeps running the subscriptions; then the handler runs
 again. Services run one at a time (one mutually exclusive callback group).

@@ -22,8 +22,8 @@ An operator that fails (success=false: a refiner diverged, the frame has no dept
 `timeout` raises `OperatorCallError`: the episode cannot go on.
 
 Calls block the calling thread, which spins the clients itself: they live on a private node
-with its own single-threaded executor, spun inline until the answer is there (measured: about
-1.3 ms less per call than answers taken by another executor thread and handed over). So calls
+with its own single-threaded executor, spun inline until the answer is there (cheaper than
+answers taken by another executor thread and handed over: benchmarks/results/ros.json). So calls
 can be made from anywhere, a callback of another executor included, but from one thread at a
 time (the configurator serialises its estimates). `close()` destroys the private node.
 """
