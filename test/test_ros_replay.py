@@ -28,6 +28,9 @@ TOPICS = {  # relative topic name -> message type (imported lazily: rclpy is loa
     "perception/ground_truth": ("perception_config_interfaces.msg", "ObjectPoses"),
     "perception/frame_info": ("std_msgs.msg", "String"),
 }
+# Wait until the test node subscribes to every replayed topic (the colour topic alone matches
+# first; the others can lag behind it on a loaded machine).
+ALL_TOPICS_MATCHED = [f"{t}:1" for t in TOPICS]
 COLOR = "camera/color/image_raw"
 
 
@@ -148,7 +151,7 @@ def check_frames(rec: Recorder, frames: list[Frame]) -> None:
 @pytest.mark.parametrize("rate, span", [(1.0, 0.4), (2.0, 0.2), (0.0, None)])
 def test_replay_delivers_every_frame_at_the_recorded_pace(bag, recorder, tmp_path, rate, span):
     path, frames = bag
-    node = NodeProcess("bag_replay_node", {"bag": str(path), "rate": rate, "wait_for_subscribers": 1,
+    node = NodeProcess("bag_replay_node", {"bag": str(path), "rate": rate, "wait_for": ALL_TOPICS_MATCHED,
                                            "start_delay": 0.5}, tmp_path)
     recorder.spin_until(lambda: all(recorder.count(t) >= N_FRAMES for t in TOPICS), 15.0, node)
     code = _wait_exit(node)
@@ -167,7 +170,7 @@ def test_replay_delivers_every_frame_at_the_recorded_pace(bag, recorder, tmp_pat
 
 def test_loop_repeats_the_bag_stamps_and_ctrl_c_stops_with_exit_0(bag, recorder, tmp_path):
     path, _ = bag
-    node = NodeProcess("bag_replay_node", {"bag": str(path), "loop": True, "wait_for_subscribers": 1,
+    node = NodeProcess("bag_replay_node", {"bag": str(path), "loop": True, "wait_for": ALL_TOPICS_MATCHED,
                                            "start_delay": 0.3}, tmp_path)
     recorder.spin_until(lambda: recorder.count() >= N_FRAMES + 2, 15.0, node)
     assert node.alive(), node.output()
@@ -197,7 +200,7 @@ def test_truncated_bag_replays_its_complete_frames_and_warns(bag, recorder, tmp_
         warnings.simplefilter("ignore")
         n = sum(1 for _ in read_bag(cut))  # what the reader recovers
     assert 1 <= n < N_FRAMES
-    node = NodeProcess("bag_replay_node", {"bag": str(cut), "rate": 0.0, "wait_for_subscribers": 1,
+    node = NodeProcess("bag_replay_node", {"bag": str(cut), "rate": 0.0, "wait_for": ALL_TOPICS_MATCHED,
                                            "start_delay": 0.5}, tmp_path)
     recorder.spin_until(lambda: not node.alive(), 15.0)
     recorder.spin_for(0.2)
