@@ -47,6 +47,16 @@ OPERATOR_NODES = ("generation", "refinement", "scoring", "pick")
 DEFAULT_NODES = (*OPERATOR_NODES, "configurator")
 # Nodes that take models_dir and pipeline.
 MODEL_NODES = (*OPERATOR_NODES, "configurator")
+# What each launched node subscribes to among a bag's topics: bag_replay_node waits for them
+# (wait_for) so that a short bag is not replayed before the nodes serve (about 4 s after start).
+CAMERA_TOPICS = ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
+NODE_SUBSCRIPTIONS = {
+    "generation": (*CAMERA_TOPICS, "perception/ground_truth"),
+    "refinement": CAMERA_TOPICS,
+    "scoring": CAMERA_TOPICS,
+    "pick": (*CAMERA_TOPICS, "perception/ground_truth"),
+}
+REPLAY_WAIT_TIMEOUT = 60.0  # s: the nodes start in about 4 s, more on a loaded machine
 # Nodes that may exit 0 on their own (bag_replay_node at the end of its bag).
 FINITE_EXECUTABLES = ("bag_replay_node",)
 
@@ -519,7 +529,28 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             if not rate > 0:
                 raise ValueError(f"--rate must be positive, got {rate}")
             set_param(replay, "rate", float(rate), True)
+        user_waits = params_file_sets(pfile, replay.name) & {"wait_for", "wait_for_subscribers", "topics"}
+        waits = replay_waits(names, replay.params.get("bag"))
+        if waits and not user_waits:
+            replay.params["wait_for"] = waits
+            set_param(replay, "wait_timeout", REPLAY_WAIT_TIMEOUT, False)
     return specs
+
+
+def replay_waits(names: list[str], bag: str | None) -> list[str]:
+    """bag_replay_node's default `wait_for`: "topic:count" for each topic of the bag that launched
+    nodes subscribe to, count = how many of them do. Empty when no bag is given or it cannot be
+    read (bag_replay_node then reports the bag itself)."""
+    if not bag:
+        return []
+    from .datasets.bag.info import bag_info
+
+    try:
+        in_bag = {t["topic"].lstrip("/") for t in bag_info(bag)["topics"]}
+    except Exception:  # noqa: BLE001 - any unreadable bag: the replay node names the problem
+        return []
+    counts = collections.Counter(t for n in names for t in NODE_SUBSCRIPTIONS.get(n, ()) if t in in_bag)
+    return [f"{topic}:{count}" for topic, count in counts.items()]
 
 
 def run(specs: list[NodeSpec], log_dir: str | os.PathLike | None = None) -> int:

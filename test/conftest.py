@@ -19,7 +19,10 @@ LMO_RGB_ROOT = LMO_ROOT.with_name("lmo-rgb")
 # ROS processes of this test session get a domain of their own (set before rclpy loads).
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
 os.environ["ROS_DOMAIN_ID"] = os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"]
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+# The project's loopback defaults (perception_config.ros_environment), whatever the shell exported.
+os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(Path(__file__).resolve().parents[1] / "perception_config" / "ros"
+                                                  / "fastdds_profile.xml")
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
 
 # Tests stop their child processes with SIGINT (Ctrl-C). A suite started as a background job
 # of a non-interactive shell inherits SIGINT ignored, and so would every child: catch it here,

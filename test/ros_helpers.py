@@ -17,7 +17,7 @@ def ros_test_env() -> dict[str, str]:
     """The environment for node processes of this test session: loopback, a domain of its own."""
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = os.environ["ROS_DOMAIN_ID"]
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"]
     env["PYTHONUNBUFFERED"] = "1"
     return env
 

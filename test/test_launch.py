@@ -65,7 +65,7 @@ def test_launcher_streams_prefixed_logs_passes_params_and_env_and_stops_cleanly(
         pid = launcher.pid("generation_node")
         environ = dict(kv.split("=", 1) for kv in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in kv)
         assert environ["ROS_DOMAIN_ID"] == os.environ["ROS_DOMAIN_ID"]
-        assert environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+        assert environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"
         assert environ["FASTDDS_DEFAULT_PROFILES_FILE"].endswith("fastdds_profile.xml")
         assert environ["PYTHONUNBUFFERED"] == "1"
         assert os.getsid(pid) != os.getsid(0), "a child must run in its own session"
@@ -331,3 +331,59 @@ def test_parameter_values_keep_their_types():
     assert param_value("/a b/c.yaml") == "/a b/c.yaml"
     assert param_value(2.0) == "2.0" and param_value(3) == "3" and param_value(True) == "true"
     assert param_value(Path("/x")) == "/x"
+
+
+# -- launch --bag: the replay waits for the nodes --------------------------------------------------
+def test_bag_replay_waits_for_every_subscribing_node_unless_the_params_file_says(synthetic_dataset, tmp_path):
+    from perception_config.datasets.bag.writer import write_frames
+    from perception_config.datasets.bop import BopDataset
+
+    root = synthetic_dataset
+    ds = BopDataset(root, split="test")
+    bag = tmp_path / "one.mcap"
+    write_frames([ds.load_frame(*next(iter(ds.image_keys())), with_models=False)], bag, 10.0)
+    specs = resolve_nodes(bag=bag, models=root / "models", policy="none", cwd=tmp_path, say=lambda _: None)
+    replay = _p(specs[-1])
+    assert specs[-1].name == "bag_replay_node"
+    assert replay["wait_for"] == ("['camera/color/image_raw:4', 'camera/depth/image_raw:4', 'camera/camera_info:4', "
+                                  "'perception/ground_truth:2']")
+    assert float(replay["wait_timeout"]) == launch.REPLAY_WAIT_TIMEOUT
+    only = _p(resolve_nodes(nodes=["scoring"], bag=bag, models=root / "models", cwd=tmp_path, say=lambda _: None)[-1])
+    assert only["wait_for"] == "['camera/color/image_raw:1', 'camera/depth/image_raw:1', 'camera/camera_info:1']"
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text("bag_replay_node:\n  ros__parameters:\n    wait_for_subscribers: 1\n")
+    own = resolve_nodes(bag=bag, models=root / "models", policy="none", params_file=params_file, cwd=tmp_path,
+                        say=lambda _: None)[-1]
+    assert "wait_for" not in _p(own) and "wait_timeout" not in _p(own)
+
+
+@pytest.mark.ros
+def test_launch_bag_replays_a_short_bag_once_the_nodes_listen(ros_node, synthetic_dataset, tmp_path):
+    """A 3-frame bag lasts 0.2 s and the nodes serve about 4 s after the start: without the
+    default wait_for every estimate fails with 'no frame'."""
+    from perception_config_interfaces.srv import EstimatePose
+
+    from perception_config.datasets.bag.writer import RECORDING_EPOCH_NS, write_frames
+    from perception_config.datasets.bop import BopDataset
+    from rl_helpers import PIPELINE
+
+    ds = BopDataset(synthetic_dataset, split="test")
+    frames = [ds.load_frame(s, i, with_models=False) for s, i in list(ds.image_keys())[:3]]
+    bag = tmp_path / "three.mcap"
+    assert write_frames(frames, bag, 10.0) == 3
+    pipeline = tmp_path / "pipeline.yaml"
+    pipeline.write_text(PIPELINE)
+    launcher = _Cli(["--bag", str(bag), "--models", str(synthetic_dataset / "models"), "--pipeline", str(pipeline),
+                     "--policy", "none"], tmp_path)
+    try:
+        launcher.wait_for(r"^\[launch\] bag_replay_node finished \(exit code 0\)", timeout=120)
+        est = ros_node.create_client(EstimatePose, "estimate_pose")
+        wait_for_service(ros_node, est, timeout=30)
+        results = []
+        for i, frame in enumerate(frames):
+            req = EstimatePose.Request(object_id=str(frame.objects[0].obj_id), noise_lambda=0.5, seed=i)
+            req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(RECORDING_EPOCH_NS + i * 100_000_000, 1_000_000_000)
+            results.append(call(ros_node, est, req, timeout=60.0))
+        assert [r.success for r in results] == [True, True, True], [r.message for r in results]
+    finally:
+        _cleanup(launcher, None)

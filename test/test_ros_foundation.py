@@ -36,12 +36,14 @@ def test_environment_defaults_are_loopback_and_respect_the_user():
     from perception_config.ros_environment import FASTDDS_PROFILE, configure_ros_environment
 
     env = configure_ros_environment({})
-    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"  # the shipped profile decides
     assert env["ROS_DOMAIN_ID"] == "42"
     assert env["FASTDDS_DEFAULT_PROFILES_FILE"] == str(FASTDDS_PROFILE) and FASTDDS_PROFILE.is_file()
     assert "127.0.0.1" in FASTDDS_PROFILE.read_text()
     user = configure_ros_environment({"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
     assert user["ROS_DOMAIN_ID"] == "7" and user["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    own_profile = configure_ros_environment({"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/my_profile.xml"})
+    assert own_profile["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"  # not ours: rmw keeps it local
     with pytest.raises(ValueError, match="ROS_DOMAIN_ID"):
         configure_ros_environment({"ROS_DOMAIN_ID": "abc"})
 

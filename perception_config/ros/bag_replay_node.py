@@ -55,6 +55,7 @@ from rclpy.task import Future
 
 from ..datasets.bag import BagTruncatedWarning, bag_info, iter_messages
 from ..ros_environment import configure_ros_environment
+from ..ros_shm import clean_stale_fastdds_shm
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 ACK_TIMEOUT_S = 5.0
@@ -228,6 +229,7 @@ class BagReplayNode(Node):
 def main(args: list[str] | None = None) -> int:
     warnings.simplefilter("ignore", BagTruncatedWarning)  # the node logs the damage once, at the start
     configure_ros_environment()  # loopback defaults before rclpy starts
+    clean_stale_fastdds_shm()  # segments of killed participants (ros_shm)
     rclpy.init(args=args)
     node = None
     try:

@@ -47,6 +47,7 @@ from ..geometry import Pose
 from ..models import ObjectModel
 from ..operators import FrameCaches
 from ..ros_environment import configure_ros_environment
+from ..ros_shm import clean_stale_fastdds_shm
 from .camera_frames import CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 from .stamp_cache import StampCache
@@ -310,6 +311,7 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     unreadable models folder) logs why and exits 2.
     """
     configure_ros_environment()  # loopback defaults before rclpy starts
+    clean_stale_fastdds_shm()  # segments of killed participants (ros_shm)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     # Also when started with SIGINT ignored (a background job of a script inherits that):
