@@ -17,6 +17,7 @@ from ros_helpers import NodeProcess, wait_for_service
 pytestmark = pytest.mark.ros
 
 SHM = Path("/dev/shm")
+NAMESPACE = "/exposure_test"
 
 
 def _socket_inodes(pid: int) -> set[int]:
@@ -71,13 +72,15 @@ def _segments_of(pid: int) -> set[str]:
 def _serving_generation_node(ros_node, models: Path) -> NodeProcess:
     from perception_config_interfaces.srv import GenerateHypothesis
 
-    node = NodeProcess("generation_node", {"models_dir": str(models)})
+    # A namespace of its own: a SIGKILLed node's service stays announced for the lease duration
+    # (about 20 s), and a later test's client must not take it for its own node's.
+    node = NodeProcess("generation_node", {"models_dir": str(models)}, remap={"__ns": NAMESPACE})
     deadline = time.monotonic() + 60
-    # Its own log line: a SIGKILLed node's service stays announced for the lease duration (about 20 s).
+    # Its own log line, not the service: the service of the node killed before is still announced.
     while "serving generate_hypothesis" not in node.output():
         assert node.alive() and time.monotonic() < deadline, node.output()
         time.sleep(0.05)
-    client = ros_node.create_client(GenerateHypothesis, "generate_hypothesis")
+    client = ros_node.create_client(GenerateHypothesis, f"{NAMESPACE}/generate_hypothesis")
     try:
         wait_for_service(ros_node, client, timeout=60, process=node)  # also: the two processes discover each other
     finally:
