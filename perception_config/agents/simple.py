@@ -22,6 +22,7 @@ import numpy as np
 
 from ..episode_loop import Trajectory
 from .base import Agent, EnvSpec, returns_to_go
+from .hparams import SEED, Float, Int
 
 Key = tuple[int, ...]
 
@@ -30,6 +31,8 @@ class SimpleAgent(Agent):
     """The paper's memory agent: xi-greedy over running-average returns per action history."""
 
     kind = "simple"
+    HPARAM_BOUNDS = {"xi_start": Float(0.0, 1.0), "xi_min": Float(0.0, 1.0), "xi_decay": Float(0.0, 1.0),
+                     "score_bins": Int(0, 1000), "seed": SEED}
 
     def __init__(self, spec: EnvSpec, xi_start: float = 1.0, xi_min: float = 0.05, xi_decay: float = 0.995,
                  score_bins: int = 0, seed: int = 0) -> None:
