@@ -86,6 +86,7 @@ class McapFile:
         self.size = path.stat().st_size
         self.damage: str | None = None  # why the file is not complete
         self.damage_offset: int | None = None  # bytes read fine before the damage
+        self.corrupt = False  # a complete file (with footer) whose records are damaged (verify)
         self._channels: dict[int, _ChannelInfo] | None = None
         self.counts: dict[int, int] = {}
         self.times: list[int] = []
@@ -120,6 +121,21 @@ class McapFile:
     @property
     def complete(self) -> bool:
         return self.damage is None
+
+    def verify(self) -> bool:
+        """Read every record of a complete file, checking each chunk's CRC and decompression;
+        True if all are intact. A damaged file is then read like a cut one: in file order, up to
+        the damage (`corrupt` is set, the summary's index and counts are no longer trusted).
+        Call before `channels()`."""
+        if self.damage is not None:
+            return False
+        for _ in self._record_batches():
+            pass
+        if self.damage is not None:
+            self.corrupt = True
+            self.summary = None
+            self._channels = None
+        return not self.corrupt
 
     # -- sequential scan: damaged files and files without an index ------------------------------
     def _record_batches(self) -> Iterator[list]:
