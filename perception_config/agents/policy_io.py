@@ -278,7 +278,7 @@ def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvS
         agent.set_state(meta.get("state", {}))
     except PolicyError:
         raise
-    except (ValueError, KeyError, TypeError, IndexError) as exc:
+    except (ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:
         raise PolicyError(f"policy {path} is corrupt: cannot rebuild the {kind!r} agent: {exc}"[:1000]) from None
     return agent
 
