@@ -75,9 +75,9 @@ def write_file(path: str | Path, meta: dict[str, Any], tensors: dict[str, np.nda
 
 def _json(data: bytes, path: Path, what: str) -> Any:
     try:
-        return loads_limited(data, f"policy file {path} ({what})", MAX_POLICY_BYTES, MAX_JSON_DEPTH)
+        return loads_limited(data, f"{path} ({what})", MAX_POLICY_BYTES, MAX_JSON_DEPTH)
     except JsonLimitError as exc:
-        raise PolicyError(f"policy file {path} is corrupt or hostile: {exc}") from None
+        raise PolicyError(f"policy file {exc}") from None
 
 
 def _check_header(header: Any, data_len: int, path: Path) -> None:
