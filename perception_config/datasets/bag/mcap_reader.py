@@ -9,7 +9,9 @@ the bag's own schema, or ours for a type we ship.
 from __future__ import annotations
 
 import os
+import struct
 import warnings
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
@@ -131,11 +133,33 @@ class McapFile:
             return False
         for _ in self._record_batches():
             pass
+        if self.damage is None:
+            self.damage = self._section_crc_damage()
         if self.damage is not None:
             self.corrupt = True
             self.summary = None
             self._channels = None
         return not self.corrupt
+
+    def _section_crc_damage(self) -> str | None:
+        """The footer's summary CRC and the DataEnd record's data-section CRC, where recorded (0 =
+        not recorded, MCAP spec); mcap's readers check neither. None if they match."""
+        footer_len = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary_start, summary_offset_start, summary_crc
+        footer_at = self.size - len(_MAGIC) - footer_len
+        with open(self.path, "rb") as f:
+            f.seek(footer_at)
+            op, _n, summary_start, _sos, summary_crc = struct.unpack("<BQQQI", f.read(footer_len))
+            if op != 0x02 or summary_start > footer_at:
+                return "damaged MCAP footer"
+            if summary_crc and summary_start and _crc32(f, summary_start, footer_at + footer_len - 4) != summary_crc:
+                return "damaged MCAP summary section (summary CRC mismatch)"
+            data_end_at = (summary_start or footer_at) - 13  # DataEnd: opcode, length, data_section_crc
+            if data_end_at >= len(_MAGIC):
+                f.seek(data_end_at)
+                op, _n, data_crc = struct.unpack("<BQI", f.read(13))
+                if op == 0x0F and data_crc and _crc32(f, 0, data_end_at) != data_crc:
+                    return "damaged MCAP data section (data section CRC mismatch)"
+        return None
 
     # -- sequential scan: damaged files and files without an index ------------------------------
     def _record_batches(self) -> Iterator[list]:
@@ -245,6 +269,19 @@ class McapFile:
     def truncation_message(self) -> str:
         intact = f"; its first {self.damage_offset} of {self.size} bytes are intact" if self.damage_offset else ""
         return f"{self.path} is truncated or damaged ({self.damage}){intact}"
+
+
+def _crc32(f: Any, start: int, end: int, block: int = 8 * 1024 * 1024) -> int:
+    """CRC32 of bytes [start, end) of an open file, read in blocks (a bag may be gigabytes)."""
+    f.seek(start)
+    crc, left = 0, end - start
+    while left > 0:
+        data = f.read(min(block, left))
+        if not data:
+            break
+        crc = zlib.crc32(data, crc)
+        left -= len(data)
+    return crc
 
 
 def schema_name(ch: _ChannelInfo) -> str:
