@@ -374,3 +374,15 @@ def test_fuzz_bag_reader(bag_file, tmp_path):
 
     counts = _fuzz((_mutate_bytes(rng, data) for _ in iter(int, 1)), attempt, (BagFormatError,))
     assert counts["tried"] >= 30 and counts["refused"] > 0
+
+
+def test_model_and_results_files_refuse_directories(tmp_path):
+    from perception_config.datasets.bop import read_results_csv
+    from perception_config.models import PlyError, read_ply
+
+    (tmp_path / "obj.ply").mkdir()
+    with pytest.raises(PlyError, match=r"obj\.ply: is a directory, not a PLY file"):
+        read_ply(tmp_path / "obj.ply")
+    (tmp_path / "res.csv").mkdir()
+    with pytest.raises(BopFormatError, match=r"res\.csv: is a directory"):
+        read_results_csv(tmp_path / "res.csv")

@@ -862,9 +862,13 @@ def read_results_csv(path: str | os.PathLike) -> list[BopResult]:
     """Read a BOP results CSV (t in mm -> metres); BopFormatError naming file and line."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_limited(path, MAX_JSON_BYTES, "BOP results file").decode("utf-8")
     except FileNotFoundError:
         raise FileNotFoundError(f"BOP results file not found: {path}") from None
+    except JsonLimitError as e:
+        raise BopFormatError(str(e)) from None
+    except UnicodeDecodeError as e:
+        raise BopFormatError(f"{path}: not UTF-8 text ({e.reason})") from None
     rows = list(csv.reader(io.StringIO(text)))
     if not rows or [c.strip() for c in rows[0]] != RESULTS_HEADER:
         raise BopFormatError(f"{path}: header must be {','.join(RESULTS_HEADER)}")
