@@ -386,3 +386,22 @@ def test_model_and_results_files_refuse_directories(tmp_path):
     (tmp_path / "res.csv").mkdir()
     with pytest.raises(BopFormatError, match=r"res\.csv: is a directory"):
         read_results_csv(tmp_path / "res.csv")
+
+
+def test_chunk_declaring_a_huge_size_is_damage_not_decompressed(bag_file, tmp_path):
+    from mcap.reader import SeekingReader
+
+    with open(bag_file, "rb") as f:
+        start = SeekingReader(f).get_summary().chunk_indexes[1].chunk_start_offset
+    data = bytearray(bag_file.read_bytes())
+    data[start + 1 + 8 + 16:start + 1 + 8 + 24] = struct.pack("<Q", 2**40)  # uncompressed_size: 1 TiB
+    bomb = tmp_path / "bomb.mcap"
+    bomb.write_bytes(bytes(data))
+    rss = _maxrss_kb()
+    info = bag_info(bomb)
+    assert info["corrupt"] and "declares 1099511627776 uncompressed bytes" in info["damage"]
+    try:  # read_bag trusts the zstd frame's own content size: it loads (the data is intact) or refuses
+        list(read_bag(bomb))
+    except BagFormatError as exc:
+        assert "bomb.mcap" in str(exc)
+    assert _maxrss_kb() - rss < 100 * 1024

@@ -22,6 +22,7 @@ from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning
 
 _MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+MAX_RECORD_BYTES = 512 * 1024 * 1024  # an MCAP record, or a chunk's declared uncompressed size, above this is damage
 
 
 class BagMessage(NamedTuple):
@@ -112,8 +113,13 @@ class McapFile:
             else:
                 try:
                     f.seek(0)
-                    reader = SeekingReader(f)
+                    reader = SeekingReader(f, record_size_limit=MAX_RECORD_BYTES)
                     self.summary = reader.get_summary()
+                    big = [c.uncompressed_size for c in (self.summary.chunk_indexes if self.summary else [])
+                           if c.uncompressed_size > MAX_RECORD_BYTES]
+                    if big:
+                        raise ValueError(f"a chunk declares {big[0]} uncompressed bytes, more than the "
+                                         f"{MAX_RECORD_BYTES}-byte limit")
                     h = reader.get_header()
                     self.header_profile, self.header_library = h.profile, h.library
                 except Exception as exc:  # damaged footer/summary
@@ -171,11 +177,14 @@ class McapFile:
         from mcap.stream_reader import StreamReader, breakup_chunk
 
         with open(self.path, "rb") as f:
-            records = StreamReader(f, emit_chunks=True).records
+            records = StreamReader(f, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
             good = len(_MAGIC)
             while True:
                 try:
                     rec = next(records)
+                    if isinstance(rec, Chunk) and rec.uncompressed_size > MAX_RECORD_BYTES:  # not decompressed
+                        raise ValueError(f"a chunk declares {rec.uncompressed_size} uncompressed bytes, more than "
+                                         f"the {MAX_RECORD_BYTES}-byte limit")
                     batch = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
                     good = f.tell()
                 except StopIteration:
@@ -232,7 +241,7 @@ class McapFile:
         out: dict[str, dict[str, str]] = {}
         try:
             with open(self.path, "rb") as f:
-                for m in SeekingReader(f).iter_metadata():
+                for m in SeekingReader(f, record_size_limit=MAX_RECORD_BYTES).iter_metadata():
                     out[m.name] = dict(m.metadata)
         except Exception:
             pass
@@ -248,7 +257,8 @@ class McapFile:
             if topics == []:
                 return
             with open(self.path, "rb") as f:
-                it = SeekingReader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=True)
+                reader = SeekingReader(f, validate_crcs=True, record_size_limit=MAX_RECORD_BYTES)
+                it = reader.iter_messages(topics=topics, log_time_order=True)
                 while True:
                     try:
                         _schema, channel, message = next(it)
