@@ -22,6 +22,7 @@ import numpy as np
 
 from .atomic_file import atomic_write
 from .geometry import Pose
+from .safe_json import JsonLimitError, read_limited
 
 MM = 1e-3  # metres per millimetre: BOP files are in mm
 
@@ -29,6 +30,9 @@ DEFAULT_N_POINTS = 3000  # surface samples per model: enough for ICP and scores,
 DEFAULT_CONT_STEP_DEG = 10.0  # sampling step of continuous symmetries
 DEFAULT_EDGE_ANGLE_DEG = 30.0  # dihedral angle above which a mesh edge counts as sharp
 DEFAULT_MAX_EDGE_POINTS = 2000
+
+
+MAX_PLY_BYTES = 1024**3  # a model file larger than this (1 GiB) is refused before reading
 
 
 class PlyError(ValueError):
@@ -108,10 +112,12 @@ def read_ply(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
     Raises PlyError naming the file for anything malformed (bad header, truncated body, bad token).
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
+    try:  # a regular file (not a directory, FIFO or device) of at most MAX_PLY_BYTES
+        data = read_limited(path, MAX_PLY_BYTES, "PLY file")
     except FileNotFoundError:
         raise FileNotFoundError(f"PLY file not found: {path}") from None
+    except JsonLimitError as exc:
+        raise PlyError(str(exc)) from None
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")

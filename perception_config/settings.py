@@ -22,11 +22,15 @@ from .geometry import check_noise_lambda
 
 TIME_MODES = ("measured", "cost_table")
 SCORING_PASS = "scoring"  # the cost-table key of the whole scoring pass (overrides the sum)
+MAX_OPS_LIMIT = 1000  # max_ops above this is refused (a policy file could otherwise ask for 10^7 operations)
+MAX_SECONDS = 3600.0  # s: a cost (failed pick, truncation, cost-table entry) above this is refused
+MAX_COST_TABLE_ENTRIES = 1000
 
 
 @dataclass(frozen=True)
 class EnvSettings:
-    """Settings of PerceptionConfigEnv (units: seconds, shares). Validated when built."""
+    """Settings of PerceptionConfigEnv (units: seconds, shares). Validated when built: max_ops in
+    [1, MAX_OPS_LIMIT], every cost in [0, MAX_SECONDS] s, at most MAX_COST_TABLE_ENTRIES cost-table entries."""
 
     max_ops: int = 10  # operations before an episode is truncated
     failed_pick_cost: float = 2.0  # s, the robot's attempt added to a failed pick
@@ -38,8 +42,9 @@ class EnvSettings:
 
     def __post_init__(self) -> None:
         m = self.max_ops
-        if isinstance(m, bool) or not isinstance(m, (int, float)) or not float(m).is_integer() or m < 1:
-            raise ValueError(f"max_ops must be an integer >= 1, got {m!r}")
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not float(m).is_integer() \
+                or not 1 <= m <= MAX_OPS_LIMIT:
+            raise ValueError(f"max_ops must be an integer in [1, {MAX_OPS_LIMIT}], got {m!r}")
         object.__setattr__(self, "max_ops", int(m))
         for name in ("failed_pick_cost", "truncation_cost"):
             object.__setattr__(self, name, _seconds(getattr(self, name), name))
@@ -47,6 +52,8 @@ class EnvSettings:
             raise ValueError(f"time_mode must be one of {list(TIME_MODES)}, got {self.time_mode!r}")
         if not isinstance(self.cost_table, Mapping):
             raise ValueError(f"cost_table must be a mapping of block name to seconds, got {self.cost_table!r}")
+        if len(self.cost_table) > MAX_COST_TABLE_ENTRIES:
+            raise ValueError(f"cost_table has {len(self.cost_table)} entries, more than {MAX_COST_TABLE_ENTRIES}")
         table = {str(k): _seconds(v, f"cost_table[{k!r}]") for k, v in self.cost_table.items()}
         object.__setattr__(self, "cost_table", table)
         visib = float(self.min_visib_fract)
@@ -123,8 +130,9 @@ class EnvSettings:
 
 
 def _seconds(value: Any, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise ValueError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or not 0 <= value <= MAX_SECONDS:
+        raise ValueError(f"{name} must be a number of seconds in [0, {MAX_SECONDS:g}], got {value!r}")
     return float(value)
 
 

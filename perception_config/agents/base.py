@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from ..settings import EnvSettings
+from .hparams import SEED
 
 if TYPE_CHECKING:
     from ..episode_loop import Trajectory
@@ -97,6 +98,15 @@ class Agent:
     """
 
     kind: ClassVar[str] = ""
+    # The hyper-parameters a policy file may give and their bounds (hparams.py), checked before
+    # the agent is built from a file.
+    HPARAM_BOUNDS: ClassVar[dict[str, Any]] = {"seed": SEED}
+
+    @classmethod
+    def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+        """The policy tensors (name -> shape) that `hparams` and `spec` imply: checked against a
+        file's tensors before the agent is built. Agents without weights: none."""
+        return {}
 
     def __init__(self, spec: EnvSpec, seed: int = 0) -> None:
         self.spec = spec

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..episode_loop import Trajectory
 from .base import Agent, EnvSpec
+from .hparams import SEED, Float, Int, IntList
 
 Weights = list[np.ndarray]  # [W1, b1, W2, b2, W3, b3]
 
@@ -61,6 +62,18 @@ class EvolutionaryAgent(Agent):
     """A population of three-layer networks; the best two breed (module docstring: one generation)."""
 
     kind = "es"
+    HPARAM_BOUNDS = {"population": Int(3, 10_000), "episodes_per_generation": Int(1, 10_000),
+                     "hidden": IntList(2, Int(1, 4096)), "sigma": Float(0.0, 100.0), "sigma_decay": Float(0.0, 1.0),
+                     "sigma_min": Float(0.0, 100.0), "mutation_rate": Float(0.0, 1.0), "elites": Int(1, 9_999),
+                     "seed": SEED}
+
+    @classmethod
+    def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+        sizes = [spec.obs_dim, *[int(h) for h in hparams.get("hidden", (32, 32))], spec.n_actions]
+        out: dict[str, tuple[int, ...]] = {}
+        for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+            out[f"net.{2 * i}"], out[f"net.{2 * i + 1}"] = (fan_in, fan_out), (fan_out,)
+        return out
 
     def __init__(self, spec: EnvSpec, population: int = 8, episodes_per_generation: int = 4,
                  hidden: list[int] | tuple[int, int] = (32, 32), sigma: float = 0.1, sigma_decay: float = 0.98,

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from .base import Agent, EnvSpec
+from .hparams import SEED, Choice, Int, StrList
 
 DEFAULT_SEQUENCE = ("icp_coarse", "icp_fine", "pick")
 
@@ -22,6 +23,8 @@ class FixedAgent(Agent):
     """An engineer's fixed action sequence (module docstring: what happens when it runs out)."""
 
     kind = "fixed"
+    HPARAM_BOUNDS = {"sequence": StrList(1000, nullable=True), "restart": Int(0, 999),
+                     "after": Choice(("repeat", "pick")), "seed": SEED}
 
     def __init__(self, spec: EnvSpec, sequence: list[str] | tuple[str, ...] | None = None,
                  restart: int = 0, after: str = "repeat", seed: int = 0) -> None:

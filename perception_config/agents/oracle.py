@@ -32,6 +32,7 @@ import numpy as np
 
 from ..geometry import rotation_angle
 from .base import Agent, EnvSpec
+from .hparams import SEED, Float, Int
 
 
 @dataclass
@@ -149,6 +150,7 @@ class OracleAgent(Agent):
     """
 
     kind = "oracle"
+    HPARAM_BOUNDS = {"node_budget": Int(1, 1_000_000), "noop_tol": Float(0.0, 1.0), "seed": SEED}
 
     def __init__(self, spec: EnvSpec, env: Any = None, node_budget: int = 2000, noop_tol: float = 1e-6,
                  seed: int = 0) -> None:

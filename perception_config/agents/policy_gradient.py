@@ -24,6 +24,9 @@ from torch import nn
 
 from ..episode_loop import Trajectory
 from .base import Agent, EnvSpec, returns_to_go
+from .hparams import SEED, Choice, Float, Int
+
+MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare
 
 
 class PolicyNet(nn.Module):
@@ -63,6 +66,16 @@ class PolicyGradientAgent(Agent):
     """REINFORCE with a value (or running-mean) baseline; the policy network is `PolicyNet`."""
 
     kind = "pg"
+    HPARAM_BOUNDS = {"hidden": Int(1, MAX_HIDDEN), "lr": Float(0.0, 10.0), "value_lr": Float(0.0, 10.0),
+                     "gamma": Float(0.0, 1.0), "batch_episodes": Int(1, 10_000), "entropy_coef": Float(0.0, 100.0),
+                     "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
+                     "grad_clip": Float(0.0, 1e6), "seed": SEED}
+
+    @classmethod
+    def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+        h, n, d = int(hparams.get("hidden", 32)), spec.n_actions, spec.obs_dim
+        return {"policy.fc1.weight": (h, d), "policy.fc1.bias": (h,), "policy.fc2.weight": (n, h),
+                "policy.fc2.bias": (n,)}
 
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,

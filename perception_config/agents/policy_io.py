@@ -15,6 +15,7 @@ records: the environment settings (`env_settings`), the split, the pipeline.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -22,64 +23,182 @@ from typing import Any
 import numpy as np
 
 from ..atomic_file import atomic_write
+from ..safe_json import JsonLimitError, loads_limited, read_limited
+from ..settings import MAX_OPS_LIMIT, settings_from_policy_meta
 from .base import Agent, EnvSpec
+from .hparams import check_hparams
 from .registry import AGENTS
 
 FORMAT = "perception_config.policy"
 VERSION = 1
 META_KEY = "perception_config"
+CHECKSUM_KEY = "sha256"  # metadata entry: sha256 of the canonical metadata and the tensors (content_checksum)
+MAX_POLICY_BYTES = 256 * 1024 * 1024  # a policy/checkpoint file larger than this is refused before reading
+MAX_HEADER_BYTES = 16 * 1024 * 1024  # the safetensors header (tensor table + metadata JSON)
+MAX_JSON_DEPTH = 32  # nesting of the metadata JSON (what training writes nests <= 8 levels)
+MAX_NAMES = 10_000  # entries of the action set / observation layout
+_DTYPES = {"F16": 2, "BF16": 2, "F32": 4, "F64": 8, "I8": 1, "I16": 2, "I32": 4, "I64": 8,
+           "U8": 1, "U16": 2, "U32": 4, "U64": 8, "BOOL": 1}
 
 
 class PolicyError(ValueError):
     """A policy or checkpoint file that cannot be used here; the message names the file."""
 
 
+def content_checksum(meta: dict[str, Any], tensors: dict[str, np.ndarray]) -> str:
+    """sha256 over the canonical metadata JSON (without its checksum entry) and every tensor's
+    name, dtype, shape and bytes, in name order."""
+    h = hashlib.sha256()
+    body = {k: v for k, v in meta.items() if k != CHECKSUM_KEY}
+    h.update(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+    for name in sorted(tensors):
+        a = np.ascontiguousarray(tensors[name])
+        h.update(f"\0{name}\0{a.dtype.str}\0{a.shape}\0".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def write_file(path: str | Path, meta: dict[str, Any], tensors: dict[str, np.ndarray] | None = None) -> Path:
-    """Write metadata (+ tensors: safetensors; without tensors: JSON) atomically."""
+    """Write metadata (+ tensors: safetensors; without tensors: JSON) atomically, with the
+    content checksum in the metadata."""
     meta = {"format": FORMAT, "version": VERSION, **meta}
-    if tensors:
+    arrays = {k: np.ascontiguousarray(v) for k, v in (tensors or {}).items()}
+    meta[CHECKSUM_KEY] = content_checksum(meta, arrays)
+    if arrays:
         from safetensors.numpy import save
 
-        arrays = {k: np.ascontiguousarray(v) for k, v in tensors.items()}
         data = save(arrays, metadata={META_KEY: json.dumps(meta)})
     else:
         data = (json.dumps(meta, indent=1) + "\n").encode()
     return atomic_write(path, data)
 
 
+def _json(data: bytes, path: Path, what: str) -> Any:
+    try:
+        return loads_limited(data, f"{path} ({what})", MAX_POLICY_BYTES, MAX_JSON_DEPTH)
+    except JsonLimitError as exc:
+        raise PolicyError(f"policy file {exc}") from None
+
+
+def _check_header(header: Any, data_len: int, path: Path) -> None:
+    """The safetensors tensor table: dtypes known, shapes of non-negative ints whose byte size
+    matches their offsets, inside the file. Checked before safetensors allocates anything."""
+    if not isinstance(header, dict):
+        raise PolicyError(f"policy file {path} is corrupt: the safetensors header is not a JSON object")
+    for name, entry in header.items():
+        if name == "__metadata__":
+            if not isinstance(entry, dict) or not all(isinstance(v, str) for v in entry.values()):
+                raise PolicyError(f"policy file {path} is corrupt: __metadata__ must map names to strings")
+            continue
+        ok = (isinstance(entry, dict) and entry.get("dtype") in _DTYPES and isinstance(entry.get("shape"), list)
+              and all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**40 for d in entry["shape"])
+              and isinstance(entry.get("data_offsets"), list) and len(entry["data_offsets"]) == 2
+              and all(isinstance(o, int) and not isinstance(o, bool) for o in entry["data_offsets"]))
+        if not ok:
+            raise PolicyError(f"policy file {path} is corrupt: tensor {str(name)[:80]!r} has a malformed entry")
+        lo, hi = entry["data_offsets"]
+        if not 0 <= lo <= hi <= data_len or int(np.prod(entry["shape"], dtype=object)) * _DTYPES[entry["dtype"]] \
+                != hi - lo:
+            raise PolicyError(f"policy file {path} is corrupt: tensor {str(name)[:80]!r} with shape {entry['shape']} "
+                              f"does not fit its {hi - lo}-byte data or the file")
+
+
+def _names(value: Any) -> bool:
+    return isinstance(value, list) and len(value) <= MAX_NAMES and all(isinstance(x, str) for x in value)
+
+
+def check_meta_schema(meta: Any, path: Path) -> None:
+    """The metadata's types: format/version, agent (a name), env (action set, observation layout,
+    max_ops), hparams/state/extra (JSON objects). PolicyError naming the file and the field."""
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise PolicyError(f"{path} is not a perception_config policy file (no {FORMAT!r} metadata)")
+    version = meta.get("version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise PolicyError(f"policy file {path} is corrupt: version must be an integer, got {version!r}"[:300])
+    if version > VERSION:
+        raise PolicyError(f"{path} has format version {version}, this code reads <= {VERSION}")
+    for key in ("agent", "env"):
+        if key not in meta:
+            raise PolicyError(f"policy file {path} is corrupt: metadata has no {key!r}")
+    if not isinstance(meta["agent"], str):
+        raise PolicyError(f"policy file {path} is corrupt: 'agent' must be a name, got {type(meta['agent']).__name__}")
+    for key in ("hparams", "state", "extra", "train_state", "trainer"):
+        if key in meta and not isinstance(meta[key], dict):
+            raise PolicyError(f"policy file {path} is corrupt: {key!r} must be a JSON object, "
+                              f"got {type(meta[key]).__name__}")
+    if CHECKSUM_KEY in meta and not isinstance(meta[CHECKSUM_KEY], str):
+        raise PolicyError(f"policy file {path} is corrupt: {CHECKSUM_KEY!r} must be a hex string")
+    env = meta["env"]
+    if not isinstance(env, dict):
+        raise PolicyError(f"policy file {path} is corrupt: 'env' must be a JSON object, got {type(env).__name__}")
+    for key in ("action_names", "action_kinds", "observation_layout"):
+        if not _names(env.get(key)):
+            raise PolicyError(f"policy file {path} is corrupt: env.{key} must be a list of at most "
+                              f"{MAX_NAMES} strings")
+    if len(env["action_kinds"]) != len(env["action_names"]):
+        raise PolicyError(f"policy file {path} is corrupt: env.action_kinds and env.action_names differ in length")
+    m = env.get("max_ops")
+    if isinstance(m, bool) or not isinstance(m, int) or not 1 <= m <= MAX_OPS_LIMIT:
+        raise PolicyError(f"policy file {path} is corrupt: env.max_ops must be an integer in [1, {MAX_OPS_LIMIT}], "
+                          f"got {m!r}"[:300])
+    actions = env.get("actions", [])
+    if not isinstance(actions, list) or not all(isinstance(a, dict) for a in actions):
+        raise PolicyError(f"policy file {path} is corrupt: env.actions must be a list of JSON objects")
+
+
 def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """(metadata, tensors) of a policy/checkpoint file; PolicyError naming the file otherwise."""
+    """(metadata, tensors) of a policy/checkpoint file, validated; PolicyError naming the file.
+
+    Checked in this order, so nothing large is allocated for a hostile file: a regular file of
+    at most MAX_POLICY_BYTES; the JSON (metadata, safetensors header) at most MAX_JSON_DEPTH
+    levels deep; the tensor table (dtypes, shapes against offsets and file size); the metadata
+    schema (check_meta_schema) and the environment settings it records (settings.py bounds);
+    the content checksum; every tensor except the training history finite.
+    Files written before the checksum existed have none: they are accepted with the other checks.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise PolicyError(f"policy file {path} does not exist")
-    data = path.read_bytes()
+    try:
+        data = read_limited(path, MAX_POLICY_BYTES, "policy file")
+    except FileNotFoundError:
+        raise PolicyError(f"policy file {path} does not exist") from None
+    except JsonLimitError as exc:
+        raise PolicyError(f"policy file {exc}") from None
+    except OSError as exc:
+        raise PolicyError(f"policy file {path} cannot be read: {exc.strerror or exc}") from None
     tensors: dict[str, np.ndarray] = {}
     if data.lstrip()[:1] == b"{":
-        try:
-            meta = json.loads(data.decode())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise PolicyError(f"policy file {path} is corrupt: not valid JSON ({exc})") from None
+        meta = _json(data, path, "JSON")
     else:
+        if len(data) < 8:
+            raise PolicyError(f"policy file {path} is corrupt or not a policy: shorter than a safetensors header")
+        n = int.from_bytes(data[:8], "little")
+        if n <= 0 or n > MAX_HEADER_BYTES or 8 + n > len(data):
+            raise PolicyError(f"policy file {path} is corrupt or not a policy: header length {n} does not fit a "
+                              f"{len(data)}-byte file (limit {MAX_HEADER_BYTES})")
+        header = _json(data[8:8 + n], path, "safetensors header")
+        _check_header(header, len(data) - 8 - n, path)
+        raw_meta = header.get("__metadata__", {}).get(META_KEY)
+        if raw_meta is None:
+            raise PolicyError(f"{path} is not a perception_config policy file (no {FORMAT!r} metadata)")
+        meta = _json(raw_meta.encode(), path, "metadata")
+        check_meta_schema(meta, path)
         try:
-            if len(data) < 8:
-                raise ValueError("shorter than a safetensors header")
-            n = int.from_bytes(data[:8], "little")
-            if n <= 0 or 8 + n > len(data):
-                raise ValueError(f"header length {n} does not fit a {len(data)}-byte file")
-            header = json.loads(data[8:8 + n].decode())
-            meta = json.loads(header.get("__metadata__", {}).get(META_KEY, "null"))
             from safetensors.numpy import load
 
             tensors = dict(load(data))
         except Exception as exc:  # safetensors raises its own error types; all mean "corrupt"
             raise PolicyError(f"policy file {path} is corrupt or not a policy: {type(exc).__name__}: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise PolicyError(f"{path} is not a perception_config policy file (no {FORMAT!r} metadata)")
-    if int(meta.get("version", 0)) > VERSION:
-        raise PolicyError(f"{path} has format version {meta.get('version')}, this code reads <= {VERSION}")
-    for key in ("agent", "env"):
-        if key not in meta:
-            raise PolicyError(f"policy file {path} is corrupt: metadata has no {key!r}")
+    check_meta_schema(meta, path)
+    try:
+        settings_from_policy_meta(meta, f"policy file {path}")
+    except ValueError as exc:
+        raise PolicyError(str(exc)) from None
+    if CHECKSUM_KEY in meta and content_checksum(meta, tensors) != meta[CHECKSUM_KEY]:
+        raise PolicyError(f"policy file {path} is corrupt: its content does not match its {CHECKSUM_KEY} checksum "
+                          "(modified or damaged after it was written)")
+    for name, t in tensors.items():
+        if not name.startswith("history/") and t.dtype.kind == "f" and not np.isfinite(t).all():
+            raise PolicyError(f"policy file {path} is corrupt: tensor {name!r} holds NaN or infinite values")
     return meta, tensors
 
 
@@ -98,7 +217,10 @@ def _diff_lists(name: str, saved: list[Any], current: list[Any]) -> str:
 
 def check_compatible(meta: dict[str, Any], spec: EnvSpec, path: str | Path = "<policy>") -> None:
     """Raise PolicyError unless the file's action set and observation layout are the env's."""
-    saved = EnvSpec.from_json(meta["env"])
+    try:
+        saved = EnvSpec.from_json(meta["env"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise PolicyError(f"policy {path} is corrupt: its env description is malformed ({exc})") from None
     problems = []
     if list(saved.action_names) != list(spec.action_names):
         problems.append("action set differs: "
@@ -129,18 +251,35 @@ def save_agent(agent: Agent, path: str | Path, extra: dict[str, Any] | None = No
 
 def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvSpec,
                 path: str | Path = "<policy>") -> Agent:
-    """An agent from file contents already checked against `spec`."""
+    """An agent from file contents already checked against `spec`. Before anything is built:
+    the hyper-parameters within the agent's HPARAM_BOUNDS, the policy tensors exactly those
+    (names and shapes) the hyper-parameters and the environment imply."""
     kind = meta["agent"]
     if kind not in AGENTS:
-        raise PolicyError(f"policy {path} is for agent {kind!r}; known agents: {sorted(AGENTS)}")
+        raise PolicyError(f"policy {path} is for agent {kind!r}"[:200] + f"; known agents: {sorted(AGENTS)}")
+    cls = AGENTS[kind]
+    hparams = meta.get("hparams", {})
+    policy_tensors = {k: v for k, v in tensors.items() if not k.startswith(("train/", "history/"))}
     try:
-        agent = AGENTS[kind](spec, **meta.get("hparams", {}))
-        agent.set_tensors({k: v for k, v in tensors.items() if not k.startswith(("train/", "history/"))})
+        check_hparams(kind, cls.HPARAM_BOUNDS, hparams)
+    except ValueError as exc:
+        raise PolicyError(f"policy {path}: {exc}") from None
+    want = cls.expected_tensors(spec, hparams)
+    got = {k: tuple(v.shape) for k, v in policy_tensors.items()}
+    if got != want:
+        raise PolicyError(f"policy {path} is corrupt: its tensors {got} are not the {want} that its "
+                          f"{kind!r} hyper-parameters and the environment imply"[:1000])
+    bad = [k for k, v in policy_tensors.items() if v.dtype.kind != "f"]
+    if bad:
+        raise PolicyError(f"policy {path} is corrupt: tensors {bad} are not floating point")
+    try:
+        agent = cls(spec, **hparams)
+        agent.set_tensors(policy_tensors)
         agent.set_state(meta.get("state", {}))
     except PolicyError:
         raise
-    except (ValueError, KeyError, TypeError) as exc:
-        raise PolicyError(f"policy {path} is corrupt: cannot rebuild the {kind!r} agent: {exc}") from None
+    except (ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:
+        raise PolicyError(f"policy {path} is corrupt: cannot rebuild the {kind!r} agent: {exc}"[:1000]) from None
     return agent
 
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..episode_loop import Trajectory
 from .base import Agent, EnvSpec, returns_to_go
+from .hparams import SEED, Float, Int
 
 Key = tuple[int, ...]
 
@@ -30,6 +31,8 @@ class SimpleAgent(Agent):
     """The paper's memory agent: xi-greedy over running-average returns per action history."""
 
     kind = "simple"
+    HPARAM_BOUNDS = {"xi_start": Float(0.0, 1.0), "xi_min": Float(0.0, 1.0), "xi_decay": Float(0.0, 1.0),
+                     "score_bins": Int(0, 1000), "seed": SEED}
 
     def __init__(self, spec: EnvSpec, xi_start: float = 1.0, xi_min: float = 0.05, xi_decay: float = 0.995,
                  score_bins: int = 0, seed: int = 0) -> None:
@@ -103,16 +106,31 @@ class SimpleAgent(Agent):
         }
 
     def set_state(self, state: dict[str, Any]) -> None:
-        self.episodes = int(state.get("episodes", 0))
+        """The memory from a file, checked: ValueError for anything but a list of entries with an
+        integer key, finite Q and non-negative counts, one per action."""
+        episodes = state.get("episodes", 0)
+        if isinstance(episodes, bool) or not isinstance(episodes, int) or not 0 <= episodes < 2**62:
+            raise ValueError(f"state.episodes must be an integer >= 0, got {episodes!r}"[:200])
+        memory = state.get("memory", [])
+        if not isinstance(memory, list):
+            raise ValueError("state.memory must be a list")
+        self.episodes = episodes
         self.q, self.n = {}, {}
-        for entry in state.get("memory", []):
-            k = tuple(int(x) for x in entry["key"])
-            q = np.asarray(entry["q"], np.float64)
-            n = np.asarray(entry["n"], np.int64)
+        for i, entry in enumerate(memory):
+            if not isinstance(entry, dict) or not isinstance(entry.get("key"), list) \
+                    or not all(isinstance(x, int) and not isinstance(x, bool) and -2**31 <= x < 2**31
+                               for x in entry["key"]):
+                raise ValueError(f"memory entry #{i} must have a key of integers")
+            k = tuple(entry["key"])
+            q = np.asarray(entry.get("q"), np.float64)
+            n = np.asarray(entry.get("n"), np.float64)
             if q.shape != (self.spec.n_actions,) or n.shape != q.shape:
-                raise ValueError(f"memory entry {k} has {q.shape[0]} actions, "
+                raise ValueError(f"memory entry {k} has {q.shape} actions, "
                                  f"the environment has {self.spec.n_actions}")
-            self.q[k], self.n[k] = q, n
+            if not (np.isfinite(q).all() and np.isfinite(n).all() and (n >= 0).all() and (n < 2**62).all()
+                    and (n == np.round(n)).all()):
+                raise ValueError(f"memory entry {k} must have finite Q values and non-negative integer counts")
+            self.q[k], self.n[k] = q, n.astype(np.int64)
 
     def checkpoint(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         return {}, {}  # the memory and the episode count (xi) are the policy state

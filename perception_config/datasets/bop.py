@@ -35,7 +35,9 @@ import numpy as np
 from ..atomic_file import atomic_write
 from ..geometry import Pose, nearest_rotation
 from ..models import MM, ObjectModel, load_model
+from ..safe_json import JsonLimitError, read_json_file, read_limited
 from ..scene import Frame, SceneObject
+from .image_header import MAX_IMAGE_BYTES, check_image_header
 
 DEFAULT_FRAME_RATE = 10.0  # Hz: stamps of BOP frames without timing are im_id / rate
 MIN_MEDIAN_DEPTH = 0.01  # metres: a scene whose median depth is outside these bounds
@@ -43,6 +45,8 @@ MAX_MEDIAN_DEPTH = 20.0  # after scaling has the wrong depth_scale
 RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif")
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 _EXTENT_KEYS = ("min_x", "min_y", "min_z", "size_x", "size_y", "size_z")
+MAX_JSON_BYTES = 256 * 1024 * 1024  # a BOP JSON file larger than this is refused before reading
+MAX_JSON_DEPTH = 32  # BOP JSON files nest 4 levels; deeper is refused before parsing
 _GT_INFO_KEYS = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
 
 
@@ -54,18 +58,16 @@ class BopFormatError(ValueError):
 
 
 def load_json(path: str | os.PathLike) -> Any:
-    """JSON content of a file; FileNotFoundError / BopFormatError naming the file."""
-    path = Path(path)
+    """JSON content of a BOP file; FileNotFoundError / BopFormatError naming the file.
+
+    Read through perception_config.safe_json: a regular file (not a directory or a special
+    file) of at most MAX_JSON_BYTES, nested at most MAX_JSON_DEPTH levels, checked before parsing."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return read_json_file(path, MAX_JSON_BYTES, MAX_JSON_DEPTH, what="BOP file")
     except FileNotFoundError:
         raise FileNotFoundError(f"BOP file not found: {path}") from None
-    except UnicodeDecodeError as e:
-        raise BopFormatError(f"{path}: corrupt JSON (not UTF-8 text: {e.reason})") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise BopFormatError(f"{path}: corrupt JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except JsonLimitError as e:
+        raise BopFormatError(str(e)) from None
 
 
 def save_json(path: str | os.PathLike, content: Mapping[Any, Any]) -> None:
@@ -353,10 +355,17 @@ def write_scene_gt_info(path: str | os.PathLike, infos: Mapping[int, Sequence[Ma
 
 
 def _decode(path: Path, flags: int) -> np.ndarray:
+    """Decode an image file after refusing directories, special files, files over MAX_IMAGE_BYTES
+    and images whose header declares more than the pixel limit (image_header.py): nothing large
+    is allocated for a hostile file."""
     try:
-        buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+        data = read_limited(path, MAX_IMAGE_BYTES, "BOP image")
     except FileNotFoundError:
         raise FileNotFoundError(f"BOP image not found: {path}") from None
+    except JsonLimitError as e:
+        raise BopFormatError(str(e)) from None
+    check_image_header(data, path)
+    buf = np.frombuffer(data, dtype=np.uint8)
     img = cv2.imdecode(buf, flags) if buf.size else None
     if img is None:
         raise BopFormatError(f"{path}: corrupt or unreadable image file")
@@ -853,9 +862,13 @@ def read_results_csv(path: str | os.PathLike) -> list[BopResult]:
     """Read a BOP results CSV (t in mm -> metres); BopFormatError naming file and line."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_limited(path, MAX_JSON_BYTES, "BOP results file").decode("utf-8")
     except FileNotFoundError:
         raise FileNotFoundError(f"BOP results file not found: {path}") from None
+    except JsonLimitError as e:
+        raise BopFormatError(str(e)) from None
+    except UnicodeDecodeError as e:
+        raise BopFormatError(f"{path}: not UTF-8 text ({e.reason})") from None
     rows = list(csv.reader(io.StringIO(text)))
     if not rows or [c.strip() for c in rows[0]] != RESULTS_HEADER:
         raise BopFormatError(f"{path}: header must be {','.join(RESULTS_HEADER)}")

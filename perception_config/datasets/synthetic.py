@@ -54,6 +54,7 @@ import numpy as np
 
 from ..atomic_file import atomic_write
 from ..geometry import Pose
+from ..safe_json import read_json_file
 from . import sensor
 
 __all__ = ["generate", "LINEMOD_K", "DEPTH_SCALE", "stable_poses", "GENERATOR_NAME", "LAST_STATS"]
@@ -566,7 +567,7 @@ def _write_json_atomic(path: Path, obj: Any) -> None:
 
 def _is_ours(path: Path) -> bool:
     try:
-        return json.loads((path / "dataset_info.json").read_text()).get("generator") == GENERATOR_NAME
+        return read_json_file(path / "dataset_info.json").get("generator") == GENERATOR_NAME
     except (OSError, ValueError, AttributeError):
         return False
 

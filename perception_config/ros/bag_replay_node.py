@@ -54,6 +54,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from ..datasets.bag import BagTruncatedWarning, bag_info, iter_messages
+from ..datasets.bag.type_names import check_type_name
 from ..ros_environment import configure_ros_environment
 from ..ros_shm import clean_stale_fastdds_shm
 
@@ -67,9 +68,10 @@ class ReplayError(Exception):
 
 
 def message_class(type_name: str) -> type:
-    """'sensor_msgs/msg/Image' -> the class sensor_msgs.msg.Image."""
-    package, kind, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    """'sensor_msgs/msg/Image' -> the class sensor_msgs.msg.Image. The name is validated first
+    (check_type_name: pattern and a known interface package), so bag content imports nothing else."""
+    package, name = check_type_name(type_name)
+    return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
 class BagReplayNode(Node):
@@ -102,6 +104,8 @@ class BagReplayNode(Node):
             info = bag_info(self.bag)
         except (OSError, ValueError) as exc:
             raise ReplayError(f"cannot replay bag {self.bag}: {exc}") from None
+        if info.get("corrupt"):  # bag_info checked every chunk's CRC: refuse rather than fail midway
+            raise ReplayError(f"cannot replay bag {self.bag}: {info['damage']}")
         if info["truncated"]:
             self.get_logger().warning(f"{info['damage']}: replaying the complete frames before the damage")
 

@@ -120,6 +120,17 @@ class _Assembler:
         return BagFormatError(f"{self.path}: topic {topic}, stamp {stamp / 1e9:.9f} s: {problem}")
 
     def _frame(self, stamp: int, parts: dict[str, Any], color_msg: Any) -> Frame:
+        """The frame of matched messages; BagFormatError for anything malformed in them, also what
+        a damaged schema decodes into (a message missing fields, fields of the wrong type)."""
+        try:
+            return self._build_frame(stamp, parts, color_msg)
+        except BagFormatError:
+            raise
+        except Exception as exc:
+            raise self._err(self.topics.color, stamp, f"malformed frame messages ({type(exc).__name__}: {exc})"[:500]) \
+                from None
+
+    def _build_frame(self, stamp: int, parts: dict[str, Any], color_msg: Any) -> Frame:
         t = self.topics
         try:
             rgb = image_msg_to_rgb(color_msg)

@@ -13,17 +13,23 @@ from .topics import resolve_topics
 def bag_info(path: str | os.PathLike) -> dict:
     """Summary of a bag: path, files, size, start/end (s), duration_s, message_count, frames
     (colour images that have depth and camera_info messages: an upper bound of what read_bag
-    yields), topics [{topic, type, count}], the frame topics, recording metadata, truncated."""
+    yields), topics [{topic, type, count}], the frame topics, recording metadata, truncated (the
+    file is cut or damaged), corrupt (a complete file with a damaged chunk: CRC or decompression
+    error; every chunk is read and checked, as the replay does) and damage (what and where).
+    Counts of a damaged file are those of the intact records before the damage."""
     files = bag_files(path)
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     t0, t1 = None, None
     truncated: list[str] = []
+    corrupt = False
     recording: dict[str, str] = {}
     profile = library = ""
     size = 0
     for p in files:
         f = McapFile(p)
+        if not f.verify():
+            corrupt = corrupt or f.corrupt
         chans = f.channels()
         size += f.size
         profile, library = f.header_profile or profile, f.header_library or library
@@ -54,6 +60,7 @@ def bag_info(path: str | os.PathLike) -> dict:
         "frames": 0,
         "topics": [{"topic": t, "type": types[t], "count": counts[t]} for t in sorted(types)],
         "truncated": bool(truncated),
+        "corrupt": corrupt,
     }
     try:
         ft = resolve_topics(types, path)

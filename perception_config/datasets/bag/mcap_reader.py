@@ -9,7 +9,9 @@ the bag's own schema, or ours for a type we ship.
 from __future__ import annotations
 
 import os
+import struct
 import warnings
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
@@ -20,6 +22,7 @@ from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning
 
 _MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+MAX_RECORD_BYTES = 512 * 1024 * 1024  # an MCAP record, or a chunk's declared uncompressed size, above this is damage
 
 
 class BagMessage(NamedTuple):
@@ -86,6 +89,7 @@ class McapFile:
         self.size = path.stat().st_size
         self.damage: str | None = None  # why the file is not complete
         self.damage_offset: int | None = None  # bytes read fine before the damage
+        self.corrupt = False  # a complete file (with footer) whose records are damaged (verify)
         self._channels: dict[int, _ChannelInfo] | None = None
         self.counts: dict[int, int] = {}
         self.times: list[int] = []
@@ -109,8 +113,13 @@ class McapFile:
             else:
                 try:
                     f.seek(0)
-                    reader = SeekingReader(f)
+                    reader = SeekingReader(f, record_size_limit=MAX_RECORD_BYTES)
                     self.summary = reader.get_summary()
+                    big = [c.uncompressed_size for c in (self.summary.chunk_indexes if self.summary else [])
+                           if c.uncompressed_size > MAX_RECORD_BYTES]
+                    if big:
+                        raise ValueError(f"a chunk declares {big[0]} uncompressed bytes, more than the "
+                                         f"{MAX_RECORD_BYTES}-byte limit")
                     h = reader.get_header()
                     self.header_profile, self.header_library = h.profile, h.library
                 except Exception as exc:  # damaged footer/summary
@@ -120,6 +129,43 @@ class McapFile:
     @property
     def complete(self) -> bool:
         return self.damage is None
+
+    def verify(self) -> bool:
+        """Read every record of a complete file, checking each chunk's CRC and decompression;
+        True if all are intact. A damaged file is then read like a cut one: in file order, up to
+        the damage (`corrupt` is set, the summary's index and counts are no longer trusted).
+        Call before `channels()`."""
+        if self.damage is not None:
+            return False
+        for _ in self._record_batches():
+            pass
+        if self.damage is None:
+            self.damage = self._section_crc_damage()
+        if self.damage is not None:
+            self.corrupt = True
+            self.summary = None
+            self._channels = None
+        return not self.corrupt
+
+    def _section_crc_damage(self) -> str | None:
+        """The footer's summary CRC and the DataEnd record's data-section CRC, where recorded (0 =
+        not recorded, MCAP spec); mcap's readers check neither. None if they match."""
+        footer_len = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary_start, summary_offset_start, summary_crc
+        footer_at = self.size - len(_MAGIC) - footer_len
+        with open(self.path, "rb") as f:
+            f.seek(footer_at)
+            op, _n, summary_start, _sos, summary_crc = struct.unpack("<BQQQI", f.read(footer_len))
+            if op != 0x02 or summary_start > footer_at:
+                return "damaged MCAP footer"
+            if summary_crc and summary_start and _crc32(f, summary_start, footer_at + footer_len - 4) != summary_crc:
+                return "damaged MCAP summary section (summary CRC mismatch)"
+            data_end_at = (summary_start or footer_at) - 13  # DataEnd: opcode, length, data_section_crc
+            if data_end_at >= len(_MAGIC):
+                f.seek(data_end_at)
+                op, _n, data_crc = struct.unpack("<BQI", f.read(13))
+                if op == 0x0F and data_crc and _crc32(f, 0, data_end_at) != data_crc:
+                    return "damaged MCAP data section (data section CRC mismatch)"
+        return None
 
     # -- sequential scan: damaged files and files without an index ------------------------------
     def _record_batches(self) -> Iterator[list]:
@@ -131,11 +177,14 @@ class McapFile:
         from mcap.stream_reader import StreamReader, breakup_chunk
 
         with open(self.path, "rb") as f:
-            records = StreamReader(f, emit_chunks=True).records
+            records = StreamReader(f, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
             good = len(_MAGIC)
             while True:
                 try:
                     rec = next(records)
+                    if isinstance(rec, Chunk) and rec.uncompressed_size > MAX_RECORD_BYTES:  # not decompressed
+                        raise ValueError(f"a chunk declares {rec.uncompressed_size} uncompressed bytes, more than "
+                                         f"the {MAX_RECORD_BYTES}-byte limit")
                     batch = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
                     good = f.tell()
                 except StopIteration:
@@ -192,7 +241,7 @@ class McapFile:
         out: dict[str, dict[str, str]] = {}
         try:
             with open(self.path, "rb") as f:
-                for m in SeekingReader(f).iter_metadata():
+                for m in SeekingReader(f, record_size_limit=MAX_RECORD_BYTES).iter_metadata():
                     out[m.name] = dict(m.metadata)
         except Exception:
             pass
@@ -208,7 +257,8 @@ class McapFile:
             if topics == []:
                 return
             with open(self.path, "rb") as f:
-                it = SeekingReader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=True)
+                reader = SeekingReader(f, validate_crcs=True, record_size_limit=MAX_RECORD_BYTES)
+                it = reader.iter_messages(topics=topics, log_time_order=True)
                 while True:
                     try:
                         _schema, channel, message = next(it)
@@ -229,6 +279,19 @@ class McapFile:
     def truncation_message(self) -> str:
         intact = f"; its first {self.damage_offset} of {self.size} bytes are intact" if self.damage_offset else ""
         return f"{self.path} is truncated or damaged ({self.damage}){intact}"
+
+
+def _crc32(f: Any, start: int, end: int, block: int = 8 * 1024 * 1024) -> int:
+    """CRC32 of bytes [start, end) of an open file, read in blocks (a bag may be gigabytes)."""
+    f.seek(start)
+    crc, left = 0, end - start
+    while left > 0:
+        data = f.read(min(block, left))
+        if not data:
+            break
+        crc = zlib.crc32(data, crc)
+        left -= len(data)
+    return crc
 
 
 def schema_name(ch: _ChannelInfo) -> str:
