@@ -110,6 +110,10 @@ class RosOperators:
         start = time.perf_counter()
         future = client.call_async(request)
         self._executor.spin_until_future_complete(future, timeout_sec=timeout)
+        for _ in range(3):  # a last look: this process may have been stopped while the answer came
+            if future.done():
+                break
+            self._executor.spin_once(timeout_sec=0)
         if not future.done():
             client.remove_pending_request(future)
             if cut:
