@@ -485,6 +485,39 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         assert node.stop() == 0, node.output()
 
 
+def test_a_stopped_configurator_blames_no_operator_node(ros_node, cell):
+    """The configurator is stopped (SIGSTOP) mid-estimate for longer than operator_timeout, while
+    the operator's answer arrives: after SIGCONT the estimate still succeeds (the answer is
+    there), instead of failing with a timeout blamed on the operator node."""
+    import os
+    import signal
+
+    import rclpy
+    from perception_config_interfaces.srv import EstimatePose
+
+    est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
+    refinement = cell["nodes"]["refinement_node"].proc
+    configurator = cell["nodes"]["configurator_node"].proc
+    obj = cell["frames"][stamp_ns(0)].objects[0]
+    req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4)
+    req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+    os.kill(refinement.pid, signal.SIGSTOP)  # the estimate waits for refine_hypothesis
+    try:
+        future = est.call_async(req)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+        os.kill(configurator.pid, signal.SIGSTOP)
+        os.kill(refinement.pid, signal.SIGCONT)  # answers while the configurator is stopped
+        time.sleep(5.5)  # > operator_timeout
+    finally:
+        os.kill(refinement.pid, signal.SIGCONT)
+        os.kill(configurator.pid, signal.SIGCONT)
+    rclpy.spin_until_future_complete(ros_node, future, timeout_sec=30)
+    res = future.result()
+    assert res is not None and res.success, res.message if res else "no answer"
+
+
 def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell):
     import os
     import signal
