@@ -40,6 +40,7 @@ operator's answer answers success=false. Both messages begin "estimate_timeout (
 Requests: the executor thread takes each request at once and answers busy ones at once; the
 estimates run one at a time, in arrival order, on a worker thread (request_queue.py), which
 spins the operator clients' own executor.
+
 The operator clients are on a private node `<this node's name>_operators` (ros_operators.py):
 remap the operator services with global rules, not `configurator_node:`-prefixed ones.
 """

@@ -19,7 +19,7 @@ Time: `StepOutcome.elapsed` is the wall time of the round trips (what the robot 
 
 An operator that fails (success=false: a refiner diverged, the frame has no depth there) is an
 `ok=False` outcome, as in-process. A node that is not there or does not answer within
-`timeout` raises `OperatorCallError`: the episode cannot go on. With `deadline` set, no call
+`timeout` (plus LAST_LOOK) raises `OperatorCallError`: the episode cannot go on. With `deadline` set, no call
 waits past it (`DeadlineReached`).
 
 Calls block the calling thread, which spins the clients itself: they live on a private node
@@ -51,6 +51,9 @@ from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis",
             "pick": "pick"}
 NODES = {"generate": "generation_node", "refine": "refinement_node", "score": "scoring_node", "pick": "pick_node"}
+
+
+LAST_LOOK = 1.0  # s waited past a timeout for an answer already on its way
 
 
 class OperatorCallError(RuntimeError):
@@ -110,10 +113,10 @@ class RosOperators:
         start = time.perf_counter()
         future = client.call_async(request)
         self._executor.spin_until_future_complete(future, timeout_sec=timeout)
-        for _ in range(3):  # a last look: this process may have been stopped while the answer came
-            if future.done():
-                break
-            self._executor.spin_once(timeout_sec=0)
+        if not future.done() and not cut:
+            # A last look: this process may have been stopped (SIGSTOP, a suspended VM) while the
+            # answer came; its middleware threads need a moment after resuming to hand it over.
+            self._executor.spin_until_future_complete(future, timeout_sec=LAST_LOOK)
         if not future.done():
             client.remove_pending_request(future)
             if cut:
