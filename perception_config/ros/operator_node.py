@@ -89,6 +89,7 @@ class OperatorNode(Node):
         self.requests = RequestQueue(self, self.param("request_queue"), name)
         self._wait_group = ReentrantCallbackGroup()  # the timer and clients a waiting service callback awaits
         self._arrivals: list[Future] = []  # woken by the next frame or ground truth
+        self._arrival_count = 0  # frames and ground truths arrived (the handlers run on another thread)
         self._deadlines: list[tuple[float, Future]] = []  # woken (False) at their deadline
         # One timer for every deadline, running only while something waits (entities are not
         # created and destroyed per request).
@@ -134,6 +135,7 @@ class OperatorNode(Node):
         deadline = start + float(self.param("frame_timeout"))
         try:
             while True:
+                arrivals = self._arrival_count
                 try:
                     pending = await self.requests.run(handler, request, response)
                     if inspect.isawaitable(pending):
@@ -143,7 +145,8 @@ class OperatorNode(Node):
                     remaining = deadline - time.perf_counter()
                     if remaining <= 0:
                         raise
-                    await self.wait_for(None, remaining)  # the next arrival, or the deadline
+                    if self._arrival_count == arrivals:  # else it came while the handler ran: try again
+                        await self.wait_for(None, remaining)  # the next arrival, or the deadline
             response.success = True
             response.message = response.message or "ok"
         except ValueError as exc:
@@ -160,6 +163,7 @@ class OperatorNode(Node):
 
     def _arrived(self) -> None:
         """A frame or ground truth arrived: wake the service callbacks waiting for one."""
+        self._arrival_count += 1
         waiters, self._arrivals = self._arrivals, []
         for future in waiters:
             if not future.done():
