@@ -98,9 +98,19 @@ def cell(data, tmp_path_factory, ros_node):
 
 
 def client(ros_node, cell, srv_type, name, process):
+    """A client whose answers are known to reach it: seeing the service does not mean the service
+    sees the client's answer reader yet, and an answer sent before that is dropped (rmw_fastrtps
+    logs "failed to send response (timeout)"). An empty request, refused at once by every node,
+    is repeated until one answer comes back."""
     c = ros_node.create_client(srv_type, name)
     wait_for_service(ros_node, c, process=cell["nodes"][process])
-    return c
+    for _ in range(20):
+        try:
+            call(ros_node, c, srv_type.Request(), timeout=1.0)
+            return c
+        except AssertionError:
+            continue
+    raise AssertionError(f"{name}: no answer to 20 empty requests")
 
 
 def operator_clients(ros_node, cell):
