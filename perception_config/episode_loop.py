@@ -9,7 +9,7 @@ before it, in-process or through ROS.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -33,6 +33,7 @@ class Trajectory:
     noise_lambda: float
     episode_index: int  # -1 for an episode given to reset (the configurator)
     first_pick_success: bool = False  # the first pick of the episode succeeded
+    stopped: bool = False  # ended by play_episode's `stop` (a deadline), not by the env or max_steps
     names: list[str] = field(default_factory=list)  # action names, as actions
     oks: list[bool] = field(default_factory=list)  # whether each operator succeeded
     operation_seconds: list[float] = field(default_factory=list)  # measured seconds of each operator call
@@ -65,6 +66,7 @@ def play_episode(
     *,
     max_steps: int | None = None,
     require_hypothesis: bool = False,
+    stop: Callable[[], bool] | None = None,
 ) -> Trajectory:
     """Play one episode of `env` with `agent` and return its trajectory.
 
@@ -72,6 +74,8 @@ def play_episode(
     reseeds the agent's acting randomness. `max_steps` stops earlier than the env's max_ops
     (a request's own limit), without the truncation charge. `require_hypothesis`: raise
     ValueError when the generator gives no first hypothesis instead of letting the agent try.
+    `stop` is asked before each action; True ends the episode there like `max_steps` (the
+    configurator's per-estimate deadline) and sets `Trajectory.stopped`.
     """
     env_ = getattr(env, "unwrapped", env)
     obs, info = env.reset(options=options)
@@ -89,8 +93,11 @@ def play_episode(
     block_seconds: list[float] = []
     first_pick: bool | None = None
     cost = 0.0
-    terminated = truncated = False
+    terminated = truncated = stopped = False
     while not (terminated or truncated):
+        if stop is not None and stop():
+            stopped = True
+            break
         a = int(agent.act(obs, info))
         obs_l.append(obs)
         obs, reward, terminated, truncated, info = env.step(a)
@@ -109,7 +116,7 @@ def play_episode(
             break
     index = (options or {}).get("episode", -1)
     return Trajectory(
-        obs=np.asarray(obs_l, np.float32).reshape(len(obs_l), -1),
+        obs=np.asarray(obs_l, np.float32).reshape(len(obs_l), np.asarray(obs).size),  # (0, obs_dim): stopped at once
         actions=np.asarray(act_l, np.int64),
         rewards=np.asarray(rew_l, np.float64),
         seconds=np.asarray(sec_l, np.float64),
@@ -117,6 +124,7 @@ def play_episode(
         noise_lambda=float(info.get("noise_lambda") or 0.0),
         episode_index=int(index) if isinstance(index, (int, np.integer)) else -1,
         first_pick_success=bool(first_pick),
+        stopped=stopped,
         names=names,
         oks=oks,
         operation_seconds=op_seconds,

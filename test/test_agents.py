@@ -210,3 +210,19 @@ def test_oracle_finds_the_brute_force_optimum(tmp_path_factory):
         assert np.isfinite(best) and res.found and res.exact
         assert res.seconds == pytest.approx(best)
         assert res.evaluations < n * (n**3 - 1) // (n - 1)  # pruning: fewer calls than the full tree
+
+
+def test_play_episode_stops_when_told_between_actions(env):
+    """`stop` (the configurator's deadline) is asked before each action: the episode ends there,
+    marked stopped, with the actions played so far."""
+    full = play_episode(env, _agent("fixed", env), _options(0, 0.8, 100))
+    asked = []
+
+    def stop() -> bool:
+        asked.append(1)
+        return len(asked) > 2
+
+    traj = play_episode(env, _agent("fixed", env), _options(0, 0.8, 100), stop=stop)
+    assert traj.stopped and not full.stopped and full.steps > 2
+    assert traj.steps == 2 and traj.names == full.names[:2] and not traj.success
+    assert play_episode(env, _agent("fixed", env), _options(0, 0.8, 100), stop=lambda: True).steps == 0

@@ -22,6 +22,7 @@ pytestmark = pytest.mark.ros
 OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
 BASE_SEC = 1_700_000_000
 LAMBDA = 0.5
+REQUEST_QUEUE = 4  # small, so that a burst of 5x as many requests overflows it
 
 
 def stamp_ns(i: int) -> int:
@@ -47,7 +48,8 @@ def cell(data, tmp_path_factory, ros_node):
     from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
 
     logs = tmp_path_factory.mktemp("logs")
-    common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0}
+    common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0,
+              "request_queue": REQUEST_QUEUE}
     nodes = {name: NodeProcess(name, common, logs) for name in OPERATORS}
     nodes["configurator_node"] = NodeProcess("configurator_node",
                                              {**common, "operator_timeout": 5.0, "noise_lambda": LAMBDA}, logs)
@@ -96,9 +98,19 @@ def cell(data, tmp_path_factory, ros_node):
 
 
 def client(ros_node, cell, srv_type, name, process):
+    """A client whose answers are known to reach it: seeing the service does not mean the service
+    sees the client's answer reader yet, and an answer sent before that is dropped (rmw_fastrtps
+    logs "failed to send response (timeout)"). An empty request, refused at once by every node,
+    is repeated until one answer comes back."""
     c = ros_node.create_client(srv_type, name)
     wait_for_service(ros_node, c, process=cell["nodes"][process])
-    return c
+    for _ in range(20):
+        try:
+            call(ros_node, c, srv_type.Request(), timeout=1.0)
+            return c
+        except AssertionError:
+            continue
+    raise AssertionError(f"{name}: no answer to 20 empty requests")
 
 
 def operator_clients(ros_node, cell):
@@ -336,6 +348,187 @@ def test_pick_node_forwards_to_the_robot_cell(ros_node, cell, data, tmp_path):
         assert not res.success and "test_robot/pick" in res.message
     finally:
         assert node.stop() == 0, node.output()
+
+
+def burst(ros_node, srv_type, name, request, n: int = 5 * REQUEST_QUEUE, clients: int = 4, timeout: float = 90.0):
+    """`n` simultaneous calls from `clients` clients of this process; (answers or None, the
+    seconds after which each came, or None).
+    The clients keep up to 100 answers (each client's reader sees every answer of the service;
+    rclpy's default keeps 10), and each first makes one call: a client seeing the service does
+    not mean the service sees the client's answer reader yet (an answer sent before is lost)."""
+    import rclpy
+    from rclpy.qos import QoSProfile
+
+    cs = [ros_node.create_client(srv_type, name, qos_profile=QoSProfile(depth=100)) for _ in range(clients)]
+    try:
+        for c in cs:
+            wait_for_service(ros_node, c)
+            call(ros_node, c, request, timeout=timeout)
+        t0 = time.monotonic()
+        futures = [cs[i % clients].call_async(request) for i in range(n)]
+        came: dict[int, float] = {}
+        deadline = t0 + timeout
+        while len(came) < n and time.monotonic() < deadline:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+            for i, f in enumerate(futures):
+                if f.done() and i not in came:
+                    came[i] = time.monotonic() - t0
+        return [f.result() if f.done() else None for f in futures], [came.get(i) for i in range(n)]
+    finally:
+        for c in cs:
+            ros_node.destroy_client(c)
+
+
+def check_burst(answers, what: str) -> tuple[int, int]:
+    """Every request answered: successes (at least the one served and the queue), the rest busy."""
+    lost = sum(a is None for a in answers)
+    assert lost == 0, f"{what}: {lost} of {len(answers)} requests never answered"
+    ok = [a for a in answers if a.success]
+    busy = [a for a in answers if not a.success]
+    assert len(ok) >= 1 + REQUEST_QUEUE, f"{what}: only {len(ok)} served: {[a.message for a in busy][:3]}"
+    for a in busy:
+        assert a.message.startswith("busy: ") and f"(request_queue={REQUEST_QUEUE})" in a.message, a.message
+        assert int(a.message.split()[1]) == REQUEST_QUEUE
+    return len(ok), len(busy)
+
+
+def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_lost(ros_node, cell):
+    """5x request_queue simultaneous calls from 4 clients to scoring_node and configurator_node:
+    each answered, the queued ones served, the others refused at once as busy; then both serve."""
+    from perception_config_interfaces.srv import EstimatePose, ScoreHypothesis
+
+    obj = cell["frames"][stamp_ns(0)].objects[0]
+    score = ScoreHypothesis.Request(hypothesis=hypothesis(stamp_ns(0), obj.obj_id, obj.gt))
+    answers, seconds = burst(ros_node, ScoreHypothesis, "score_hypothesis", score)
+    ok, busy = check_burst(answers, "score_hypothesis")
+    print(f"score_hypothesis burst of {len(answers)}: {ok} served, {busy} busy, {max(seconds):.3f} s")
+
+    est = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.1, seed=3)
+    est.frame.stamp.sec, est.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+    answers, seconds = burst(ros_node, EstimatePose, "estimate_pose", est)
+    ok, busy = check_burst(answers, "estimate_pose")
+    assert busy >= 1  # an estimate takes far longer than taking 20 requests
+    busy_came = max(s for a, s in zip(answers, seconds) if not a.success)
+    last_served = max(s for a, s in zip(answers, seconds) if a.success)
+    print(f"estimate_pose burst of {len(answers)}: {ok} served by {last_served:.3f} s, {busy} busy by "
+          f"{busy_came:.3f} s")
+    assert busy_came < last_served  # refused on arrival, not after the queue
+    # Both still serve, one request at a time.
+    sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
+    assert call(ros_node, sco, score).success
+    assert call(ros_node, client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node"), est,
+                timeout=30).success
+
+
+def test_malformed_ids_stamps_and_oversized_requests_are_refused_briefly(ros_node, cell):
+    """One parser everywhere (request_fields.py): the ids and stamps every node refuses, the
+    bounds on method lists, and messages that echo a short prefix of bad input only."""
+    from perception_config_interfaces.srv import EstimatePose, GenerateHypothesis, ScoreHypothesis
+
+    gen, ref, sco, pick = operator_clients(ros_node, cell)
+    est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
+    obj = cell["frames"][stamp_ns(0)].objects[0]
+    for bad in (" 1", "+1", "\u0661", "1\n", "0" * 30 + "1", "x" * 1_000_000):
+        h = hypothesis(stamp_ns(0), obj.obj_id, obj.gt)
+        h.object_id = bad
+        answers = [call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h)),
+                   call(ros_node, gen, GenerateHypothesis.Request(object_id=bad, noise_lambda=0.2)),
+                   call(ros_node, est, EstimatePose.Request(object_id=bad), timeout=30)]
+        for res in answers:
+            assert not res.success and "object_id" in res.message and len(res.message) < 200, res.message[:300]
+    # A stamp with nanosec >= 1e9 no longer names the next second's frame.
+    h = hypothesis(stamp_ns(0), obj.obj_id, obj.gt)
+    h.header.stamp.sec, h.header.stamp.nanosec = BASE_SEC - 1, 1_000_000_000
+    res = call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h))
+    assert not res.success and "nanosec" in res.message, res.message
+    req = EstimatePose.Request(object_id=str(obj.obj_id))
+    req.frame.stamp.sec, req.frame.stamp.nanosec = BASE_SEC - 1, 1_000_000_000
+    res = call(ros_node, est, req, timeout=30)
+    assert not res.success and "nanosec" in res.message, res.message
+    # 20000 methods are refused before any scoring, duplicates too; a long method name is cut short.
+    h = hypothesis(stamp_ns(0), obj.obj_id, obj.gt)
+    t0 = time.monotonic()
+    res = call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h, methods=["psi_c"] * 20000))
+    assert not res.success and "20000 methods requested (at most 16)" in res.message
+    assert time.monotonic() - t0 < 2.0
+    res = call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h, methods=["psi_c", "psi_c"]))
+    assert not res.success and "requested twice" in res.message
+    res = call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h, methods=["m" * 100_000]))
+    assert not res.success and len(res.message) < 200, res.message[:300]
+    assert call(ros_node, sco, ScoreHypothesis.Request(hypothesis=h, methods=["psi_c"])).success
+
+
+def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(ros_node, cell, data, tmp_path):
+    """A configurator with estimate_timeout 1.5 s and max_ops_cap 2: an estimate runs at most 2
+    operators; with refinement_node stopped it answers "estimate_timeout" after about 1.5 s,
+    although operator_timeout is 5 s."""
+    import os
+    import signal
+
+    from perception_config_interfaces.srv import EstimatePose
+
+    node = NodeProcess("configurator_node", {"models_dir": data["root"] / "models", "pipeline": data["pipeline"],
+                                             "operator_timeout": 5.0, "estimate_timeout": 1.5, "max_ops_cap": 2},
+                       tmp_path, remap={"estimate_pose": "capped/estimate_pose", "__node": "capped_configurator"})
+    refinement = cell["nodes"]["refinement_node"].proc
+    try:
+        est = ros_node.create_client(EstimatePose, "capped/estimate_pose")
+        wait_for_service(ros_node, est, process=node)
+        obj = cell["frames"][stamp_ns(0)].objects[0]
+        req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4, max_operations=10)
+        req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+        for _ in range(10):  # the first estimates may hit the deadline while the operators are discovered
+            res = call(ros_node, est, req, timeout=30)
+            if res.success or "discovered" not in res.message:
+                break
+        assert res.success and list(res.operations) == ["icp_coarse", "icp_fine"], (res.message, res.operations)
+        os.kill(refinement.pid, signal.SIGSTOP)
+        try:
+            t0 = time.monotonic()
+            res = call(ros_node, est, req, timeout=30)
+            seconds = time.monotonic() - t0
+        finally:
+            os.kill(refinement.pid, signal.SIGCONT)
+        assert not res.success and res.message.startswith("estimate_timeout (1.5 s) reached"), res.message
+        assert "refine_hypothesis" in res.message and 1.4 < seconds < 3.5, (res.message, seconds)
+    finally:
+        assert node.stop() == 0, node.output()
+
+
+def test_a_stopped_configurator_blames_no_operator_node(ros_node, cell):
+    """The configurator is stopped (SIGSTOP) mid-estimate for longer than operator_timeout, while
+    the operator's answer arrives: after SIGCONT the estimate succeeds when the answer is handed
+    over within RosOperators' last look (most runs), else it fails saying only what it measured,
+    never blaming the operator node as "busy or died"."""
+    import os
+    import signal
+
+    import rclpy
+    from perception_config_interfaces.srv import EstimatePose
+
+    est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
+    refinement = cell["nodes"]["refinement_node"].proc
+    configurator = cell["nodes"]["configurator_node"].proc
+    obj = cell["frames"][stamp_ns(0)].objects[0]
+    req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4)
+    req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+    os.kill(refinement.pid, signal.SIGSTOP)  # the estimate waits for refine_hypothesis
+    try:
+        future = est.call_async(req)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+        os.kill(configurator.pid, signal.SIGSTOP)
+        os.kill(refinement.pid, signal.SIGCONT)  # answers while the configurator is stopped
+        time.sleep(5.5)  # > operator_timeout
+    finally:
+        os.kill(refinement.pid, signal.SIGCONT)
+        os.kill(configurator.pid, signal.SIGCONT)
+    rclpy.spin_until_future_complete(ros_node, future, timeout_sec=30)
+    res = future.result()
+    assert res is not None, "no answer"
+    assert res.success or res.message == ("refine_hypothesis did not answer within 5 s "
+                                          "(operator_timeout; served by refinement_node)"), res.message
 
 
 def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell):

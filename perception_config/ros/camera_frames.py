@@ -29,7 +29,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from ..datasets.bag import image_msg_to_depth, image_msg_to_rgb
 from ..scene import Frame
-from .conversions import stamp_to_nanoseconds
+from .request_fields import parse_stamp
 from .stamp_cache import StampCache
 
 MAX_PENDING = 16  # half-assembled frames kept (a colour image waiting for its depth, ...)
@@ -117,9 +117,19 @@ class CameraFrames:
                                  callback_group=callback_group)
 
     # -- arrival ---------------------------------------------------------------------------
+    def _stamp(self, msg: Any) -> int | None:
+        """The message's stamp (ns), or None (logged) for one no request could name."""
+        try:
+            return parse_stamp(msg.header.stamp, "header.stamp")
+        except ValueError as exc:
+            self._logger.warning(f"ignored a camera message: {exc}")
+            return None
+
     def _on_info(self, msg: CameraInfo) -> None:
+        stamp = self._stamp(msg)
+        if stamp is None:
+            return
         with self._lock:
-            stamp = stamp_to_nanoseconds(msg.header.stamp)
             self._infos[stamp] = msg
             if stamp in self._pending or self.frames.has(stamp):
                 self._info_stamped_with_images = True
@@ -130,7 +140,9 @@ class CameraFrames:
             self._try(stamp)
 
     def _add(self, role: str, msg: Image) -> None:
-        stamp = stamp_to_nanoseconds(msg.header.stamp)
+        stamp = self._stamp(msg)
+        if stamp is None:
+            return
         with self._lock:
             if role == "depth" and self._tolerance_ns and stamp not in self._pending:
                 near = [s for s in self._pending

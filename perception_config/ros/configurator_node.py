@@ -20,6 +20,11 @@ Parameters:
                     operator nodes' pipeline
   models_dir        BOP models folder (the object's diameter is part of the agent's state)
   max_ops           operators per estimate (0 = the policy's training value, else 10)
+  max_ops_cap       operators per estimate at most, whatever the policy file or request says (50)
+  estimate_timeout  seconds one estimate may take (10.0), checked before each operator and
+                    bounding each operator call's wait; see "Deadline" below
+  request_queue     estimate requests that may wait while one runs (10); one more is answered at
+                    once with success=false "busy: N requests queued (request_queue=M)"
   noise_lambda      lambda of simulated initialisation when a request does not give one (0.5)
   operator_timeout  seconds to wait for one operator call (10.0)
   fused_scoring     the generation and refinement nodes score their own result in the same call
@@ -27,6 +32,15 @@ Parameters:
                     scoring_node (ros_operators.py)
   auto, auto_objects, auto_every_frame, camera_qos   see above
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
+
+Deadline: an estimate that reaches `estimate_timeout` between two operators answers
+success=true, picked=false with the hypothesis so far; one that reaches it while waiting for an
+operator's answer answers success=false. Both messages begin "estimate_timeout (X s) reached".
+
+Requests: the executor thread takes each request at once and answers busy ones at once; the
+estimates run one at a time, in arrival order, on a worker thread (request_queue.py), which
+spins the operator clients' own executor.
+
 The operator clients are on a private node `<this node's name>_operators` (ros_operators.py):
 remap the operator services with global rules, not `configurator_node:`-prefixed ones.
 """
@@ -42,7 +56,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
 from perception_config_interfaces.srv import EstimatePose
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
@@ -57,9 +71,10 @@ from ..geometry import check_noise_lambda
 from ..operators import Episode
 from ..policy_settings import policy_settings
 from .camera_frames import camera_qos, stamp_text
-from .conversions import stamp_to_nanoseconds
 from .operator_node import make_hypothesis, spin
-from .ros_operators import OperatorCallError, RosOperators
+from .request_fields import parse_object_id, parse_stamp
+from .request_queue import RequestQueue, service_qos
+from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
 
 
 class ConfiguratorNode(Node):
@@ -73,6 +88,9 @@ class ConfiguratorNode(Node):
         self.declare_parameter("pipeline", "")
         self.declare_parameter("models_dir", "")
         self.declare_parameter("max_ops", 0)
+        self.declare_parameter("max_ops_cap", 50)
+        self.declare_parameter("estimate_timeout", 10.0)
+        self.declare_parameter("request_queue", 10)
         self.declare_parameter("noise_lambda", 0.5)
         self.declare_parameter("operator_timeout", 10.0)
         self.declare_parameter("fused_scoring", True)
@@ -82,7 +100,14 @@ class ConfiguratorNode(Node):
         self.declare_parameter("camera_qos", "reliable")
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
-            "fused_scoring", "auto", "auto_objects", "camera_qos")}
+            "fused_scoring", "auto", "auto_objects", "camera_qos", "max_ops_cap", "estimate_timeout",
+            "request_queue")}
+        self.max_ops_cap = p["max_ops_cap"]
+        if isinstance(self.max_ops_cap, bool) or not isinstance(self.max_ops_cap, int) or self.max_ops_cap < 1:
+            raise ValueError(f"max_ops_cap must be an integer >= 1, got {self.max_ops_cap!r}")
+        self.estimate_timeout = float(p["estimate_timeout"])
+        if not (math.isfinite(self.estimate_timeout) and self.estimate_timeout > 0):
+            raise ValueError(f"estimate_timeout must be > 0 seconds, got {p['estimate_timeout']!r}")
 
         if not p["models_dir"]:
             raise ValueError("models_dir is not set: give the BOP models folder the operator nodes use")
@@ -111,10 +136,11 @@ class ConfiguratorNode(Node):
 
         self.pose_pub = self.create_publisher(PoseStamped, "perception/pose", 10)
         self.trace_pub = self.create_publisher(OperatorTrace, "perception/trace", 10)
+        self.requests = RequestQueue(self, p["request_queue"], self.get_name())
         self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
-                            callback_group=MutuallyExclusiveCallbackGroup())
+                            qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
 
-        self.auto_objects = [o for o in p["auto_objects"] if o]
+        self.auto_objects = [parse_object_id(o) for o in p["auto_objects"] if o]
         self.auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
         self._auto_wake = threading.Event()
         self._auto_lock = threading.Lock()
@@ -130,7 +156,9 @@ class ConfiguratorNode(Node):
                                          callback_group=topics)
             self._auto_thread = threading.Thread(target=self._auto_loop, name="auto", daemon=True)
             self._auto_thread.start()
-        self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops {self.env.max_ops}"
+        self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops "
+                               f"{min(self.env.max_ops, self.max_ops_cap)}, "
+                               f"estimate_timeout {self.estimate_timeout:g} s"
                                + (", estimating every new frame" if p["auto"] else ""))
 
     # -- one estimate --------------------------------------------------------------------------
@@ -141,8 +169,16 @@ class ConfiguratorNode(Node):
         start = time.perf_counter()
         oks: list[bool] = []
         try:
+            object_id = parse_object_id(object_id)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        try:
             with self._busy:
                 oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed)
+        except DeadlineReached as exc:
+            response.success = False
+            response.message = f"estimate_timeout ({self.estimate_timeout:g} s) reached: {exc}"
         except (ValueError, OperatorCallError) as exc:
             response.success = False
             response.message = str(exc)
@@ -167,8 +203,14 @@ class ConfiguratorNode(Node):
         episode = Episode(frame=None, model=model, ground_truth=None, noise_lambda=lam, seed=seed,
                           key=(0, 0, model.obj_id), stamp_ns=stamp_ns)
         limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
-        traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
-                            require_hypothesis=True)
+        limit = min(limit, self.max_ops_cap)
+        deadline = time.monotonic() + self.estimate_timeout
+        self.operators.deadline = deadline
+        try:
+            traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
+                                require_hypothesis=True, stop=lambda: time.monotonic() >= deadline)
+        finally:
+            self.operators.deadline = None
         info, names = traj.final_info, traj.names
         picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
@@ -182,6 +224,9 @@ class ConfiguratorNode(Node):
         response.operation_elapsed = traj.operation_seconds  # measured (info["seconds"] adds charges)
         response.success = True
         response.message = "picked" if picked else f"no successful pick within {len(names)} operations"
+        if traj.stopped:
+            response.message = (f"estimate_timeout ({self.estimate_timeout:g} s) reached after {len(names)} "
+                                "operations; not picked")
         return traj.oks
 
     def _publish(self, response: EstimatePose.Response, object_id: str, oks: list[bool]) -> None:
@@ -200,25 +245,51 @@ class ConfiguratorNode(Node):
         self.trace_pub.publish(trace)
 
     def on_exit(self) -> None:
+        self.requests.close()
         print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
         if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
             self.operators.close()
             self._busy.release()
 
-    def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response) -> EstimatePose.Response:
-        return self.estimate(stamp_to_nanoseconds(request.frame.stamp), request.object_id, request.max_operations,
-                             request.noise_lambda, request.seed)
+    async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response
+                           ) -> EstimatePose.Response:
+        busy = self.requests.busy()
+        if busy is not None:
+            response.success, response.message = False, busy
+            return response
+        try:
+            return await self.requests.run(self._estimate_request, request)
+        finally:
+            self.requests.done()
+
+    def _estimate_request(self, request: EstimatePose.Request) -> EstimatePose.Response:
+        try:
+            stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
+        except ValueError as exc:
+            return EstimatePose.Response(success=False, message=str(exc))
+        return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed)
 
     # -- auto mode -------------------------------------------------------------------------------
     def _on_ground_truth(self, msg: ObjectPoses) -> None:
-        stamp = stamp_to_nanoseconds(msg.header.stamp)
+        stamp = self._stamp(msg)
+        if stamp is None:
+            return
         self._auto_gt[stamp] = list(msg.object_ids)
         while len(self._auto_gt) > 64:
             self._auto_gt.pop(next(iter(self._auto_gt)))
         self._new_frame(stamp)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        self._new_frame(stamp_to_nanoseconds(msg.header.stamp))
+        stamp = self._stamp(msg)
+        if stamp is not None:
+            self._new_frame(stamp)
+
+    def _stamp(self, msg: ObjectPoses | CameraInfo) -> int | None:
+        try:
+            return parse_stamp(msg.header.stamp, "header.stamp")
+        except ValueError as exc:
+            self.get_logger().warning(f"auto: ignored a message: {exc}")
+            return None
 
     def _new_frame(self, stamp: int) -> None:
         with self._auto_lock:
@@ -250,8 +321,8 @@ class ConfiguratorNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    # Single-threaded: estimate_pose runs in the callback, and its operator calls spin their own
-    # executor (ros_operators.py), so nothing waits for this one.
+    # Single-threaded: the executor only takes requests and answers; the estimates run on the
+    # request queue's worker thread, whose operator calls spin their own executor (ros_operators.py).
     spin(ConfiguratorNode, args)
 
 

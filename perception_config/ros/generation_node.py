@@ -23,6 +23,7 @@ from ..blocks.base import Kind
 from ..geometry import check_noise_lambda
 from .conversions import stamp_to_nanoseconds
 from .operator_node import OperatorNode, answered_pose, make_hypothesis, spin
+from .request_fields import parse_method, parse_object_id, parse_stamp
 
 
 class GenerationNode(OperatorNode):
@@ -38,22 +39,24 @@ class GenerationNode(OperatorNode):
                                f"(default {self.param('default_method') or self.pipeline.generator.name})")
 
     def _on_generate(self, request: GenerateHypothesis.Request, response: GenerateHypothesis.Response) -> None:
-        method = request.method or self.param("default_method") or self.pipeline.generator.name
+        method = parse_method(request.method) or self.param("default_method") or self.pipeline.generator.name
         lam = float(request.noise_lambda)
         if math.isfinite(lam) and lam < 0:
             lam = float(self.param("default_lambda"))
         lam = check_noise_lambda(lam, "noise_lambda (negative = the node's default)")
-        self.model(request.object_id)  # an unknown object is refused before any waiting
+        object_id = parse_object_id(request.object_id)
+        stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
+        self.model(object_id)  # an unknown object is refused before any waiting
         _, block = self.block(method, (Kind.GENERATION,), lam)
         rng = np.random.default_rng(request.seed if request.seed else int(self._rng.integers(1, 2**32)))
-        result, header = self.run_block(block, stamp_to_nanoseconds(request.frame.stamp), request.object_id, None, rng)
+        result, header = self.run_block(block, stamp_ns, object_id, None, rng)
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
         pose_msg, pose = answered_pose(result.pose)
         scores = None
         if request.score:
-            scores = self.score(stamp_to_nanoseconds(header.stamp), request.object_id, pose)[0]
-        response.hypothesis = make_hypothesis(header, request.object_id, pose_msg, scores)
+            scores = self.score(stamp_to_nanoseconds(header.stamp), object_id, pose)[0]
+        response.hypothesis = make_hypothesis(header, object_id, pose_msg, scores)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -11,12 +11,16 @@ Every operator node declares these parameters (and its own):
 A request names its frame by stamp (a hypothesis' header.stamp; zero = the latest frame). The
 blocks run in the service callback; their per-frame precomputations are kept per cached frame.
 
-Executor: single-threaded (rclpy's multi-threaded executor's thread hand-offs cost more per
-service call than they bring to nodes that serve one request at a time; per-call figures in
-benchmarks/results/ros.json). A request whose frame (or ground truth) has not arrived yet does not
-block the thread: the service callback is a coroutine that awaits the next arrival or
-`frame_timeout`, while the executor keeps running the subscriptions; then the handler runs
-again. Services run one at a time (one mutually exclusive callback group).
+  request_queue  requests that may wait while one is served (10); one more is answered at once
+                 with success=false "busy: N requests queued (request_queue=M)"
+
+Threads: a single-threaded executor takes every request as it arrives and sends every answer
+(rclpy's multi-threaded executor's thread hand-offs cost more per service call than they bring;
+per-call figures in benchmarks/results/ros.json); the blocks run on one worker thread, one
+request at a time in arrival order (request_queue.py), so a request never waits unseen in the
+middleware. A request whose frame (or ground truth) has not arrived yet waits in the executor
+(a coroutine awaiting the next arrival or `frame_timeout`) without holding the worker; then its
+handler runs again.
 
 Every service answers: a bad request or a failed operator gives success=false and a message,
 an unexpected exception is logged and answered the same way, and the node keeps serving.
@@ -27,6 +31,7 @@ import inspect
 import math
 import signal
 import time
+from collections import OrderedDict
 from typing import Any, Awaitable, Callable
 
 import numpy as np
@@ -50,7 +55,11 @@ from ..ros_environment import configure_ros_environment
 from ..ros_shm import clean_stale_fastdds_shm
 from .camera_frames import CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+from .request_fields import excerpt, parse_method, parse_object_id, parse_stamp
+from .request_queue import RequestQueue, service_qos
 from .stamp_cache import StampCache
+
+MAX_BLOCKS = 32  # blocks kept by (method, noise_lambda), least recently used dropped first
 
 
 class OperatorNode(Node):
@@ -66,6 +75,7 @@ class OperatorNode(Node):
         self.declare_parameter("frame_timeout", 1.0)
         self.declare_parameter("camera_qos", "reliable")
         self.declare_parameter("sync_tolerance", 0.0)
+        self.declare_parameter("request_queue", 10)
 
         self.pipeline = load_pipeline(self.param("pipeline") or None)
         models_dir = self.param("models_dir")
@@ -75,10 +85,12 @@ class OperatorNode(Node):
             self.get_logger().warning("models_dir is not set: every request will be refused")
         cache_size = int(self.param("cache_size"))
         self._block_caches = FrameCaches(cache_size)
-        self._blocks: dict[tuple[str, float | None], Block] = {}
-        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._blocks: OrderedDict[tuple[str, float | None], Block] = OrderedDict()  # LRU, MAX_BLOCKS
+        self._service_group = ReentrantCallbackGroup()  # requests are taken at once; the queue orders them
+        self.requests = RequestQueue(self, self.param("request_queue"), name)
         self._wait_group = ReentrantCallbackGroup()  # the timer and clients a waiting service callback awaits
         self._arrivals: list[Future] = []  # woken by the next frame or ground truth
+        self._arrival_count = 0  # frames and ground truths arrived (the handlers run on another thread)
         self._deadlines: list[tuple[float, Future]] = []  # woken (False) at their deadline
         # One timer for every deadline, running only while something waits (entities are not
         # created and destroyed per request).
@@ -103,36 +115,56 @@ class OperatorNode(Node):
         that raises FrameNotReady runs again after the next frame arrives, until frame_timeout."""
 
         async def callback(request: Any, response: Any) -> Any:
-            start = time.perf_counter()
-            deadline = start + float(self.param("frame_timeout"))
+            busy = self.requests.busy()
+            if busy is not None:
+                response.success, response.message = False, busy
+                return response
             try:
-                while True:
-                    try:
-                        pending = handler(request, response)
-                        if inspect.isawaitable(pending):
-                            await pending
-                        break
-                    except FrameNotReady:
-                        remaining = deadline - time.perf_counter()
-                        if remaining <= 0:
-                            raise
-                        await self.wait_for(None, remaining)  # the next arrival, or the deadline
-                response.success = True
-                response.message = response.message or "ok"
-            except ValueError as exc:
-                response.success = False
-                response.message = str(exc)
-            except Exception as exc:  # answer, log, keep serving
-                self.get_logger().error(f"{name} failed: {exc!r}")
-                response.success = False
-                response.message = f"internal error: {exc!r}"
-            response.elapsed = time.perf_counter() - start
+                await self._answer(name, handler, request, response)
+            finally:
+                self.requests.done()
             return response
 
-        self.create_service(srv_type, name, callback, callback_group=self._service_group)
+        self.create_service(srv_type, name, callback, qos_profile=service_qos(),
+                            callback_group=self._service_group)
+
+    async def _answer(self, name: str, handler: Callable[[Any, Any], Awaitable[None] | None], request: Any,
+                      response: Any) -> None:
+        """Run the handler on the worker (again after each arrival while its frame is not ready);
+        fill success, message and elapsed (s, from the start of its turn) whatever happens."""
+        start = time.perf_counter()
+        deadline = start + float(self.param("frame_timeout"))
+        try:
+            while True:
+                arrivals = self._arrival_count
+                try:
+                    pending = await self.requests.run(handler, request, response)
+                    if inspect.isawaitable(pending):
+                        await pending
+                    break
+                except FrameNotReady:
+                    remaining = deadline - time.perf_counter()
+                    if remaining <= 0:
+                        raise
+                    if self._arrival_count == arrivals:  # else it came while the handler ran: try again
+                        await self.wait_for(None, remaining)  # the next arrival, or the deadline
+            response.success = True
+            response.message = response.message or "ok"
+        except ValueError as exc:
+            response.success = False
+            response.message = str(exc)
+        except Exception as exc:  # answer, log, keep serving
+            self.get_logger().error(f"{name} failed: {exc!r}")
+            response.success = False
+            response.message = f"internal error: {exc!r}"
+        response.elapsed = time.perf_counter() - start
+
+    def on_exit(self) -> None:
+        self.requests.close()
 
     def _arrived(self) -> None:
         """A frame or ground truth arrived: wake the service callbacks waiting for one."""
+        self._arrival_count += 1
         waiters, self._arrivals = self._arrivals, []
         for future in waiters:
             if not future.done():
@@ -163,6 +195,7 @@ class OperatorNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------
     def model(self, object_id: str) -> ObjectModel:
+        object_id = parse_object_id(object_id)
         model = self._models.get(object_id)
         if model is None:
             if self.models is None:
@@ -172,8 +205,13 @@ class OperatorNode(Node):
 
     def _on_ground_truth(self, msg: ObjectPoses) -> None:
         assert self.ground_truth is not None
+        try:
+            stamp = parse_stamp(msg.header.stamp, "header.stamp")
+        except ValueError as exc:
+            self.get_logger().warning(f"ignored a ground-truth message: {exc}")
+            return
         poses = dict(zip(msg.object_ids, msg.poses))
-        self.ground_truth.put(stamp_to_nanoseconds(msg.header.stamp), {"header": msg.header, "poses": poses})
+        self.ground_truth.put(stamp, {"header": msg.header, "poses": poses})
         self._arrived()
 
     def ground_truth_pose(self, stamp_ns: int, object_id: str) -> tuple[Pose, Header]:
@@ -185,7 +223,7 @@ class OperatorNode(Node):
                                 f"within {float(self.param('frame_timeout')):g} s")
         if object_id not in item["poses"]:
             raise ValueError(f"object {object_id!r} is not in the ground truth of that frame "
-                             f"(objects: {sorted(item['poses'])})")
+                             f"(objects: {excerpt(', '.join(sorted(item['poses'])), 200)})")
         try:
             return msg_to_pose(item["poses"][object_id]), item["header"]
         except ValueError as exc:
@@ -195,12 +233,15 @@ class OperatorNode(Node):
         """The block serving `method`: a pipeline action of one of `kinds` (with its preset), the
         pipeline's generator, or a registered block with its defaults. `noise_lambda` overrides
         a generator's noise level."""
+        method = parse_method(method)
         pipe = self.pipeline
         served = [a.name for a in pipe.actions if a.kind in kinds]
         if Kind.GENERATION in kinds:
             served.insert(0, pipe.generator.name)
         key = (method, noise_lambda)
-        if key not in self._blocks:
+        if key in self._blocks:
+            self._blocks.move_to_end(key)
+        else:
             base: Block | None = None
             if method == pipe.generator.name and Kind.GENERATION in kinds:
                 base = pipe.generator
@@ -214,12 +255,15 @@ class OperatorNode(Node):
                 if base is not None and base.kind not in kinds:
                     base = None
             if base is None:
-                raise ValueError(f"unknown method {method!r}; this node serves {', '.join(dict.fromkeys(served))} "
-                                 f"and the registered {'/'.join(k.value for k in kinds)} blocks")
+                registered = f"the registered {'/'.join(k.value for k in kinds)} blocks"
+                serves = f"{', '.join(dict.fromkeys(served))} and {registered}" if served else f"only {registered}"
+                raise ValueError(f"unknown method {excerpt(method)}; this node serves {serves}")
             config = dict(base.config)
             if noise_lambda is not None and "noise_lambda" in config:
                 config["noise_lambda"] = noise_lambda
             self._blocks[key] = type(base)(**config)
+            while len(self._blocks) > MAX_BLOCKS:  # e.g. one generator per distinct noise_lambda
+                self._blocks.popitem(last=False)
         return method, self._blocks[key]
 
     def run_block(self, block: Block, stamp_ns: int, object_id: str, pose: Pose | None,
@@ -261,14 +305,15 @@ class OperatorNode(Node):
 
 
 def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:
-    """(stamp_ns, object_id, pose) of a hypothesis in a request; ValueError for a NaN/degenerate pose."""
+    """(stamp_ns, object_id, pose) of a hypothesis in a request; ValueError for a NaN/degenerate pose,
+    a malformed object id or stamp (request_fields.py)."""
     try:
         pose = msg_to_pose(msg.pose)
     except ValueError as exc:
         raise ValueError(f"the hypothesis is unusable: {exc}") from None
     if not msg.object_id:
         raise ValueError("the hypothesis has no object_id")
-    return stamp_to_nanoseconds(msg.header.stamp), msg.object_id, pose
+    return parse_stamp(msg.header.stamp, "hypothesis.header.stamp"), parse_object_id(msg.object_id), pose
 
 
 def answered_pose(pose: Pose) -> tuple[PoseMsg, Pose]:

@@ -16,6 +16,7 @@ from perception_config_interfaces.srv import RefineHypothesis
 
 from ..blocks.base import Kind
 from .operator_node import OperatorNode, answered_pose, hypothesis_pose, make_hypothesis, spin
+from .request_fields import parse_method
 
 
 class RefinementNode(OperatorNode):
@@ -29,7 +30,7 @@ class RefinementNode(OperatorNode):
 
     def _on_refine(self, request: RefineHypothesis.Request, response: RefineHypothesis.Response) -> None:
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
-        if not request.method:
+        if not parse_method(request.method):
             raise ValueError("method is empty: name a refinement action of the pipeline or a refinement block")
         method, block = self.block(request.method, (Kind.REFINEMENT,))
         rng = np.random.default_rng(request.seed if request.seed else None)

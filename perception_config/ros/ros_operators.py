@@ -19,7 +19,8 @@ Time: `StepOutcome.elapsed` is the wall time of the round trips (what the robot 
 
 An operator that fails (success=false: a refiner diverged, the frame has no depth there) is an
 `ok=False` outcome, as in-process. A node that is not there or does not answer within
-`timeout` raises `OperatorCallError`: the episode cannot go on.
+`timeout` (plus LAST_LOOK) raises `OperatorCallError`: the episode cannot go on. With `deadline` set, no call
+waits past it (`DeadlineReached`).
 
 Calls block the calling thread, which spins the clients itself: they live on a private node
 with its own single-threaded executor, spun inline until the answer is there (cheaper than
@@ -52,8 +53,15 @@ SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "s
 NODES = {"generate": "generation_node", "refine": "refinement_node", "score": "scoring_node", "pick": "pick_node"}
 
 
+LAST_LOOK = 1.0  # s waited past a timeout for an answer already on its way
+
+
 class OperatorCallError(RuntimeError):
     """An operator node is not available or did not answer in time."""
+
+
+class DeadlineReached(OperatorCallError):
+    """The estimate's deadline (`RosOperators.deadline`) came before or during an operator call."""
 
 
 class RosOperators:
@@ -84,20 +92,39 @@ class RosOperators:
         self.refiner_rng = refiner_stream(0)
         # (service, round trip s, the node's own s) of every call, for benchmarks and diagnostics
         self.round_trips: deque[tuple[str, float, float]] = deque(maxlen=10_000)
+        # time.monotonic() by which the current estimate must end (None: no deadline); a call
+        # waits at most until then and raises DeadlineReached
+        self.deadline: float | None = None
 
     # -- calls -------------------------------------------------------------------------------
     def _call(self, which: str, request: Any) -> Any:
         client = self.clients[which]
+        timeout, cut = self.timeout, False
+        if self.deadline is not None:  # the estimate's deadline comes first
+            remaining = self.deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeadlineReached(f"the deadline came before calling {client.srv_name}")
+            timeout, cut = min(timeout, remaining), remaining < timeout
         # A node that has just started may not be discovered yet: wait a little for it.
-        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=min(self.timeout, 2.0)):
+        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=min(timeout, 2.0)):
+            if cut and timeout < 2.0:
+                raise DeadlineReached(f"the deadline came while waiting for {client.srv_name} to be discovered")
             raise OperatorCallError(f"service {client.srv_name} is not available: is {NODES[which]} running?")
         start = time.perf_counter()
         future = client.call_async(request)
-        self._executor.spin_until_future_complete(future, timeout_sec=self.timeout)
+        self._executor.spin_until_future_complete(future, timeout_sec=timeout)
+        if not future.done() and not cut:
+            # A last look: this process may have been stopped (SIGSTOP, a suspended VM) while the
+            # answer came; its middleware threads need a moment after resuming to hand it over.
+            self._executor.spin_until_future_complete(future, timeout_sec=LAST_LOOK)
         if not future.done():
             client.remove_pending_request(future)
-            raise OperatorCallError(f"{client.srv_name} did not answer within {self.timeout:g} s "
-                                    f"({NODES[which]} busy or died)")
+            if cut:
+                raise DeadlineReached(f"the deadline came while waiting {timeout:.3g} s for {client.srv_name}")
+            # Measured here, in this process: it cannot tell a stopped, overloaded or dead node
+            # (or this process having been stopped) apart, so it names no cause.
+            raise OperatorCallError(f"{client.srv_name} did not answer within {timeout:g} s "
+                                    f"(operator_timeout; served by {NODES[which]})")
         response = future.result()
         if response is None:
             raise OperatorCallError(f"{client.srv_name} gave no answer (shutting down?)")

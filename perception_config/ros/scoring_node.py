@@ -3,7 +3,8 @@
 `methods` are scoring blocks (empty = the pipeline's scoring set); the answer is the hypothesis
 with `scores` / `score_names` filled, in the order of the blocks' score names. A block that
 cannot score this hypothesis (e.g. it projects outside the image) gives NaN for its scores,
-as in-process, and is named in the message; the request still succeeds.
+as in-process, and is named in the message; the request still succeeds. At most 16 methods,
+each named once (request_fields.MAX_METHODS).
 
 Parameters: those of every operator node (operator_node.py).
 """
@@ -13,6 +14,7 @@ from perception_config_interfaces.srv import ScoreHypothesis
 
 from ..blocks.base import Kind
 from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
+from .request_fields import parse_methods
 
 
 class ScoringNode(OperatorNode):
@@ -25,7 +27,8 @@ class ScoringNode(OperatorNode):
 
     def _on_score(self, request: ScoreHypothesis.Request, response: ScoreHypothesis.Response) -> None:
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)
-        blocks = None if not request.methods else [self.block(m, (Kind.SCORING,))[1] for m in request.methods]
+        methods = parse_methods(request.methods)  # at most MAX_METHODS, each once
+        blocks = None if not methods else [self.block(m, (Kind.SCORING,))[1] for m in methods]
         scores, failed, header = self.score(stamp_ns, object_id, pose, blocks)
         response.hypothesis = make_hypothesis(header, object_id, request.hypothesis.pose, scores)
         response.message = "ok" if not failed else "scored; NaN from " + "; ".join(failed)

@@ -1,0 +1,100 @@
+"""A bounded queue of service requests: every request is answered, none is silently dropped.
+
+A node runs its requests one at a time. Before this queue, the service callback ran the work in
+the executor thread, so while one request was served the others stayed in the middleware's
+history (keep-last 10 by default) and the 11th and later were overwritten without an answer.
+
+Now the executor thread only takes requests and sends answers; the work runs on one worker
+thread, in arrival order. A request that finds `depth` requests already waiting is answered at
+once with success=false "busy: N requests queued (request_queue=M)".
+
+The service's QoS (`service_qos`) keeps all: the middleware holds every request until the node
+takes it (taken at once, so few are ever held), and every answer until it is delivered. A
+keep-last history of request_queue + 65 still lost the oldest requests of a burst of 80 that
+arrived faster than one take per executor iteration (measured; README).
+
+The answers of a service go to every client's reader of that service, which sorts out its own:
+a client whose reader keeps the last 10 (rclpy's default) can lose its answer among many others
+(14 clients in one process, 10 requests each: about a third lost). Clients that expect bursts
+create their clients with a deeper QoS (e.g. `QoSProfile(depth=1000)`).
+"""
+from __future__ import annotations
+
+import queue
+import threading
+from typing import Any, Callable
+
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+
+MAX_REQUEST_QUEUE = 1000
+
+
+def check_request_queue(depth: Any) -> int:
+    """The `request_queue` parameter: requests that may wait while one is served (0..1000)."""
+    if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= MAX_REQUEST_QUEUE:
+        raise ValueError(f"request_queue must be an integer in 0..{MAX_REQUEST_QUEUE}, got {depth!r}")
+    return depth
+
+
+def service_qos() -> QoSProfile:
+    """Reliable, keep-all: no request is overwritten before the node takes it (the queue then
+    bounds what the node holds), no answer before it is delivered."""
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class RequestQueue:
+    """One worker thread running a node's requests in arrival order, at most `depth` waiting.
+
+    Used from the executor thread: `busy()` when a request arrives (the refusal, or None), then
+    `await run(fn, ...)` for each piece of its work, and `done()` when it is answered. The worker
+    wakes the executor through a guard condition when a piece finishes.
+    """
+
+    def __init__(self, node: Node, depth: int, name: str) -> None:
+        self.depth = check_request_queue(depth)
+        self.held = 0  # requests admitted and not yet answered (waiting or being served)
+        self.most_held = 0  # the high-water mark, for diagnostics
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._wake = node.create_guard_condition(lambda: None, callback_group=ReentrantCallbackGroup())
+        # A daemon thread: a block that never returns must not keep the process from exiting.
+        self._thread = threading.Thread(target=self._work, name=f"{name}_worker", daemon=True)
+        self._thread.start()
+
+    def busy(self) -> str | None:
+        """None when the request is admitted (and counted), else the busy message."""
+        if self.held > self.depth:
+            return f"busy: {self.held - 1} requests queued (request_queue={self.depth})"
+        self.held += 1
+        self.most_held = max(self.most_held, self.held)
+        return None
+
+    def done(self) -> None:
+        self.held -= 1
+
+    async def run(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """fn(*args) on the worker thread, after the work queued before it; its result, or what it raised."""
+        future: Future = Future()
+        self._jobs.put((fn, args, future))
+        return await future
+
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            fn, args, future = job
+            try:
+                future.set_result(fn(*args))
+            except Exception as exc:  # handed to the awaiting callback, which answers
+                future.set_exception(exc)
+            try:
+                self._wake.trigger()
+            except Exception:  # the node is being destroyed
+                return
+
+    def close(self) -> None:
+        """Stop the worker after the work already queued (it is a daemon: exit does not wait)."""
+        self._jobs.put(None)
