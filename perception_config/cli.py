@@ -10,6 +10,7 @@ from pathlib import Path
 # Light imports only (numpy): each command imports the rest it needs.
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .settings import TIME_MODES, EnvSettings
+from .stop_signals import StopRequested
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -335,9 +336,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"perception-config {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        # A job stopped by a signal (training.StopRequested names it; a plain Ctrl-C is SIGINT):
-        # exit 128 + the signal number, the shell's convention (130 SIGINT, 143 SIGTERM, 129 SIGHUP).
-        code = 128 + int(getattr(exc, "signum", signal.SIGINT))
+        # A job stopped by a signal (StopRequested names it, e.g. train; otherwise 130): exit 128 +
+        # the signal number, the shell's convention (130 SIGINT, 143 SIGTERM, 129 SIGHUP).
+        code = exc.exit_code if isinstance(exc, StopRequested) else 130
         _ignore_further_signals()
         _say_quietly(f"perception-config {args.command}: {str(exc) or 'interrupted'}")
         return code
