@@ -167,3 +167,17 @@ def test_seeded_cost_table_training_repeats_bit_for_bit(tmp_path_factory, tmp_pa
     assert sorted(a) == sorted(b)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_cost_table_mode_lifts_the_blocks_wall_clock_bounds(tmp_path_factory):
+    """ICP with a 1 ms bound: measured mode stops after the first stage, cost-table mode runs all 4."""
+    from rl_helpers import PIPELINE
+
+    text = PIPELINE.replace("final_distance: 0.01, stages: 2, max_seconds: 10.0", "final_distance: 0.01, stages: 4, "
+                            "max_seconds: 0.001")
+    stages = {}
+    for mode in ("measured", "cost_table"):
+        env = make_env(tmp_path_factory, text, "bounds.yaml", time_mode=mode)
+        env.reset(options={"episode": 0, "lambda": 0.3, "episode_seed": 1})
+        stages[mode] = env.unwrapped.ops.apply("icp_coarse").result.info["stages_run"]
+    assert stages == {"measured": 1, "cost_table": 4}
