@@ -181,3 +181,18 @@ def test_cost_table_mode_lifts_the_blocks_wall_clock_bounds(tmp_path_factory):
         env.reset(options={"episode": 0, "lambda": 0.3, "episode_seed": 1})
         stages[mode] = env.unwrapped.ops.apply("icp_coarse").result.info["stages_run"]
     assert stages == {"measured": 1, "cost_table": 4}
+
+
+def test_a_failing_worker_task_raises_with_its_traceback_and_the_pool_stops(tmp_path_factory):
+    from perception_config.agents import EnvRecipe
+    from perception_config.training_workers import WorkerPool
+
+    recipe = EnvRecipe(str(tiny_dataset(tmp_path_factory)), str(pipeline_file(tmp_path_factory)), settings=FAST)
+    pool = WorkerPool(1, recipe)
+    pids = pool.pids
+    try:
+        with pytest.raises(RuntimeError, match="(?s)a training worker failed.*KeyError: 'no_such_agent'"):
+            pool.run([(("no_such_agent", {}, {}, {}, True), [])])
+    finally:
+        pool.close(timeout=5.0)
+    assert pids and not [p for p in pids if _running(p)]
