@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from pathlib import Path
 
 # Light imports only (numpy): each command imports the rest it needs.
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .settings import TIME_MODES, EnvSettings
+from .stop_signals import StopRequested
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -57,8 +60,6 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 def _one_core() -> None:
     """Benchmarks measure one core: pin the numeric libraries before they load."""
-    import os
-
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
 
@@ -153,12 +154,16 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     from .training import train
 
+    # Also when started with SIGINT ignored (a background job of a script inherits that): Ctrl-C
+    # and `kill -INT` must stop the run with its work saved. SIGHUP ignored (nohup) stays ignored.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
     policy = train(
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
+        checkpoint_every=args.checkpoint_every,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -166,7 +171,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _add_train_parser(sub: argparse._SubParsersAction) -> None:
-    tr = sub.add_parser("train", help="train a configuration agent on the train images of a BOP dataset")
+    tr = sub.add_parser(
+        "train", help="train a configuration agent on the train images of a BOP dataset",
+        description="Ctrl-C (SIGINT), SIGTERM and SIGHUP stop the run: the round in flight is dropped, the workers "
+                    "are stopped, and the policy, history.csv, learning curve and checkpoint of the last completed "
+                    "round are written (a second signal does not abort that). Exit codes: 0 done, 2 bad input, "
+                    "130 SIGINT, 143 SIGTERM, 129 SIGHUP; --resume continues the run.")
     tr.add_argument("--dataset", type=Path, required=True)
     tr.add_argument("--agent", choices=("random", "simple", "pg", "es", "fixed"), default="pg")
     tr.add_argument("--out", type=Path, required=True, help="run folder: policy, checkpoint, learning curve")
@@ -183,6 +193,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                     help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
     tr.add_argument("--workers", type=int, default=None, help="processes playing episodes (default: 2 for pg/es)")
+    tr.add_argument("--checkpoint-every", type=int, default=100, metavar="N",
+                    help="write the checkpoint every N episodes (100); a stop signal always writes it")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
     tr.add_argument("--quiet", action="store_true")
@@ -323,9 +335,33 @@ def main(argv: list[str] | None = None) -> int:
         # Bad input: one clear line naming what was wrong, no traceback.
         print(f"perception-config {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        # A job stopped by a signal (StopRequested names it, e.g. train; otherwise 130): exit 128 +
+        # the signal number, the shell's convention (130 SIGINT, 143 SIGTERM, 129 SIGHUP).
+        code = exc.exit_code if isinstance(exc, StopRequested) else 130
+        _ignore_further_signals()
+        _say_quietly(f"perception-config {args.command}: {str(exc) or 'interrupted'}")
+        return code
+
+
+def _ignore_further_signals() -> None:
+    """The work is saved and the process is leaving: a further stop signal (one more Ctrl-C)
+    must not turn the exit code into death by SIGINT. Ignored ones stay ignored through the
+    interpreter's shutdown (handlers set in Python are reset to the default there)."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def _say_quietly(text: str) -> None:
+    """A last line on stderr; after SIGHUP the terminal may be gone: then stdout and stderr go
+    to /dev/null, so flushing them at exit cannot turn the exit code into 120."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+        sys.stdout.flush()
+    except OSError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.dup2(devnull, sys.stderr.fileno())
 
 
 if __name__ == "__main__":

@@ -25,7 +25,9 @@ info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 
 Time: measured wall time by default; `time_mode="cost_table"` charges fixed seconds per action
 and per scoring pass (each block's `default_cost`, or the settings' `cost_table`), for
-reproducible runs and tests.
+reproducible runs and tests. In cost-table mode the in-process blocks run without their
+wall-clock bounds (`max_seconds`), to their iteration bounds: the same episode then computes the
+same poses on a loaded machine as on an idle one.
 
 Settings: one `EnvSettings` (settings.py: max_ops, failed_pick_cost, truncation_cost,
 time_mode, cost_table, min_visib_fract, lambda_range); keyword arguments of the same names
@@ -94,7 +96,10 @@ class PerceptionConfigEnv(gym.Env):
             ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
             self.source = EpisodeSource(ds, image_keys, min_visib_fract=self.settings.min_visib_fract)
         self.pipeline = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
-        self.ops: Operators = operators if operators is not None else InProcessOperators(self.pipeline)
+        # Cost-table mode lifts the blocks' wall-clock bounds: a bound that cuts a block short on a
+        # loaded machine would make the episode depend on timing (measured mode keeps them).
+        self.ops: Operators = operators if operators is not None else InProcessOperators(
+            self.pipeline, time_bounded=self.settings.time_mode == "measured")
         self._scoring_cost = self.settings.scoring_cost(self.pipeline.scoring)
         self.score_ranges = self.pipeline.score_ranges
 

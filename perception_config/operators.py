@@ -112,11 +112,13 @@ class InProcessOperators:
     """Runs the pipeline's blocks in this process.
 
     Per-frame precomputations (edge maps, point clouds) live in a small LRU keyed by the frame
-    identity, so consecutive episodes on the same frame share them.
+    identity, so consecutive episodes on the same frame share them. `time_bounded=False` lifts
+    the blocks' wall-clock bounds (`BlockInput.time_bounded`; the env's cost-table mode).
     """
 
-    def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4) -> None:
+    def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4, time_bounded: bool = True) -> None:
         self.pipeline = pipeline
+        self.time_bounded = bool(time_bounded)
         self._caches = FrameCaches(frame_cache_size)
         self._generators: dict[float, Any] = {}
         self.episode: Episode | None = None
@@ -132,6 +134,7 @@ class InProcessOperators:
         return BlockInput(
             frame=ep.frame, model=ep.model, pose=pose, ground_truth=ep.ground_truth,
             rng=self.rng if rng is None else rng, cache=self._caches.get(ep.frame), scores=dict(self.scores),
+            time_bounded=self.time_bounded,
         )
 
     def _generate(self, block) -> BlockResult:

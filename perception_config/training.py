@@ -4,9 +4,10 @@ The loop is the same for every agent; the algorithms live in the agent files. On
 1. `agent.actors()`: the policies to run (the pg/simple agent itself; the ES population);
 2. draw `agent.episodes_per_actor` episodes from the TRAIN split: an object of a train image,
    lambda ~ U(lambda_range), an episode seed; every actor plays the same episodes;
-3. play them, in this process or spread over `workers` spawned processes (each builds its
-   own env from an `EnvRecipe`, torch with one thread); actions are seeded per episode, so
-   results do not depend on the number of workers (except measured times);
+3. play them, in this process or spread over `workers` spawned processes (training_workers.py:
+   each builds its own env from an `EnvRecipe`, torch with one thread, task k on worker
+   k mod n); actions are seeded per episode, so results do not depend on the number of
+   workers (except measured times, and per-frame caches: see training_workers.py);
 4. `agent.update(trajectories)`: the algorithm's learning step.
 Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
 held out (stored in the policy metadata with the split seed and fraction, for evaluation).
@@ -17,8 +18,19 @@ metadata (`extra.env_settings`) and restored wherever the policy is run.
 Files in `out/`: policy.safetensors (or policy.json for agents without weights),
 checkpoint.safetensors (policy + optimizer/population + episode counter + rng states +
 history; written atomically every `checkpoint_every` episodes; `resume=True` continues from
-it), history.csv and learning_curve.png. Ctrl-C: the round in flight is dropped, the policy
-of the last completed round and a checkpoint are written, then KeyboardInterrupt propagates.
+it), history.csv and learning_curve.png, all written atomically.
+
+Stopping (stop_signals.py): SIGINT (Ctrl-C), SIGTERM and SIGHUP drop the round in flight (its
+episodes only: the trainer's rng goes back to the round's start, so a resumed run is the
+uninterrupted one), stop the workers (SIGTERM, SIGKILL after WORKER_STOP_TIMEOUT s), write the
+checkpoint, policy, history and curve of the last completed round, then raise StopRequested
+(a KeyboardInterrupt carrying the signal; the CLI exits 128 + its number). A signal during a
+learning step or the save is only recorded: the step and the files are completed. A signal
+ignored when train() starts (SIGHUP under nohup) stays ignored.
+
+Reproducibility: in cost-table mode a seeded run repeats bit for bit (history and tensors) for
+the same number of workers: the blocks run without their wall-clock bounds (env.py), Open3D on
+one thread (its parallel ICP sums are not reproducible) and each worker gets the same tasks.
 Rounds are whole: the episode count may overshoot `episodes` by less than one round.
 """
 from __future__ import annotations
@@ -28,12 +40,7 @@ import csv
 import io
 import json
 import math
-import multiprocessing as mp
 import os
-import signal
-import threading
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -46,56 +53,20 @@ from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .settings import EnvSettings, settings_from_policy_meta
+from .stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from .training_workers import WorkerPool, limit_open3d_threads, snapshot
 
 POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
 CURVE = "learning_curve.png"
 HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
+WORKER_STOP_TIMEOUT = 5.0  # s a worker gets to leave before SIGTERM, then SIGKILL
 
 
-# -- worker processes -----------------------------------------------------------------------
-_WORKER: dict[str, Any] = {}
-
-
-def _worker_init(recipe: EnvRecipe) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
-    # Keep an error for the first task: it reaches the parent with its message.
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-        env = recipe.make()
-        _WORKER["env"] = env
-        _WORKER["spec"] = EnvSpec.from_env(env)
-    except Exception as exc:  # noqa: BLE001  (re-raised in the parent by _worker_run)
-        _WORKER["error"] = f"{type(exc).__name__}: {exc}"
-
-
-def _snapshot(agent: Agent) -> tuple[str, dict[str, Any], dict[str, np.ndarray], dict[str, Any], bool]:
-    """A picklable copy of an actor's policy."""
-    return agent.kind, agent.hparams(), agent.tensors(), agent.state(), agent.explore
-
-
-def _rebuild(snapshot: tuple, spec: EnvSpec) -> Agent:
-    kind, hparams, tensors, state, explore = snapshot
-    agent = AGENTS[kind](spec, **hparams)
-    agent.set_tensors(tensors)
-    agent.set_state(state)
-    agent.explore = explore
-    return agent
-
-
-def _worker_run(task: tuple[tuple, list[tuple[dict[str, Any], int]]]) -> list[Trajectory]:
-    snapshot, episodes = task
-    if "error" in _WORKER:
-        raise RuntimeError(f"a training worker could not build its environment: {_WORKER['error']}")
-    agent = _rebuild(snapshot, _WORKER["spec"])
-    return [play_episode(_WORKER["env"], agent, options, seed) for options, seed in episodes]
-
-
+# -- playing a round --------------------------------------------------------------------------
 def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], act_seeds: np.ndarray,
-               pool: Any = None, workers: int = 1) -> list[list[Trajectory]]:
-    """Every actor plays every episode: trajectories[actor][episode]."""
+               pool: WorkerPool | None = None, workers: int = 1) -> list[list[Trajectory]]:
+    """Every actor plays every episode: trajectories[actor][episode] (in `pool` when given)."""
     if pool is None:
         return [[play_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
                 for i, actor in enumerate(actors)]
@@ -104,38 +75,17 @@ def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], ac
     bounds = np.linspace(0, len(episodes), n_chunks + 1).astype(int)
     tasks, owner = [], []
     for i, actor in enumerate(actors):
-        snap = _snapshot(actor)
+        snap = snapshot(actor)
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             tasks.append((snap, [(episodes[j], int(act_seeds[i, j])) for j in range(lo, hi)]))
             owner.append(i)
     out: list[list[Trajectory]] = [[] for _ in actors]
-    try:
-        for i, trajs in zip(owner, pool.map(_worker_run, tasks)):
-            out[i].extend(trajs)
-    except BrokenProcessPool as exc:
-        raise RuntimeError(
-            "a training worker process died. If train() is called from a script, guard the call with "
-            "`if __name__ == \"__main__\":` (workers are spawned and import the main module)") from exc
+    for i, trajs in zip(owner, pool.run(tasks)):
+        out[i].extend(trajs)
     return out
 
 
 # -- helpers --------------------------------------------------------------------------------
-@contextlib.contextmanager
-def _defer_sigint() -> Iterator[None]:
-    """Ctrl-C inside the block is delivered after it (a learning step is never half done)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if caught:
-            raise KeyboardInterrupt
-
-
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:
     """Trailing mean over the last `window` finite values (NaN where there are none)."""
     x = np.asarray(x, np.float64)
@@ -228,7 +178,8 @@ def train(
     in-process). `resume=True` continues a run from out/checkpoint.safetensors up to
     `episodes` in total, with the checkpoint's agent hyperparameters (`agent_kwargs` are
     ignored); the dataset, split, pipeline and env settings must be the same (lambda_range may
-    change); without it an existing run in `out` is an error unless `overwrite`.
+    change); without it an existing run in `out` is an error unless `overwrite`. A stop signal
+    writes everything of the last completed round and raises StopRequested (module docstring).
     """
     settings = settings or EnvSettings()
     if episodes < 1:
@@ -322,31 +273,44 @@ def train(
 
     def save_outputs(interrupted: bool) -> None:
         save_agent(learner, policy_path, {**training_info, "episodes": done, "interrupted": interrupted})
+        _write_history_csv(arrays(), out / "history.csv")
         if done:
             plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}")
-            _write_history_csv(arrays(), out / "history.csv")
 
     from tqdm import tqdm
 
     pool = None
-    interrupted = False
+    stops = StopSignals()
     lo, hi = settings.lambda_range
     last_ckpt = done
     bar = tqdm(total=episodes, initial=min(done, episodes), disable=not progress, unit="ep", desc=f"train {name}")
-    try:
-        if workers > 1 and done < episodes:
-            # An executor (not multiprocessing.Pool): a worker that dies breaks it with an error
-            # instead of being respawned forever.
-            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                                       initargs=(recipe,))
-        while done < episodes:
-            actors = learner.actors()
-            k = learner.episodes_per_actor
-            options = [{"episode": int(rng.integers(len(env.source))), "lambda": float(rng.uniform(lo, hi)),
-                        "episode_seed": int(rng.integers(2**31))} for _ in range(k)]
-            act_seeds = rng.integers(2**31, size=(len(actors), k))
-            trajectories = play_round(env, actors, options, act_seeds, pool, workers)
-            with _defer_sigint():
+    with stops.installed(), _reproducible_threads(settings):
+        try:
+            if workers > 1 and done < episodes:
+                pool = WorkerPool(workers, recipe)
+            while done < episodes and not stops.received:
+                round_start = rng.bit_generator.state  # a dropped round is drawn again on resume
+                actors = learner.actors()
+                k = learner.episodes_per_actor
+                options = [{"episode": int(rng.integers(len(env.source))), "lambda": float(rng.uniform(lo, hi)),
+                            "episode_seed": int(rng.integers(2**31))} for _ in range(k)]
+                act_seeds = rng.integers(2**31, size=(len(actors), k))
+                try:
+                    with stops.interruptible():  # only the episodes are dropped by a signal
+                        trajectories = play_round(env, actors, options, act_seeds, pool, workers)
+                except Interrupted:
+                    rng.bit_generator.state = round_start
+                    break
+                except Exception:
+                    rng.bit_generator.state = round_start
+                    if stops.received:  # a worker ended by a signal to the whole process group
+                        break
+                    if done > last_ckpt:  # keep the rounds since the last checkpoint, then fail
+                        _stop_workers(pool, now=True)
+                        pool = None
+                        _save_quietly(save_checkpoint)
+                    raise
+                # A learning step is never half done: signals from here on are only recorded.
                 learner.update(trajectories)
                 for per_actor in trajectories:
                     for t in per_actor:
@@ -355,23 +319,58 @@ def train(
                             history[key].append(float(value))
                 n_new = sum(len(p) for p in trajectories)
                 done += n_new
-                bar.update(n_new)
                 recent = slice(-100, None)
-                bar.set_postfix(ret=f"{np.mean(history['return'][recent]):.2f}",
-                                success=f"{np.mean(history['success'][recent]):.2f}")
+                _quietly(bar.update, n_new)
+                _quietly(bar.set_postfix, ret=f"{np.mean(history['return'][recent]):.2f}",
+                         success=f"{np.mean(history['success'][recent]):.2f}")
                 if done - last_ckpt >= checkpoint_every:
                     save_checkpoint()
                     last_ckpt = done
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        bar.close()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)  # workers ignore SIGINT: let them finish
-    with _defer_sigint():
+        finally:
+            _quietly(bar.close)
+            _stop_workers(pool, now=bool(stops.received))
+        # Signals that arrive now are recorded only: the files are written whole.
+        interrupted = bool(stops.received)
         save_checkpoint()
         save_outputs(interrupted)
     if interrupted:
-        print(f"interrupted after {done} episodes: wrote {policy_path} and {ckpt_path}")
-        raise KeyboardInterrupt
+        signum = stops.received[0]
+        _quietly(print, f"stopped by {signal_name(signum)} after {done} episodes: wrote {policy_path}, "
+                        f"{out / 'history.csv'} and {ckpt_path}", flush=True)
+        raise StopRequested(signum, f"training stopped by {signal_name(signum)} after {done} episodes")
     return policy_path
+
+
+def _quietly(func: Any, *args: Any, **kw: Any) -> None:
+    """Progress output: a terminal that hung up (SIGHUP) must not stop the save."""
+    try:
+        func(*args, **kw)
+    except OSError:
+        pass
+
+
+def _save_quietly(save: Any) -> None:
+    try:
+        save()
+    except Exception:  # noqa: BLE001  (the error being raised is the one to report)
+        pass
+
+
+def _stop_workers(pool: WorkerPool | None, now: bool) -> None:
+    if pool is not None:
+        pool.close(timeout=WORKER_STOP_TIMEOUT, now=now)
+
+
+@contextlib.contextmanager
+def _reproducible_threads(settings: EnvSettings) -> Iterator[None]:
+    """Cost-table mode: Open3D on one thread in this process while training (see
+    training_workers.limit_open3d_threads), so in-process ICP is bitwise reproducible."""
+    if settings.time_mode != "cost_table":
+        yield
+        return
+    previous = limit_open3d_threads(1)
+    try:
+        yield
+    finally:
+        if previous:
+            limit_open3d_threads(previous)

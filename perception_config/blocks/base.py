@@ -78,6 +78,9 @@ class BlockInput:
     ground truth but no camera frame yet can still run simulated_init). `cache` holds per-frame
     precomputations (edge maps, point clouds) that several blocks
     share; it belongs to the frame and is dropped with it. `rng` makes stochastic blocks seeded.
+    `time_bounded=False` lifts the blocks' wall-clock bounds (`max_seconds`) for this call: they
+    stop at their iteration bounds only, so the result does not depend on the machine's load
+    (the environment's cost-table mode, where time is charged from the table anyway).
     """
 
     frame: Frame | None
@@ -87,6 +90,7 @@ class BlockInput:
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     cache: dict[str, Any] = field(default_factory=dict)
     scores: dict[str, float] = field(default_factory=dict)  # scores of `pose`, when known
+    time_bounded: bool = True  # whether `max_seconds` bounds the call (wall clock)
 
 
 @dataclass
@@ -164,6 +168,11 @@ class Block(ABC):
         if GROUND_TRUTH in self.inputs and inp.ground_truth is None:
             return "this block needs the ground-truth pose, which the frame does not have"
         return ""
+
+    def deadline(self, inp: BlockInput, start: float) -> float:
+        """The perf_counter() time after which the call starts no new step: `start` plus the
+        block's `max_seconds`, or infinity when the call is not time-bounded."""
+        return start + float(self.config["max_seconds"]) if inp.time_bounded else math.inf
 
     @abstractmethod
     def run(self, inp: BlockInput) -> BlockResult:

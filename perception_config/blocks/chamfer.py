@@ -128,9 +128,10 @@ class ChamferMatching(Block):
         e1 /= np.linalg.norm(e1)
         plane = np.stack([e1, np.cross(ray, e1)])
         tried, n_batch = 0, int(c["batch"])
+        deadline = self.deadline(inp, start)
         for _ in range(int(c["rounds"])):
             done = 0
-            while done < c["candidates"] and time.perf_counter() - start < c["max_seconds"]:
+            while done < c["candidates"] and time.perf_counter() < deadline:
                 k = int(min(n_batch, c["candidates"] - done))
                 ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
                 Rs = np.stack([exp_so3(w) @ best_R for w in ws])
@@ -183,8 +184,9 @@ class ChamferIcp(Block):
         n_it = int(c["iterations"])
         dists = np.geomspace(c["max_match_px"], min(c["min_match_px"], c["max_match_px"]), n_it)
         mean_dist, matched = np.nan, 0
+        deadline = self.deadline(inp, start)
         for it in range(n_it):
-            if time.perf_counter() - start > c["max_seconds"]:
+            if time.perf_counter() > deadline:
                 break
             uv, _ = project_with_directions(R, t, P, D, K)
             with np.errstate(invalid="ignore"):
@@ -207,7 +209,7 @@ class ChamferIcp(Block):
 
             # the depth prior is anchored at the call's start, not at each iteration's pose
             R, t, _ = levenberg_marquardt(evaluate, R, t, prior, huber=max(2.0, float(dists[it])),
-                                          max_iterations=int(c["steps"]), deadline=start + c["max_seconds"],
+                                          max_iterations=int(c["steps"]), deadline=deadline,
                                           anchor=pose0.t)
         if not np.isfinite(mean_dist):
             return BlockResult.fail("too few contour points near image edges to match")

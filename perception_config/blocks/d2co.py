@@ -88,8 +88,8 @@ class D2CO(Block):
         prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
         r0, _ = evaluate(pose0.R, pose0.t)
         cost0 = float(np.mean(r0))
-        R, t, iterations = levenberg_marquardt(
-            evaluate, pose0.R, pose0.t, prior, float(c["huber_px"]), int(c["max_iterations"]), start + c["max_seconds"])
+        R, t, iterations = levenberg_marquardt(evaluate, pose0.R, pose0.t, prior, float(c["huber_px"]),
+                                               int(c["max_iterations"]), self.deadline(inp, start))
         r, _ = evaluate(R, t)
         cost = float(np.mean(r))
         info = {"cost_before": cost0, "iterations": iterations, "points": len(P), "tensor_crop": crop}

@@ -77,8 +77,9 @@ class DepthRefine(Block):
         centre = model_centre(model)
         max_diff = cfg["max_diff_factor"] * model.diameter
         total, passes, used, pixels = 0.0, 0, 0, 0
+        deadline = self.deadline(inp, start)
         for i in range(cfg["iterations"]):
-            if i and time.perf_counter() - start > cfg["max_seconds"]:
+            if i and time.perf_counter() > deadline:
                 break
             dz, used, pixels = depth_offset(inp.frame, model, pose, max_diff, inp.cache)
             if pixels == 0:

@@ -178,7 +178,7 @@ class GlobalRegistration(Block):
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config
         start = time.perf_counter()
-        deadline = start + c["max_seconds"]
+        deadline = self.deadline(inp, start)
         model, frame = inp.model, inp.frame
         diameter = model.diameter
         seg = _segmentation(inp, c["plane_distance"])

@@ -116,8 +116,9 @@ class _IcpBase(Block):
         criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                                max_iteration=cfg["max_iterations"])
         result, used, stages_run = None, len(src_all), 0
+        deadline = self.deadline(inp, start)
         for d in dists:
-            if stages_run and time.perf_counter() - start > cfg["max_seconds"]:
+            if stages_run and time.perf_counter() > deadline:
                 break
             src = src_all
             if cfg["occlusion_filter"]:
