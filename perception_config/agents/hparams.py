@@ -14,6 +14,11 @@ from typing import Any, Mapping
 MAX_SEED = 2**63 - 1
 
 
+def _check_bounds(name: str, v: float, lo: float, hi: float) -> None:
+    if not lo <= v <= hi:
+        raise ValueError(f"hyper-parameter {name} = {v!r} is outside its bounds [{lo}, {hi}]")
+
+
 @dataclass(frozen=True)
 class Int:
     lo: int
@@ -22,8 +27,7 @@ class Int:
     def check(self, name: str, v: Any) -> None:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v).is_integer():
             raise ValueError(f"hyper-parameter {name} must be an integer, got {v!r}")
-        if not self.lo <= v <= self.hi:
-            raise ValueError(f"hyper-parameter {name} = {v!r} is outside its bounds [{self.lo}, {self.hi}]")
+        _check_bounds(name, v, self.lo, self.hi)
 
 
 @dataclass(frozen=True)
@@ -34,8 +38,7 @@ class Float:
     def check(self, name: str, v: Any) -> None:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise ValueError(f"hyper-parameter {name} must be a finite number, got {v!r}")
-        if not self.lo <= v <= self.hi:
-            raise ValueError(f"hyper-parameter {name} = {v!r} is outside its bounds [{self.lo}, {self.hi}]")
+        _check_bounds(name, v, self.lo, self.hi)
 
 
 @dataclass(frozen=True)
