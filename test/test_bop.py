@@ -11,6 +11,7 @@ import pytest
 
 from frames import box_mesh
 from perception_config.datasets.bop import (
+    BopAnnotationWarning,
     BopDataset,
     BopFormatError,
     BopResult,
@@ -311,3 +312,56 @@ def test_writer_gt_info_length_checked(tiny: Path) -> None:
     with pytest.raises(BopFormatError, match="symmetries_discrete"):
         write_models_info(tiny / "models", {1: {"diameter": 1.0, "symmetries_discrete": [[1, 0, 0]]}})
     assert CameraInfo(K).depth_scale is None
+
+
+# --------------------------------------------------------------------------- real annotations, RGB-only
+
+
+def _skew_first_rotation(scene: Path, err: float) -> None:
+    """Scale the first cam_R_m2c of image 2 so that |det - 1| is about 3 * err."""
+    def edit(c):
+        c["2"][0]["cam_R_m2c"] = (np.asarray(c["2"][0]["cam_R_m2c"]) * (1.0 + err)).tolist()
+    _edit_json(scene / "scene_gt.json", edit)
+
+
+def test_nearly_orthonormal_rotations_are_projected_with_one_warning(tiny: Path) -> None:
+    _skew_first_rotation(_scene(tiny), 0.01)  # |det - 1| ~ 0.03, as real annotations (LM-O: 0.014)
+    with pytest.warns(BopAnnotationWarning) as caught:
+        f = BopDataset(tiny).load_frame(1, 2)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, BopAnnotationWarning)]
+    assert len(msgs) == 1 and "000001/scene_gt.json" in msgs[0] and "image 2 object #0" in msgs[0]
+    assert "0.03" in msgs[0]  # the worst value, named
+    R = f.objects[0].gt.R
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(R, _pose(1, 0).R, atol=1e-9)  # a uniform scale projects back exactly
+
+
+def test_rotations_beyond_the_tolerance_are_refused(tiny: Path) -> None:
+    _skew_first_rotation(_scene(tiny), 0.02)  # |det - 1| ~ 0.06 > 0.05
+    with pytest.raises(BopFormatError, match=r"000001/scene_gt\.json: image 2 object #0 cam_R_m2c is not a rotation"):
+        BopDataset(tiny).load_frame(1, 2)
+
+
+def test_rgb_only_scene_and_dropping_depth(tiny: Path) -> None:
+    with_depth = BopDataset(tiny).load_frame(1, 2)
+    dropped = BopDataset(tiny, use_depth=False).load_frame(1, 2)
+    assert with_depth.has_depth and not dropped.has_depth and dropped.depth is None
+    np.testing.assert_array_equal(dropped.rgb, with_depth.rgb)
+    assert (dropped.width, dropped.height) == (W, H)
+    shutil.rmtree(_scene(tiny) / "depth")  # a BOP RGB-only scene has no depth folder
+    f = BopDataset(tiny).load_frame(1, 2)
+    assert f.depth is None and [o.obj_id for o in f.objects] == [1, 2]
+
+
+def test_missing_depth_file_in_a_depth_scene_is_an_error(tiny: Path) -> None:
+    (_scene(tiny) / "depth" / "000002.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"depth/000002\.png"):
+        BopDataset(tiny).load_frame(1, 2)
+
+
+def test_lmo_rgb_loads_without_depth(lmo_rgb_root: Path) -> None:
+    ds = BopDataset(lmo_rgb_root)
+    assert len(ds) == 20
+    f = ds.load_frame(*ds.image_keys()[0])
+    assert f.depth is None and f.rgb.shape == (480, 640, 3) and len(f.objects) == 8

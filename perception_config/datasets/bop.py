@@ -25,6 +25,7 @@ import io
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
@@ -47,11 +48,20 @@ RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 _EXTENT_KEYS = ("min_x", "min_y", "min_z", "size_x", "size_y", "size_z")
 MAX_JSON_BYTES = 256 * 1024 * 1024  # a BOP JSON file larger than this is refused before reading
 MAX_JSON_DEPTH = 32  # BOP JSON files nest 4 levels; deeper is refused before parsing
+# Real annotations are stored with a few digits: LM-O's cam_R_m2c reach |det - 1| = 0.014.
+# Up to ROTATION_TOLERANCE they are projected onto SO(3) (one warning per file beyond
+# ROTATION_SILENT, the rounding of 6-digit files); beyond it the matrix is refused.
+ROTATION_TOLERANCE = 0.05
+ROTATION_SILENT = 1e-3
 _GT_INFO_KEYS = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
 
 
 class BopFormatError(ValueError):
     """A BOP file that is missing required content or holds impossible values."""
+
+
+class BopAnnotationWarning(UserWarning):
+    """A BOP file whose values were repaired on reading (rotations projected onto SO(3))."""
 
 
 # --------------------------------------------------------------------------- small I/O helpers
@@ -108,9 +118,25 @@ def _numbers(path: Path, where: str, value: Any, n: int) -> np.ndarray:
     return a
 
 
-def _check_rotation(path: Path, where: str, R: np.ndarray, tol: float = 1e-2) -> None:
-    if np.abs(R @ R.T - np.eye(3)).max() > tol or abs(np.linalg.det(R) - 1.0) > tol:
-        raise BopFormatError(f"{path}: {where} is not a rotation matrix (row-major 3x3 expected)")
+def rotation_error(R: np.ndarray) -> float:
+    """How far a 3x3 matrix is from SO(3): max(|det R - 1|, max |R R^T - I|)."""
+    return float(max(abs(np.linalg.det(R) - 1.0), np.abs(R @ R.T - np.eye(3)).max()))
+
+
+def _check_rotation(path: Path, where: str, R: np.ndarray, tol: float = ROTATION_TOLERANCE) -> float:
+    """The rotation error of R (see `rotation_error`); BopFormatError beyond `tol`."""
+    err = rotation_error(R)
+    if not err <= tol:
+        raise BopFormatError(f"{path}: {where} is not a rotation matrix (row-major 3x3 expected; "
+                             f"|det - 1| / orthogonality error {err:.3g} > {tol})")
+    return err
+
+
+def _warn_projected(path: Path, where: str, worst: float) -> None:
+    """One warning per file: its rotations were projected onto SO(3), the worst error named."""
+    if worst > ROTATION_SILENT:
+        warnings.warn(f"{path}: rotations projected onto SO(3); worst |det - 1| / orthogonality error "
+                      f"{worst:.3g} ({where})", BopAnnotationWarning, stacklevel=3)
 
 
 def _int_keys(path: Path, content: Any) -> dict[int, Any]:
@@ -167,7 +193,7 @@ def _validate_model_info(path: Path, obj_id: int, entry: Any) -> dict[str, Any]:
         T = _numbers(path, f"{where} symmetries_discrete[{i}]", s, 16).reshape(4, 4)
         if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
             raise BopFormatError(f"{path}: {where} symmetries_discrete[{i}] last row must be 0 0 0 1")
-        _check_rotation(path, f"{where} symmetries_discrete[{i}]", T[:3, :3])
+        _check_rotation(path, f"{where} symmetries_discrete[{i}]", T[:3, :3], tol=1e-2)
         out_syms.append([float(x) for x in T.reshape(-1)])
     if "symmetries_discrete" in entry:
         out["symmetries_discrete"] = out_syms
@@ -250,6 +276,7 @@ class CameraInfo:
 def load_scene_camera(path: str | os.PathLike) -> dict[int, CameraInfo]:
     path = Path(path)
     out: dict[int, CameraInfo] = {}
+    worst, worst_at = 0.0, ""
     for im_id, e in sorted(_int_keys(path, load_json(path)).items()):
         if not isinstance(e, dict) or "cam_K" not in e:
             raise BopFormatError(f"{path}: image {im_id} has no cam_K")
@@ -263,10 +290,13 @@ def load_scene_camera(path: str | os.PathLike) -> dict[int, CameraInfo]:
         w2c = None
         if "cam_R_w2c" in e or "cam_t_w2c" in e:
             R = _numbers(path, f"image {im_id} cam_R_w2c", e.get("cam_R_w2c"), 9).reshape(3, 3)
-            _check_rotation(path, f"image {im_id} cam_R_w2c", R)
+            err = _check_rotation(path, f"image {im_id} cam_R_w2c", R)
+            if err > worst:
+                worst, worst_at = err, f"image {im_id} cam_R_w2c"
             t = _numbers(path, f"image {im_id} cam_t_w2c", e.get("cam_t_w2c"), 3) * MM
-            w2c = Pose(R, t)
+            w2c = Pose(nearest_rotation(R), t)
         out[im_id] = CameraInfo(K, scale, w2c)
+    _warn_projected(path, worst_at, worst)
     return out
 
 
@@ -279,6 +309,7 @@ def load_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, Pose]]]:
     """scene_gt.json as {im_id: [(obj_id, model-to-camera Pose in metres), ...]} in file order."""
     path = Path(path)
     out: dict[int, list[tuple[int, Pose]]] = {}
+    worst, worst_at = 0.0, ""
     for im_id, entries in sorted(_int_keys(path, load_json(path)).items()):
         if not isinstance(entries, list):
             raise BopFormatError(f"{path}: image {im_id} must map to a list of objects")
@@ -288,14 +319,17 @@ def load_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, Pose]]]:
             if not isinstance(e, dict) or not {"cam_R_m2c", "cam_t_m2c", "obj_id"} <= e.keys():
                 raise BopFormatError(f"{path}: {where} needs cam_R_m2c, cam_t_m2c and obj_id")
             R = _numbers(path, f"{where} cam_R_m2c", e["cam_R_m2c"], 9).reshape(3, 3)
-            _check_rotation(path, f"{where} cam_R_m2c", R)
+            err = _check_rotation(path, f"{where} cam_R_m2c", R)
+            if err > worst:
+                worst, worst_at = err, f"{where} cam_R_m2c"
             t = _numbers(path, f"{where} cam_t_m2c", e["cam_t_m2c"], 3) * MM
             obj_id = e["obj_id"]
             if not isinstance(obj_id, int) or isinstance(obj_id, bool):
                 raise BopFormatError(f"{path}: {where} obj_id must be an integer, got {obj_id!r}")
-            # Stored with a few digits: project onto SO(3) at the boundary (LM-O is off by 2e-3).
+            # Stored with a few digits: project onto SO(3) at the boundary (ROTATION_TOLERANCE).
             objs.append((obj_id, Pose(nearest_rotation(R), t)))
         out[im_id] = objs
+    _warn_projected(path, worst_at, worst)
     return out
 
 
@@ -479,8 +513,10 @@ class BopDataset:
         split: str = "test",
         models_subdir: str = "models",
         frame_rate: float = DEFAULT_FRAME_RATE,
+        use_depth: bool = True,
     ) -> None:
         self.root = Path(root)
+        self.use_depth = bool(use_depth)  # False: read as RGB-only even where depth exists
         self.split = split
         self.models_dir = self.root / models_subdir
         self.frame_rate = float(frame_rate)
@@ -563,6 +599,14 @@ class BopDataset:
             raise BopFormatError(f"{path}: image {im_id} has {len(infos[im_id])} entries but scene_gt.json {n}")
         return infos[im_id]
 
+    def has_depth(self, scene_id: int, im_id: int) -> bool:
+        """Whether the image has depth: the scene has a depth/ folder (BOP's RGB-only
+        datasets and splits have none) and the reader was not told to drop it. A scene with
+        a depth/ folder that lacks this image's file is an error, not an RGB-only image."""
+        if not self.use_depth:
+            return False
+        return (scene_dir(self.root, self.split, scene_id) / "depth").is_dir()
+
     def _depth_scale(self, scene_id: int, im_id: int) -> float:
         scale = self.camera(scene_id, im_id).depth_scale
         if scale is not None:
@@ -611,16 +655,19 @@ class BopDataset:
 
     # --- frames
     def load_frame(self, scene_id: int, im_id: int, with_models: bool = True) -> Frame:
-        """The frame of one image: rgb, depth (metres, NaN missing), K, and the annotated objects
-        (gt pose, visib_fract and bbox_visib when scene_gt_info exists, and the model)."""
+        """The frame of one image: rgb, depth (metres, NaN missing; None for an RGB-only dataset or
+        with use_depth=False), K, and the annotated objects (gt pose, visib_fract and bbox_visib
+        when scene_gt_info exists, and the model)."""
         cam = self.camera(scene_id, im_id)
         gts = self.gt(scene_id, im_id)
         infos = self.gt_info(scene_id, im_id)
         rgb_path = self._image_file(scene_id, im_id, "rgb")
-        depth_path = self._image_file(scene_id, im_id, "depth")
         rgb = read_rgb(rgb_path)
-        depth = read_depth(depth_path, self._depth_scale(scene_id, im_id))
-        if rgb.shape[:2] != depth.shape:
+        depth = None
+        if self.has_depth(scene_id, im_id):
+            depth_path = self._image_file(scene_id, im_id, "depth")
+            depth = read_depth(depth_path, self._depth_scale(scene_id, im_id))
+        if depth is not None and rgb.shape[:2] != depth.shape:
             raise BopFormatError(
                 f"{rgb_path} is {rgb.shape[1]}x{rgb.shape[0]} but {depth_path} is {depth.shape[1]}x{depth.shape[0]}"
             )
