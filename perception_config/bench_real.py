@@ -21,7 +21,10 @@ Scores (every registered scoring block the frames can feed): poses drawn at `auc
 `seeds` per object instance; AUC = the Mann-Whitney probability that a pose within tolerance
 scores better than one outside (ties 1/2, lower_is_better scores reversed, a failed call ranks
 below every value), counted over pairs of the same instance and summed per object id and
-overall; `auc_pooled` over all pairs of the dataset.
+overall; `auc_pooled` over all pairs of the dataset. With `refiner_costs`, a refiner that
+reports its cost at the start pose (BlockResult.info["cost_before"], e.g. d2co, chamfer) is
+called on the same poses and that cost ranked as a score too ("d2co:d2co_cost"; its ms are
+those of the whole refiner call).
 """
 from __future__ import annotations
 
@@ -165,6 +168,30 @@ def _auc(wins: float, pairs: int) -> float | None:
     return round(wins / pairs, 4) if pairs else None
 
 
+@dataclass
+class _ScoreSamples:
+    """The values of one score over the scored poses."""
+
+    block: str
+    lower_is_better: bool
+    from_refiner: bool  # a refiner's own cost at the pose, before it moves (info["cost_before"])
+    samples: list[tuple[int, int, float, bool]] = field(default_factory=list)  # key, obj_id, oriented value, within
+    ms: list[float] = field(default_factory=list)
+    fails: int = 0
+
+    def add(self, key: int, obj_id: int, value: float, within: bool, ms: float, ok: bool) -> None:
+        self.samples.append((key, obj_id, value, within))
+        self.ms.append(ms)
+        self.fails += not ok
+
+    def all_missing(self) -> bool:
+        return all(np.isnan(s[2]) for s in self.samples)
+
+    def stats(self) -> dict[str, Any]:
+        return {"block": self.block, "lower_is_better": self.lower_is_better, "refiner_cost": self.from_refiner,
+                **_score_stats(self.samples, self.ms, self.fails)}
+
+
 def _score_stats(samples: list[tuple[int, int, float, bool]], ms: list[float], fails: int) -> dict[str, Any]:
     """samples: (instance key, obj_id, oriented score (higher = better, NaN failed), within)."""
     per_inst: dict[int, list[tuple[float, bool]]] = defaultdict(list)
@@ -196,7 +223,7 @@ def bench_real(
     dataset: str | Path, pipeline: Pipeline | None = None, n_frames: int | None = None, seeds: int = 5,
     lambdas: Iterable[float] = DEFAULT_LAMBDAS, auc_lambdas: Iterable[float] = DEFAULT_AUC_LAMBDAS,
     max_calls: int = 3, min_visib: float = 0.3, seed: int = 0, blocks: Sequence[str] | None = None,
-    split: str = "test", use_depth: bool = True, progress: bool = True,
+    split: str = "test", use_depth: bool = True, refiner_costs: bool = True, progress: bool = True,
 ) -> dict[str, Any]:
     """The refiner and score benchmark on the dataset's frames; a JSON-able dict (see the module doc)."""
     from tqdm import tqdm
@@ -215,9 +242,7 @@ def bench_real(
         raise ValueError(f"{dataset}: no images in split {split!r}")
 
     refine: dict[str, list[_RefineRecord]] = {n: [] for n in refiners}
-    score_samples: dict[str, list[tuple[int, int, float, bool]]] = {}
-    score_ms: dict[str, list[float]] = {n: [] for n in scorers}
-    score_fails: Counter[str] = Counter()
+    score_samples: dict[str, _ScoreSamples] = {}
     skipped: dict[str, str] = {}
     ran: set[str] = set()
     n_instances, depth_frames, instance_key = 0, 0, 0
@@ -250,17 +275,21 @@ def bench_real(
                 rng = np.random.default_rng([seed, scene_id, im_id, oi, _SCORE, li])
                 poses += [perturb(obj.gt, lam, d, rng) for _ in range(seeds)]
             within = [pose_mssd(p, obj.gt, obj.model) / d <= TOLERANCE for p in poses]
-            for name, block in active_sc.items():
-                for p, w in zip(poses, within):
+            cost_refiners = {n: b for n, b in active_ref.items() if b.score_names} if refiner_costs else {}
+            for name, block in [*active_sc.items(), *cost_refiners.items()]:
+                is_refiner = name in refiners
+                for pi, (p, w) in enumerate(zip(poses, within)):
                     r = block(BlockInput(frame=frame, model=obj.model, pose=p, cache=cache,
+                                         rng=np.random.default_rng([seed, scene_id, im_id, oi, _SCORE, pi]),
                                          ground_truth=obj.gt if GROUND_TRUTH in block.inputs else None))
-                    score_ms[name].append(r.elapsed * 1e3)
-                    score_fails[name] += not r.ok
-                    for sn in block.score_names:
-                        v = float(r.scores.get(sn, np.nan)) if r.ok else np.nan
+                    values = ({f"{name}:{block.score_names[0]}": r.info.get("cost_before", np.nan)} if is_refiner
+                              else {sn: r.scores.get(sn, np.nan) for sn in block.score_names})
+                    for sn, v in values.items():
+                        v = float(v) if r.ok and v is not None else np.nan
                         v = v if np.isfinite(v) else np.nan
-                        score_samples.setdefault(sn, []).append(
-                            (instance_key, obj.obj_id, -v if sn in block.lower_is_better else v, w))
+                        lower = (block.score_names[0] if is_refiner else sn) in block.lower_is_better
+                        samples = score_samples.setdefault(sn, _ScoreSamples(name, lower, is_refiner))
+                        samples.add(instance_key, obj.obj_id, -v if lower else v, w, r.elapsed * 1e3, r.ok)
         bar.update(1)
     bar.close()
     if n_instances == 0:
@@ -280,13 +309,7 @@ def bench_real(
                 entry["per_object"].setdefault(str(obj_id), {})[f"{lam:g}"] = _refine_stats(
                     [r for r in at if r.obj_id == obj_id])
         refiner_out[name] = entry
-    scores_out: dict[str, Any] = {}
-    for name, block in scorers.items():
-        if name not in ran:
-            continue
-        for sn in block.score_names:
-            scores_out[sn] = {"block": name, "lower_is_better": sn in block.lower_is_better,
-                              **_score_stats(score_samples.get(sn, []), score_ms[name], score_fails[name])}
+    scores_out = {sn: x.stats() for sn, x in score_samples.items() if not (x.from_refiner and x.all_missing())}
     return {
         "dataset": str(dataset),
         "split": split,
@@ -295,7 +318,7 @@ def bench_real(
         "instances": n_instances,
         "settings": {"seeds": seeds, "lambdas": lambdas, "auc_lambdas": auc_lambdas, "max_calls": max_calls,
                      "min_visib": min_visib, "seed": seed, "tolerance_mssd_per_diameter": TOLERANCE,
-                     "use_depth": use_depth, "pipeline": pipeline.source},
+                     "use_depth": use_depth, "refiner_costs": refiner_costs, "pipeline": pipeline.source},
         "skipped": {n: why for n, why in skipped.items() if n not in ran},
         "refiners": refiner_out,
         "scores": scores_out,

@@ -92,6 +92,9 @@ def test_known_blocks_on_synthetic(synthetic_dataset):
     assert scores["mssd_higher_better"]["auc"] == 0.0 and scores["mssd_higher_better"]["auc_pooled"] == 0.0
     assert all(o["auc"] in (None, 1.0) for o in scores["minus_mssd"]["per_object"].values())
     assert 0.0 <= scores["psi_d"]["auc"] <= 1.0 and {"psi_d_m1", "psi_d_m2"} <= set(scores)
+    # d2co's own cost at the pose (before it moves), ranked like a score; the unchanged refiner reports none.
+    assert scores["d2co:d2co_cost"]["refiner_cost"] and 0.0 <= scores["d2co:d2co_cost"]["auc"] <= 1.0
+    assert not any(k.startswith("test_bench_unchanged") for k in scores)
     table = format_real(res)
     assert "**test_bench_unchanged**" in table and "minus_mssd" in table
 
@@ -117,7 +120,7 @@ def test_bad_input(synthetic_dataset):
 def test_rgb_only_frames_skip_depth_blocks(lmo_rgb_root, tmp_path, capsys):
     out = tmp_path / "res"
     code = main(["bench", "real", "--dataset", str(lmo_rgb_root), "--out", str(out), "--frames", "1", "--seeds", "1",
-                 "--blocks", "d2co,icp_coarse,depth_refine,psi_c,psi_d", "--quiet"])
+                 "--blocks", "d2co,icp_coarse,depth_refine,psi_c,psi_d", "--no-refiner-costs", "--quiet"])
     assert code == 0
     res = json.loads((out / "real.json").read_text())
     assert (out / "real.png").stat().st_size > 0
