@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -228,6 +229,7 @@ def bench_real(
     """The refiner and score benchmark on the dataset's frames; a JSON-able dict (see the module doc)."""
     from tqdm import tqdm
 
+    t_start = time.perf_counter()
     lambdas, auc_lambdas = [float(x) for x in lambdas], [float(x) for x in auc_lambdas]
     for x in (*lambdas, *auc_lambdas):
         if not np.isfinite(x) or x < 0:
@@ -322,6 +324,7 @@ def bench_real(
         "skipped": {n: why for n, why in skipped.items() if n not in ran},
         "refiners": refiner_out,
         "scores": scores_out,
+        "seconds": round(time.perf_counter() - t_start, 1),
     }
 
 
@@ -337,8 +340,9 @@ def _pct(x: float | None) -> str:
     return "–" if x is None else f"{100 * x:.0f}%"
 
 
-def format_real(result: dict[str, Any]) -> str:
-    """Markdown tables: refiners (overall line, then per object), then scores (AUC per object)."""
+def format_real(result: dict[str, Any], per_object: bool = True) -> str:
+    """Markdown tables: refiners (overall line, then per object unless `per_object` is False),
+    then scores (AUC overall, pooled and per object)."""
     lams = [f"{x:g}" for x in result["settings"]["lambdas"]]
     k = result["settings"]["max_calls"]
     head = ["refiner", "object", "n"]
@@ -349,7 +353,8 @@ def format_real(result: dict[str, Any]) -> str:
             head += [f"λ={lam} improved", f"λ={lam} within: start → 1 → {k} calls (reached)"]
     head += ["fail", "ms"]
     lines = [f"{result['dataset']}: {result['frames']} frames ({result['frames_with_depth']} with depth), "
-             f"{result['instances']} object instances, {result['settings']['seeds']} seeds", "",
+             f"{result['instances']} object instances, {result['settings']['seeds']} seeds, "
+             f"{result.get('seconds', 0):.0f} s", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def row(name: str, obj: str, stats: dict[str, dict[str, Any]]) -> str:
@@ -370,7 +375,7 @@ def format_real(result: dict[str, Any]) -> str:
 
     for name, entry in result["refiners"].items():
         lines.append(row(f"**{name}**", "all", entry["overall"]))
-        for obj, stats in entry["per_object"].items():
+        for obj, stats in entry["per_object"].items() if per_object else ():
             lines.append(row("", obj, stats))
     if result["skipped"]:
         lines += ["", "skipped: " + ", ".join(f"{n} ({why})" for n, why in result["skipped"].items())]

@@ -31,6 +31,19 @@ class Unchanged(Block):
 
 
 @register
+class AlwaysFails(Block):
+    """A refiner that answers ok=False with a reason that carries a number."""
+
+    kind = Kind.REFINEMENT
+    name = "test_bench_fails"
+    default_cost = 0.0
+    inputs = (MODEL, POSE)
+
+    def run(self, inp: BlockInput) -> BlockResult:
+        return BlockResult.fail(f"too few edge points ({inp.rng.integers(0, 9)} < 10)")
+
+
+@register
 class MinusMssd(Block):
     """A perfect score: minus the MSSD to the ground truth over the diameter (higher = better)."""
 
@@ -60,7 +73,7 @@ class Mssd(Block):
         return BlockResult(ok=True, scores={"mssd_lower_better": e, "mssd_higher_better": e})
 
 
-TEST_BLOCKS = ["test_bench_unchanged", "test_bench_minus_mssd", "test_bench_mssd"]
+TEST_BLOCKS = ["test_bench_unchanged", "test_bench_fails", "test_bench_minus_mssd", "test_bench_mssd"]
 
 
 def _shares(stats: dict) -> list[float]:
@@ -71,7 +84,7 @@ def test_known_blocks_on_synthetic(synthetic_dataset):
     res = bench_real(synthetic_dataset, n_frames=2, seeds=1, blocks=[*TEST_BLOCKS, "d2co", "psi_d"], progress=False)
     assert res["frames"] == 2 and res["frames_with_depth"] == 2 and res["instances"] > 0
     assert res["skipped"] == {}
-    assert set(res["refiners"]) == {"test_bench_unchanged", "d2co"}
+    assert set(res["refiners"]) == {"test_bench_unchanged", "test_bench_fails", "d2co"}
     for entry in res["refiners"].values():
         for stats in [*entry["overall"].values(), *(s for o in entry["per_object"].values() for s in o.values())]:
             assert all(0.0 <= x <= 1.0 for x in _shares(stats))
@@ -85,6 +98,9 @@ def test_known_blocks_on_synthetic(synthetic_dataset):
         assert s["improved"] == 0.0 and s["fail_share"] == 0.0 and s["calls"] == 3 * s["n"]
         assert s["within_before"] == s["within_1"] == s["within_3"] == s["reached_3"]
         assert s["mssd_1"] == s["mssd_before"]
+    for s in res["refiners"]["test_bench_fails"]["overall"].values():  # a failed call ends the chain
+        assert s["fail_share"] == 1.0 and s["calls"] == s["n"] and s["improved"] == 0.0
+        assert s["reasons"] == {"too few edge points (# < #)": s["n"]} and s["within_1"] == s["within_before"]
     scores = res["scores"]
     assert scores["minus_mssd"]["pairs"] > 0
     assert scores["minus_mssd"]["auc"] == 1.0 and scores["minus_mssd"]["auc_pooled"] == 1.0
