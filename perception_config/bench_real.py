@@ -354,8 +354,9 @@ def format_real(result: dict[str, Any], per_object: bool = True) -> str:
     head += ["fail", "ms"]
     lines = [f"{result['dataset']}: {result['frames']} frames ({result['frames_with_depth']} with depth), "
              f"{result['instances']} object instances, {result['settings']['seeds']} seeds, "
-             f"{result.get('seconds', 0):.0f} s", "",
-             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+             f"{result.get('seconds', 0):.0f} s"]
+    if result["refiners"]:
+        lines += ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def row(name: str, obj: str, stats: dict[str, dict[str, Any]]) -> str:
         first = stats[lams[0]]
@@ -396,36 +397,34 @@ def _f2(x: float | None) -> str:
 
 
 def plot_real(result: dict[str, Any], path: str | Path) -> Path:
-    """Per-object bars: within tolerance before / after one call / after the chain at the largest
-    lambda for every refiner, and each score's AUC per object."""
+    """Bars, overall and per object: the share within tolerance after one call from the ground
+    truth (lambda 0, when measured), and at the largest lambda at the start / after one call /
+    after the chain, for every refiner; then each score's AUC per object."""
     from .plots import _save, plt
 
-    lam = f"{max(result['settings']['lambdas']):g}"
+    lams = [f"{x:g}" for x in result["settings"]["lambdas"]]
+    lam, k = lams[lams.index(max(lams, key=float))], result["settings"]["max_calls"]
+    bars = ([("0", "within_1", "λ=0: stays (1 call)")] if "0" in lams and lam != "0" else []) + [
+        (lam, "within_before", f"λ={lam}: start"), (lam, "within_1", f"λ={lam}: 1 call"),
+        (lam, "within_3", f"λ={lam}: {k} calls")]
     refiners = list(result["refiners"].items())
     scores = list(result["scores"].items())
     fig, axes = plt.subplots(1 + len(refiners) + (1 if scores else 0), 1, squeeze=False,
                              figsize=(9, 2.4 * (1 + len(refiners) + bool(scores))))
     axes = axes[:, 0]
-    ax = axes[0]
-    names = [n for n, _ in refiners]
-    x = np.arange(len(names))
-    for i, (key, label) in enumerate((("within_before", "start"), ("within_1", "1 call"),
-                                      ("within_3", f"{result['settings']['max_calls']} calls"))):
-        ax.bar(x + (i - 1) * 0.27, [e["overall"][lam][key] for _, e in refiners], 0.27, label=label)
-    ax.set_xticks(x, names)
-    ax.set_ylabel(f"within tol. (λ={lam})")
-    ax.set_ylim(0, 1)
-    ax.legend(fontsize=7)
-    ax.set_title(f"{result['dataset']} — all objects")
-    for ax, (name, e) in zip(axes[1:], refiners):
-        objs = list(e["per_object"])
-        x = np.arange(len(objs))
-        for i, (key, label) in enumerate((("within_before", "start"), ("within_1", "1 call"),
-                                          ("within_3", f"{result['settings']['max_calls']} calls"))):
-            ax.bar(x + (i - 1) * 0.27, [e["per_object"][o][lam][key] for o in objs], 0.27, label=label)
-        ax.set_xticks(x, [f"obj {o}" for o in objs])
+    w = 0.8 / len(bars)
+    panels = [(axes[0], [n for n, _ in refiners], [e["overall"] for _, e in refiners], "all objects: within tol.")]
+    panels += [(ax, [f"obj {o}" for o in e["per_object"]], list(e["per_object"].values()), name)
+               for ax, (name, e) in zip(axes[1:], refiners)]
+    for ax, ticks, stats, ylabel in panels:
+        x = np.arange(len(ticks))
+        for i, (at, key, label) in enumerate(bars):
+            ax.bar(x + (i - (len(bars) - 1) / 2) * w, [s[at][key] for s in stats], w, label=label)
+        ax.set_xticks(x, ticks)
         ax.set_ylim(0, 1)
-        ax.set_ylabel(f"{name} (λ={lam})")
+        ax.set_ylabel(ylabel, fontsize=8)
+    axes[0].legend(fontsize=7, ncol=len(bars))
+    axes[0].set_title(f"{result['dataset']}: share within MSSD <= {TOLERANCE} d")
     if scores:
         ax = axes[-1]
         objs = sorted({o for _, s in scores for o in s["per_object"]}, key=int)

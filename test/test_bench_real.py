@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from perception_config.bench_real import bench_real, format_real, select_blocks
+from perception_config.bench_real import bench_real, format_real, save_real, select_blocks
 from perception_config.blocks.base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, register
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.cli import main
@@ -122,6 +122,13 @@ def test_reproducible_and_independent_of_the_blocks(synthetic_dataset):
     a, b = one["refiners"]["test_bench_unchanged"], two["refiners"]["test_bench_unchanged"]
     assert [v["mssd_before"] for v in a["overall"].values()] == [v["mssd_before"] for v in b["overall"].values()]
     assert a["per_object"].keys() == b["per_object"].keys()
+
+
+def test_scores_only_and_lambda_zero_only_are_written(synthetic_dataset, tmp_path):
+    for blocks, lambdas in ((["test_bench_minus_mssd"], [0.1]), (["test_bench_unchanged"], [0.0])):
+        res = bench_real(synthetic_dataset, n_frames=1, seeds=1, lambdas=lambdas, blocks=blocks, progress=False)
+        js, png = save_real(res, tmp_path / f"{blocks[0]}.json")
+        assert json.loads(js.read_text())["settings"]["lambdas"] == lambdas and png.stat().st_size > 0
 
 
 def test_bad_input(synthetic_dataset):
