@@ -234,12 +234,14 @@ def bench_real(
     for x in (*lambdas, *auc_lambdas):
         if not np.isfinite(x) or x < 0:
             raise ValueError(f"bench real: lambdas must be finite numbers >= 0, got {x}")
+    if n_frames is not None and n_frames < 1:
+        raise ValueError(f"bench real: the number of frames must be >= 1 (or None: all), got {n_frames}")
     if seeds < 1 or max_calls < 1:
         raise ValueError(f"bench real: seeds and max_calls must be >= 1, got {seeds} and {max_calls}")
     ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     pipeline = pipeline or load_pipeline()
     refiners, scorers = select_blocks(pipeline, blocks)
-    keys = ds.image_keys()[:n_frames] if n_frames else ds.image_keys()
+    keys = ds.image_keys()[:n_frames]
     if not keys:
         raise ValueError(f"{dataset}: no images in split {split!r}")
 

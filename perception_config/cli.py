@@ -102,7 +102,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
                         lambdas=[float(x) for x in args.lambdas.split(",")], max_calls=args.calls,
                         min_visib=args.min_visib, seed=args.seed, split=args.split, progress=not args.quiet,
                         blocks=args.blocks.split(",") if args.blocks else None,
-                        refiner_costs=not args.no_refiner_costs, use_depth=not args.no_depth)
+                        refiner_costs=not args.no_refiner_costs, use_depth=args.use_depth)
     paths = save_real(result, args.out)
     print(format_real(result))
     print(f"wrote {paths[0]} and {paths[1]}")
@@ -346,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--calls", type=int, default=3, help="successive calls of a refiner")
     c.add_argument("--min-visib", type=float, default=0.3, help="smallest visib_fract of an object")
     c.add_argument("--blocks", default=None, help="comma-separated action / block names (default: all)")
-    c.add_argument("--no-depth", action="store_true", help="read the frames as RGB-only (depth blocks skipped)")
+    c.add_argument("--no-depth", dest="use_depth", action="store_false",
+                   help="read the frames as RGB-only (the blocks that need depth are skipped)")
     c.add_argument("--no-refiner-costs", action="store_true", help="do not rank the refiners' own costs as scores")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--split", default="test")

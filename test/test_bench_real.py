@@ -134,6 +134,8 @@ def test_scores_only_and_lambda_zero_only_are_written(synthetic_dataset, tmp_pat
 def test_bad_input(synthetic_dataset):
     with pytest.raises(ValueError, match="unknown block.*no_such_block"):
         select_blocks(load_pipeline(), ["no_such_block"])
+    with pytest.raises(ValueError, match="number of frames"):
+        bench_real(synthetic_dataset, n_frames=0, progress=False)
     with pytest.raises(ValueError, match="lambdas"):
         bench_real(synthetic_dataset, lambdas=[-0.1], progress=False)
     with pytest.raises(ValueError, match="visib_fract"):
@@ -152,3 +154,11 @@ def test_rgb_only_frames_skip_depth_blocks(lmo_rgb_root, tmp_path, capsys):
     assert list(res["refiners"]) == ["d2co"] and list(res["scores"]) == ["psi_c"]
     assert np.isfinite(res["scores"]["psi_c"]["auc"])
     assert "skipped: icp_coarse (needs depth)" in capsys.readouterr().out
+
+
+def test_rgbd_frame_read_as_rgb_only(lmo_root, tmp_path):
+    assert main(["bench", "real", "--dataset", str(lmo_root), "--out", str(tmp_path / "r.json"), "--seeds", "1",
+                 "--lambdas", "0.1", "--blocks", "icp_coarse,psi_c", "--no-depth", "--quiet"]) == 0
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["frames_with_depth"] == 0 and res["skipped"] == {"icp_coarse": "needs depth"}
+    assert res["settings"]["use_depth"] is False and list(res["scores"]) == ["psi_c"]
