@@ -131,6 +131,14 @@ def test_scores_only_and_lambda_zero_only_are_written(synthetic_dataset, tmp_pat
         assert json.loads(js.read_text())["settings"]["lambdas"] == lambdas and png.stat().st_size > 0
 
 
+def test_mann_whitney_counts_ties_half_and_failures_lowest():
+    from perception_config.bench_real import _mann_whitney
+
+    # 1~1 tie, 1>nan, nan~nan tie, 3 beats all three: 0.5 + 1 + 0.5 + 3 of 9 pairs
+    assert _mann_whitney(np.array([1.0, np.nan, 3.0]), np.array([1.0, 2.0, np.nan])) == (5.0, 9)
+    assert _mann_whitney(np.array([1.0]), np.array([])) == (0.0, 0)
+
+
 def test_bad_input(synthetic_dataset):
     with pytest.raises(ValueError, match="unknown block.*no_such_block"):
         select_blocks(load_pipeline(), ["no_such_block"])
