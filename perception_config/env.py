@@ -22,7 +22,8 @@ that declares depth (the ICPs, depth_refine, global_registration). Every agent o
 respects the mask. A masked action taken anyway does not crash: its block answers ok=False
 "needs depth" at once, the hypothesis stays, and the step is charged like any failed action (the
 block's cost-table seconds plus the scoring pass, or the measured time). With the frame in
-the operator nodes (ROS, `Episode.frame` None) the mask is all ones and the operator answers
+the operator nodes (ROS, `Episode.frame` None) the mask follows `Episode.has_depth` (the
+configurator's `use_depth` parameter); unknown (None): all ones, and an operator answers
 "needs depth" itself. Scoring blocks that need depth are simply missing on an RGB-only frame
 (their missing flags are 1: the observation layout is the same), and cost-table mode charges
 the scoring pass of the scoring blocks that can run only.
@@ -55,7 +56,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .blocks.base import Kind
+from .blocks.base import DEPTH, Kind
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
@@ -145,10 +146,15 @@ class PerceptionConfigEnv(gym.Env):
         self._mask = np.ones(len(self.action_names), np.int8)
 
     def _frame_changed(self) -> None:
-        """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not)."""
-        frame = self.episode.frame if self.episode is not None else None
-        self._mask = np.array([0 if a.block.frame_lacks(frame) else 1 for a in self.pipeline.actions], np.int8)
-        runnable = [b for b in self.pipeline.scoring if not b.frame_lacks(frame)]
+        """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
+        `Episode.depth_known_absent`, the rule of `blocks.base.frame_lacks`)."""
+        rgb_only = self.episode is not None and self.episode.depth_known_absent
+
+        def lacks(block: Any) -> bool:
+            return rgb_only and DEPTH in block.inputs
+
+        self._mask = np.array([0 if lacks(a.block) else 1 for a in self.pipeline.actions], np.int8)
+        runnable = [b for b in self.pipeline.scoring if not lacks(b)]
         self._scoring_cost = (self._full_scoring_cost if len(runnable) == len(self.pipeline.scoring)
                               else self.settings.scoring_cost(runnable))
 
