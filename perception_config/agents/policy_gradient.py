@@ -163,7 +163,8 @@ class PolicyGradientAgent(Agent):
         if not allowed.all():  # masked actions: -inf logits, as when the actions were sampled
             allowed_t = torch.as_tensor(allowed)
             logp_all = torch.log_softmax(logits.masked_fill(~allowed_t, -torch.inf), -1)
-            plogp = torch.where(allowed_t, logp_all.exp() * logp_all, torch.zeros(()))
+            # p log p is 0 where p = 0; the -inf log p is kept out of the product (and its gradient)
+            plogp = logp_all.exp() * torch.where(allowed_t, logp_all, torch.zeros(()))
         else:
             logp_all = torch.log_softmax(logits, -1)
             plogp = logp_all.exp() * logp_all
