@@ -226,9 +226,9 @@ def train(
         if meta["agent"] != name:
             raise PolicyError(f"checkpoint {ckpt_path} is a {meta['agent']!r} run, not {name!r}")
         saved = meta.get("extra", {})
-        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline"):
+        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "use_depth"):
             now = json.loads(json.dumps(training_info[key]))
-            if saved.get(key) != now:
+            if saved.get(key, True if key == "use_depth" else None) != now:  # runs before use_depth: RGB-D
                 raise PolicyError(f"checkpoint {ckpt_path} was trained with {key}={saved.get(key)!r}, "
                                   f"this run has {now!r}: resume with the same settings")
         try:
