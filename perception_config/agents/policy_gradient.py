@@ -158,18 +158,20 @@ class PolicyGradientAgent(Agent):
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
         # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy.
-        logits = self.policy(obs)
+        # Masked actions (the trajectories' masks): -inf logits, as when the actions were sampled.
+        # Without a restricting mask the graph is the unmasked one, op for op (bitwise the same update).
         allowed = np.concatenate([t.allowed_actions(self.spec.n_actions) for t in trajs])
-        if not allowed.all():  # masked actions: -inf logits, as when the actions were sampled
-            allowed_t = torch.as_tensor(allowed)
-            logp_all = torch.log_softmax(logits.masked_fill(~allowed_t, -torch.inf), -1)
-            # p log p is 0 where p = 0; the -inf log p is kept out of the product (and its gradient)
-            plogp = logp_all.exp() * torch.where(allowed_t, logp_all, torch.zeros(()))
-        else:
-            logp_all = torch.log_softmax(logits, -1)
-            plogp = logp_all.exp() * logp_all
+        masked = not allowed.all()
+        logits = self.policy(obs)
+        if masked:
+            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+        logp_all = torch.log_softmax(logits, -1)
         logp = logp_all.gather(1, actions.view(-1, 1)).squeeze(1)
-        entropy = -plogp.sum(-1).mean()
+        if masked:  # p log p is 0 where p = 0: the -inf log p is kept out of the product and its gradient
+            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(()))
+            entropy = -(logp_all.exp() * safe).sum(-1).mean()
+        else:
+            entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
         loss = -(logp * advantages).mean() - self.entropy_coef * entropy
         self.optimizer.zero_grad()
         loss.backward()
