@@ -237,10 +237,11 @@ def plot_episode(
             if len(p) > 4000:
                 p = p[rng.choice(len(p), 4000, replace=False)]
             ax_side.scatter(p[:, 0], p[:, 2], s=7, c=colour, alpha=0.45, lw=0, label=label, rasterized=True)
-    ax_side.scatter(pts[~on_object, 0], pts[~on_object, 2], s=2, c="0.72", lw=0, label="observed: surroundings",
-                    rasterized=True, zorder=2)
-    ax_side.scatter(pts[on_object, 0], pts[on_object, 2], s=2.5, c="0.15", lw=0, label="observed: object",
-                    rasterized=True, zorder=3)
+    if frame.depth is not None:
+        ax_side.scatter(pts[~on_object, 0], pts[~on_object, 2], s=2, c="0.72", lw=0, label="observed: surroundings",
+                        rasterized=True, zorder=2)
+        ax_side.scatter(pts[on_object, 0], pts[on_object, 2], s=2.5, c="0.15", lw=0, label="observed: object",
+                        rasterized=True, zorder=3)
     ax_side.set_aspect("equal", adjustable="datalim")
     ax_side.invert_yaxis()  # camera at the top, looking down the page
     ax_side.set_xlabel("camera x [m]")
