@@ -9,6 +9,9 @@ OMP_NUM_THREADS=1 before the numeric libraries load).
   scoring blocks together ("scores_total").
 - `convergence_table`: for each refinement action and lambda, the share of episodes in which
   applying that refiner up to `max_applications` times reaches a successful simulated pick.
+
+On RGB-only frames (an RGB-only dataset, or `use_depth=False`) the blocks and refiners that
+need depth cannot run (`Block.frame_lacks`): they are left out of both (not timed, no row).
 """
 from __future__ import annotations
 
@@ -49,12 +52,13 @@ def _cases(ds: BopDataset, n_frames: int, lam: float, seed: int,
 
 def bench_blocks(
     dataset: str | Path, pipeline: Pipeline | None = None, n_frames: int = 10, lam: float = 0.2,
-    seed: int = 0, split: str = "test", progress: bool = True,
+    seed: int = 0, split: str = "test", progress: bool = True, use_depth: bool = True,
 ) -> dict[str, dict[str, float | int]]:
-    """Median / p90 milliseconds per call of every block on the dataset's frames."""
+    """Median / p90 milliseconds per call of every block that can run on the dataset's frames
+    (`use_depth=False`: read as RGB-only)."""
     from tqdm import tqdm
 
-    ds = BopDataset(Path(dataset), split=split)
+    ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     pipeline = pipeline or load_pipeline()
     blocks: dict[str, Block] = {name: cls() for name, cls in load_all().items() if name != "external_pick"}
     for action in pipeline.actions:
@@ -70,34 +74,40 @@ def bench_blocks(
             return BlockInput(frame=frame, model=obj.model, pose=at, ground_truth=obj.gt,
                               rng=np.random.default_rng(seed), cache=cache)
 
+        runnable = {name: block for name, block in blocks.items() if not block.frame_lacks(frame)}
         # Cold: the block's first call on a frame (its per-frame caches empty).
-        for name, block in blocks.items():
+        for name, block in runnable.items():
             times.setdefault(f"{name}:cold", []).append(block(inp({})).elapsed * 1e3)
         # Warm: what an episode sees after its first operator — per-frame caches filled by
         # calls at another hypothesis (the ground truth), then the perturbed one is timed.
         shared: dict[str, Any] = {}
-        for block in blocks.values():
+        for block in runnable.values():
             block(inp(shared, obj.gt))
-        for name, block in blocks.items():
+        for name, block in runnable.items():
             times[name].append(block(inp(shared)).elapsed * 1e3)
         t0 = time.perf_counter()
         render_box(obj.model, pose, frame.K, frame.width, frame.height)
         times["render"].append((time.perf_counter() - t0) * 1e3)
-        times["scores_total"].append(sum(b(inp(shared)).elapsed for b in pipeline.scoring) * 1e3)
+        times["scores_total"].append(sum(b(inp(shared)).elapsed for b in pipeline.scoring
+                                         if not b.frame_lacks(frame)) * 1e3)
     return {name: _stats(ms) for name, ms in times.items() if ms}
 
 
 def convergence_table(
     dataset: str | Path, pipeline: Pipeline | None = None, lambdas: Iterable[float] = DEFAULT_LAMBDAS,
     n_frames: int = 10, max_applications: int = 5, seed: int = 0, split: str = "test", progress: bool = True,
+    use_depth: bool = True,
 ) -> dict[str, dict[str, float]]:
-    """{refinement action: {lambda: share of episodes reaching a successful pick}}."""
+    """{refinement action: {lambda: share of episodes reaching a successful pick}}, for the
+    refiners that can run on the dataset's frames (`use_depth=False`: read as RGB-only)."""
     from tqdm import tqdm
 
-    ds = BopDataset(Path(dataset), split=split)
+    ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     pipeline = pipeline or load_pipeline()
     pick = create("simulated_pick")
-    refiners = [a for a in pipeline.actions if a.kind == Kind.REFINEMENT]
+    keys = ds.image_keys()[:n_frames]
+    first = ds.load_frame(*keys[0]) if keys else None
+    refiners = [a for a in pipeline.actions if a.kind == Kind.REFINEMENT and not a.block.frame_lacks(first)]
     lambdas = [float(x) for x in lambdas]
     table: dict[str, dict[str, float]] = {a.name: {} for a in refiners}
     table["none (pick at once)"] = {}

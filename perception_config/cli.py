@@ -6,11 +6,20 @@ import os
 import signal
 import sys
 from pathlib import Path
+from typing import Any
 
 # Light imports only (numpy): each command imports the rest it needs.
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .settings import TIME_MODES, EnvSettings
 from .stop_signals import StopRequested
+
+
+def _add_dataset_args(parser: argparse.ArgumentParser, **kw: Any) -> None:
+    """--dataset DIR and --no-depth (read the dataset as RGB-only: BopDataset(use_depth=False))."""
+    parser.add_argument("--dataset", type=Path, required=True, **kw)
+    parser.add_argument("--no-depth", dest="use_depth", action="store_false",
+                        help="read the dataset as RGB-only (its depth images ignored): the actions and blocks that "
+                             "need depth are left out")
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -23,6 +32,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         models_dir=args.models,
         progress=not args.quiet,
+        depth=args.depth,
     )
     print(f"wrote BOP dataset {args.out}")
     return 0
@@ -31,7 +41,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_bag_write(args: argparse.Namespace) -> int:
     from .datasets.bag import write_bag
 
-    n = write_bag(args.dataset, args.out, split=args.split, rate_hz=args.rate, progress=not args.quiet)
+    n = write_bag(args.dataset, args.out, split=args.split, rate_hz=args.rate, progress=not args.quiet,
+                  use_depth=args.use_depth)
     print(f"wrote {n} frames to {args.out}")
     return 0
 
@@ -53,7 +64,8 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
 def _cmd_show(args: argparse.Namespace) -> int:
     from .datasets.show import show_frame
 
-    out = show_frame(args.dataset, args.out, scene_id=args.scene, im_id=args.image, split=args.split)
+    out = show_frame(args.dataset, args.out, scene_id=args.scene, im_id=args.image, split=args.split,
+                     use_depth=args.use_depth)
     print(f"wrote {out}")
     return 0
 
@@ -71,7 +83,7 @@ def _cmd_bench_blocks(args: argparse.Namespace) -> int:
     from .datasets.bop import save_json
 
     stats = bench_blocks(args.dataset, load_pipeline(args.pipeline), n_frames=args.frames, lam=args.noise_lambda,
-                         split=args.split, progress=not args.quiet)
+                         split=args.split, progress=not args.quiet, use_depth=args.use_depth)
     save_json(args.out, stats)
     print(format_blocks(stats))
     print(f"wrote {args.out}")
@@ -86,7 +98,8 @@ def _cmd_bench_convergence(args: argparse.Namespace) -> int:
 
     lambdas = [float(x) for x in args.lambdas.split(",")]
     table = convergence_table(args.dataset, load_pipeline(args.pipeline), lambdas, n_frames=args.frames,
-                              max_applications=args.applications, split=args.split, progress=not args.quiet)
+                              max_applications=args.applications, split=args.split, progress=not args.quiet,
+                              use_depth=args.use_depth)
     save_json(args.out, table)
     print(format_convergence(table))
     print(f"wrote {args.out}")
@@ -135,7 +148,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         args.dataset, args.policy, lambdas, args.out, episodes_per_lambda=args.episodes, seed=args.seed,
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
-        time_mode=args.time_mode, max_ops=args.max_ops,
+        time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -144,7 +157,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev = sub.add_parser("evaluate", help="compare agents on the test images over noise levels (Fig. 5)")
-    ev.add_argument("--dataset", type=Path, required=True)
+    _add_dataset_args(ev)
     ev.add_argument("--out", type=Path, required=True, help="output folder (results.json, plots, BOP CSVs)")
     ev.add_argument("--policy", action="append", default=[], metavar="FILE|AGENT",
                     help="a policy file or an agent name (random, simple, ...); repeatable")
@@ -179,7 +192,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every,
+        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -193,7 +206,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                     "are stopped, and the policy, history.csv, learning curve and checkpoint of the last completed "
                     "round are written (a second signal does not abort that). Exit codes: 0 done, 2 bad input, "
                     "130 SIGINT, 143 SIGTERM, 129 SIGHUP; --resume continues the run.")
-    tr.add_argument("--dataset", type=Path, required=True)
+    _add_dataset_args(tr)
     tr.add_argument("--agent", choices=("random", "simple", "pg", "es", "fixed"), default="pg")
     tr.add_argument("--out", type=Path, required=True, help="run folder: policy, checkpoint, learning curve")
     tr.add_argument("--episodes", type=int, default=1000)
@@ -291,13 +304,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--models", type=Path, default=None,
                    help="a BOP models/ folder to place instead of the procedural parts")
+    s.add_argument("--no-depth", dest="depth", action="store_false",
+                   help="write an RGB-only dataset (no depth folders; the same images and annotations)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_synth)
 
     b = sub.add_parser("bag", help="record BOP scenes to MCAP and inspect MCAP files")
     bsub = b.add_subparsers(dest="bag_command", required=True)
     bw = bsub.add_parser("write", help="record a BOP dataset as a rosbag2-compatible MCAP file")
-    bw.add_argument("--dataset", type=Path, required=True)
+    _add_dataset_args(bw)
     bw.add_argument("--out", type=Path, required=True)
     bw.add_argument("--split", default="test")
     bw.add_argument("--rate", type=float, default=10.0, help="frames per second on the recording's clock")
@@ -308,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     bi.set_defaults(func=_cmd_bag_info)
 
     sh = sub.add_parser("show", help="write a PNG of a frame with the ground-truth models overlaid")
-    sh.add_argument("--dataset", type=Path, required=True)
+    _add_dataset_args(sh)
     sh.add_argument("--out", type=Path, required=True)
     sh.add_argument("--scene", type=int, default=None, help="scene id (default: the first)")
     sh.add_argument("--image", type=int, default=None, help="image id (default: the first)")
@@ -324,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("convergence", _cmd_bench_convergence, "share of successful picks per refiner and lambda"),
     ):
         c = besub.add_parser(name, help=helptext)
-        c.add_argument("--dataset", type=Path, required=True)
+        _add_dataset_args(c)
         c.add_argument("--out", type=Path, required=True, help="JSON output file")
         c.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
         c.add_argument("--frames", type=int, default=10, help="number of images to use")

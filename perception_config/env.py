@@ -15,6 +15,19 @@ Observation space: Box(0, 1, (n_scores + 2 * 1 + n + 4,), float32)
     pose change of the last step (translation / diameter, rotation / pi, both clipped to 1),
     1 if a pick already failed in this episode, 1 if the last action failed.
 
+Action mask: reset's and every step's info carries `info["action_mask"]`, an np.int8 array of
+n (1 = the action can run on this episode's frame, 0 = it cannot). An action cannot run when
+its block needs an input the frame lacks: on an RGB-only frame (`Frame.depth` None) every block
+that declares depth (the ICPs, depth_refine, global_registration). Every agent of the package
+respects the mask. A masked action taken anyway does not crash: its block answers ok=False
+"needs depth" at once, the hypothesis stays, and the step is charged like any failed action (the
+block's cost-table seconds plus the scoring pass, or the measured time). With the frame in
+the operator nodes (ROS, `Episode.frame` None) the mask follows `Episode.has_depth` (the
+configurator's `use_depth` parameter); unknown (None): all ones, and an operator answers
+"needs depth" itself. Scoring blocks that need depth are simply missing on an RGB-only frame
+(their missing flags are 1: the observation layout is the same), and cost-table mode charges
+the scoring pass of the scoring blocks that can run only.
+
 Reward: minus the seconds each action took (the block plus the scoring after it); a failed pick
 also costs the robot's attempt time (`failed_pick_cost`, default 2 s). A successful pick ends
 the episode (terminated); `max_ops` actions truncate it, and an episode truncated without a
@@ -43,7 +56,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .blocks.base import Kind
+from .blocks.base import DEPTH, Kind
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
@@ -69,7 +82,8 @@ class PerceptionConfigEnv(gym.Env):
     `dataset`: a BOP dataset folder or `BopDataset` (episodes from its `image_keys`), an
     `EpisodeSource`, or None when every reset brings its own `Episode` (the configurator).
     `operators`: the backend that runs the blocks (default: in-process; the configurator passes
-    the ROS one). `settings` and keyword overrides: see `EnvSettings`.
+    the ROS one). `settings` and keyword overrides: see `EnvSettings`. `use_depth=False` reads
+    a dataset folder as RGB-only (`BopDataset(use_depth=False)`: the depth actions are masked).
     """
 
     metadata = {"render_modes": []}
@@ -83,6 +97,7 @@ class PerceptionConfigEnv(gym.Env):
         split: str = "test",
         image_keys: list[tuple[int, int]] | None = None,
         operators: Operators | None = None,
+        use_depth: bool = True,
         **overrides: Any,
     ) -> None:
         super().__init__()
@@ -93,7 +108,8 @@ class PerceptionConfigEnv(gym.Env):
         elif isinstance(dataset, EpisodeSource):
             self.source = dataset
         else:
-            ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
+            ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split,
+                                                                                 use_depth=use_depth)
             self.source = EpisodeSource(ds, image_keys, min_visib_fract=self.settings.min_visib_fract)
         self.pipeline = pipeline if isinstance(pipeline, Pipeline) else load_pipeline(pipeline)
         # Cost-table mode lifts the blocks' wall-clock bounds: a bound that cuts a block short on a
@@ -101,6 +117,7 @@ class PerceptionConfigEnv(gym.Env):
         self.ops: Operators = operators if operators is not None else InProcessOperators(
             self.pipeline, time_bounded=self.settings.time_mode == "measured")
         self._scoring_cost = self.settings.scoring_cost(self.pipeline.scoring)
+        self._full_scoring_cost = self._scoring_cost
         self.score_ranges = self.pipeline.score_ranges
 
         self.action_names = self.pipeline.action_names
@@ -126,6 +143,25 @@ class PerceptionConfigEnv(gym.Env):
         self.last_failed = False
         self.episode = None
         self.episode_time = 0.0
+        self._mask = np.ones(len(self.action_names), np.int8)
+
+    def _frame_changed(self) -> None:
+        """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
+        `Episode.depth_known_absent`, the rule of `blocks.base.frame_lacks`)."""
+        rgb_only = self.episode is not None and self.episode.depth_known_absent
+
+        def lacks(block: Any) -> bool:
+            return rgb_only and DEPTH in block.inputs
+
+        self._mask = np.array([0 if lacks(a.block) else 1 for a in self.pipeline.actions], np.int8)
+        runnable = [b for b in self.pipeline.scoring if not lacks(b)]
+        self._scoring_cost = (self._full_scoring_cost if len(runnable) == len(self.pipeline.scoring)
+                              else self.settings.scoring_cost(runnable))
+
+    def action_mask(self) -> np.ndarray:
+        """1 per action that can run on the current episode's frame, 0 where its block needs an
+        input the frame lacks (depth on an RGB-only frame); a copy, np.int8 of n actions."""
+        return self._mask.copy()
 
     @property
     def max_ops(self) -> int:
@@ -164,7 +200,7 @@ class PerceptionConfigEnv(gym.Env):
             "seconds": seconds, "scores": dict(outcome.scores), "picked": outcome.result.picked,
             "episode_time": self.episode_time, "steps": self.steps,
             "episode_key": ep.key if ep else None, "noise_lambda": ep.noise_lambda if ep else None,
-            "pose": outcome.pose,
+            "pose": outcome.pose, "action_mask": self._mask.copy(),
         }
         return info
 
@@ -190,6 +226,7 @@ class PerceptionConfigEnv(gym.Env):
         else:
             ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31)))
             self.episode = self.source.load(int(index), lam, ep_seed)
+        self._frame_changed()
         outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
         seconds = self.action_seconds(outcome, self.pipeline.generator)

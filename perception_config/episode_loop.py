@@ -4,7 +4,8 @@ Training, evaluation, the ROS configurator and replay-check all play episodes th
 `play_episode`, so they count operations, time, first picks and success the same way. The
 agent's acting randomness is reseeded per episode (`act_seed`; `acting_seed(episode_seed)`
 where an episode seed exists), so one agent's run of an episode does not depend on what ran
-before it, in-process or through ROS.
+before it, in-process or through ROS. The agent sees the env's `info` (with its
+`info["action_mask"]`) at every decision; the masks are kept in the trajectory for learners.
 """
 from __future__ import annotations
 
@@ -42,10 +43,21 @@ class Trajectory:
     cost: float = 0.0  # minus the return: time plus the truncation penalty
     initial_info: dict[str, Any] = field(default_factory=dict)  # reset's info (the initial hypothesis)
     final_info: dict[str, Any] = field(default_factory=dict)  # the last step's info (final pose, scores)
+    # info["action_mask"] before each action (T, n) int8 (1 = could run); None when the env gave none
+    masks: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
         return int(len(self.actions))
+
+    def allowed_actions(self, n_actions: int) -> np.ndarray:
+        """(T, n_actions) bool: the actions that could run before each step (all without masks).
+        Where no action could run, nothing is masked (as `agents.base.allowed_actions`)."""
+        if self.masks is None or len(self.masks) != self.steps:
+            return np.ones((self.steps, n_actions), bool)
+        m = np.asarray(self.masks).reshape(self.steps, n_actions) != 0
+        m[~m.any(axis=1)] = True
+        return m
 
     @property
     def ret(self) -> float:
@@ -91,6 +103,7 @@ def play_episode(
     oks: list[bool] = []
     op_seconds: list[float] = []
     block_seconds: list[float] = []
+    mask_l: list[np.ndarray] = []
     first_pick: bool | None = None
     cost = 0.0
     terminated = truncated = stopped = False
@@ -100,6 +113,8 @@ def play_episode(
             break
         a = int(agent.act(obs, info))
         obs_l.append(obs)
+        if "action_mask" in info:
+            mask_l.append(np.asarray(info["action_mask"], np.int8))
         obs, reward, terminated, truncated, info = env.step(a)
         agent.observe(reward, obs, terminated, truncated, info)
         cost -= reward
@@ -133,4 +148,5 @@ def play_episode(
         cost=float(cost),
         initial_info=initial_info,
         final_info=info,
+        masks=np.asarray(mask_l, np.int8).reshape(len(mask_l), -1) if mask_l and len(mask_l) == len(act_l) else None,
     )

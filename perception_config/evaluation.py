@@ -257,6 +257,9 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
         "confidence": _confidence(info["scores"], env.pipeline),
         "initial_pose": _pose_json(initial), "final_pose": _pose_json(final),
     }
+    masked = [n for n, m in zip(env.action_names, traj.initial_info.get("action_mask", ())) if not m]
+    if masked:  # actions that could not run on this frame (depth actions on RGB-only data)
+        rec["masked_actions"] = masked
     search = getattr(agent, "last_result", None)  # the oracle's search of this episode
     if search is not None and hasattr(search, "exact"):
         rec["search"] = {"found": bool(search.found), "exact": bool(search.exact),
@@ -373,6 +376,7 @@ def evaluate(
     fixed: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES,
     plots: bool = True,
     n_example_episodes: int = 2,
+    use_depth: bool = True,
     **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
@@ -384,7 +388,9 @@ def evaluate(
     pipeline and max_ops must agree with explicit values; other settings given here, e.g.
     time_mode="cost_table", win and are reported), else 0, 0.3, the shipped pipeline and
     `EnvSettings()`. `env_overrides`: EnvSettings fields. `fixed`: the engineer sequences
-    evaluated as baselines (those naming actions the pipeline lacks are skipped).
+    evaluated as baselines (those naming actions the pipeline lacks are skipped; on RGB-only
+    frames they skip the actions that cannot run). `use_depth=False` reads a dataset folder as
+    RGB-only; every agent then chooses among the actions that can run (`info["action_mask"]`).
     """
     lams = _check_lambdas(lambdas)
     out = Path(out)
@@ -392,7 +398,7 @@ def evaluate(
                                **env_overrides)
     for note in settings.notes:
         print(f"note: {note}", file=sys.stderr)
-    ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split)
+    ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split, use_depth=use_depth)
     train_keys, test_keys = split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)
     pipe = settings.pipeline if isinstance(settings.pipeline, Pipeline) else load_pipeline(settings.pipeline)
     env_settings = settings.env.replace(lambda_range=(0.0, LAMBDA_MAX))  # every lambda is set per episode
@@ -430,7 +436,8 @@ def evaluate(
     atomic_write(out / "episodes.jsonl", "".join(json.dumps(e, allow_nan=False) + "\n" for e in per_episode))
     es = env.settings
     meta = {
-        "dataset": str(ds.root), "split": split, "split_seed": settings.split_seed,
+        "dataset": str(ds.root), "split": split, "use_depth": bool(getattr(ds, "use_depth", True)),
+        "split_seed": settings.split_seed,
         "test_fraction": settings.test_fraction, "test_images": [list(k) for k in test_keys],
         "n_train_images": len(train_keys), "episodes_per_lambda": len(plan), "seed": seed, "lambdas": lams,
         "time_mode": es.time_mode, "max_ops": es.max_ops, "failed_pick_cost": es.failed_pick_cost,

@@ -224,7 +224,7 @@ def vsd(
     t_est: np.ndarray,
     R_gt: np.ndarray,
     t_gt: np.ndarray,
-    depth_test: np.ndarray,
+    depth_test: np.ndarray | None,
     K: np.ndarray,
     delta: float,
     taus: Sequence[float],
@@ -245,6 +245,8 @@ def vsd(
     """
     if cost_type not in ("step", "tlinear"):
         raise ValueError(f"unknown VSD pixel matching cost {cost_type!r} (step | tlinear)")
+    if depth_test is None:
+        raise ValueError("VSD needs depth: the test frame is RGB-only (no depth image)")
     depth_test = np.asarray(depth_test)
     H, W = depth_test.shape
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
@@ -333,7 +335,8 @@ def pose_errors(
 ) -> dict[str, Any]:
     """All BOP errors of a hypothesis: add, adi, mssd, re, te (metres / radians) and, with K,
     mspd (px); with K and a depth image (metres, NaN missing) also `vsd`, an array with one
-    error per tau of `vsd_taus` (BOP defaults: delta 15 mm, taus 0.05..0.5 x diameter).
+    error per tau of `vsd_taus` (BOP defaults: delta 15 mm, taus 0.05..0.5 x diameter). VSD
+    needs depth: for an RGB-only frame (depth None) "vsd" is absent.
 
     ADD/ADI use the model's area-uniform surface samples (BOP uses the uniformly resampled
     models_eval vertices), MSSD the convex hull (exact), MSPD the mesh vertices."""

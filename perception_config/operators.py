@@ -27,7 +27,8 @@ class Episode:
     """One (frame, object) episode. `ground_truth` is None in a robot cell.
 
     In-process the frame is here; through ROS the images stay in the operator nodes, `frame` is
-    None and `stamp_ns` names the camera frame (0 = the latest).
+    None and `stamp_ns` names the camera frame (0 = the latest). `has_depth`: whether the
+    camera gives depth when the frame is not here (None = unknown; the frame's own wins).
     """
 
     frame: Frame | None
@@ -37,6 +38,13 @@ class Episode:
     seed: int
     key: tuple[int, int, int] = (0, 0, 0)  # scene_id, im_id, obj_id
     stamp_ns: int = 0
+    has_depth: bool | None = None
+
+    @property
+    def depth_known_absent(self) -> bool:
+        """True when the episode's camera is RGB-only (its frame has no depth, or, without the
+        frame here, `has_depth` is False): the blocks that need depth cannot run."""
+        return (self.frame.depth is None) if self.frame is not None else self.has_depth is False
 
 
 def draw_seed(rng: np.random.Generator) -> int:

@@ -194,7 +194,7 @@ def plot_episode(
     """Fig. 2 style: initial (red) and final (green) hypotheses on the image crop, ground truth
     blue; and a side view (camera x vs depth z) of the observed points around the object (dark
     grey on the object's ground-truth silhouette, light grey around it) with the model's
-    camera-visible surface at the initial and final poses."""
+    camera-visible surface at the initial and final poses (an RGB-only frame: the models only)."""
     W, H, K = frame.width, frame.height, frame.K
     ref = gt or final or initial
     if ref is None:
@@ -218,11 +218,14 @@ def plot_episode(
     cx, cy, half = box
     x0, y0 = max(0, cx - half), max(0, cy - half)
     rows, cols = slice(y0, min(H, cy + half)), slice(x0, min(W, cx + half))
-    win = frame.depth[rows, cols]
-    pts = depth_to_points(win, K, (x0, y0))
-    on_object = object_mask[rows, cols][np.isfinite(win) & (win > 0)]  # depth_to_points' pixel order
-    near = np.linalg.norm(pts - ref.transform(model.points).mean(0), axis=1) < 0.9 * model.diameter
-    pts, on_object = pts[near], on_object[near]
+    if frame.depth is not None:
+        win = frame.depth[rows, cols]
+        pts = depth_to_points(win, K, (x0, y0))
+        on_object = object_mask[rows, cols][np.isfinite(win) & (win > 0)]  # depth_to_points' pixel order
+        near = np.linalg.norm(pts - ref.transform(model.points).mean(0), axis=1) < 0.9 * model.diameter
+        pts, on_object = pts[near], on_object[near]
+    else:  # an RGB-only frame: no observed points, the models only
+        pts, on_object = np.zeros((0, 3)), np.zeros(0, bool)
     rng = np.random.default_rng(0)
     if len(pts) > 8000:
         keep = rng.choice(len(pts), 8000, replace=False)
@@ -234,17 +237,19 @@ def plot_episode(
             if len(p) > 4000:
                 p = p[rng.choice(len(p), 4000, replace=False)]
             ax_side.scatter(p[:, 0], p[:, 2], s=7, c=colour, alpha=0.45, lw=0, label=label, rasterized=True)
-    ax_side.scatter(pts[~on_object, 0], pts[~on_object, 2], s=2, c="0.72", lw=0, label="observed: surroundings",
-                    rasterized=True, zorder=2)
-    ax_side.scatter(pts[on_object, 0], pts[on_object, 2], s=2.5, c="0.15", lw=0, label="observed: object",
-                    rasterized=True, zorder=3)
+    if frame.depth is not None:
+        ax_side.scatter(pts[~on_object, 0], pts[~on_object, 2], s=2, c="0.72", lw=0, label="observed: surroundings",
+                        rasterized=True, zorder=2)
+        ax_side.scatter(pts[on_object, 0], pts[on_object, 2], s=2.5, c="0.15", lw=0, label="observed: object",
+                        rasterized=True, zorder=3)
     ax_side.set_aspect("equal", adjustable="datalim")
     ax_side.invert_yaxis()  # camera at the top, looking down the page
     ax_side.set_xlabel("camera x [m]")
     ax_side.set_ylabel("depth z [m] (camera above)")
     ax_side.grid(True, alpha=0.3)
     ax_side.legend(loc="lower right", fontsize=8, markerscale=4, framealpha=0.8)
-    ax_side.set_title("side view: observed point cloud and model", fontsize=10)
+    ax_side.set_title("side view: observed point cloud and model" if frame.depth is not None
+                      else "side view: model (RGB-only frame: no observed depth)", fontsize=10)
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)
 

@@ -167,6 +167,7 @@ def train(
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    use_depth: bool = True,
 ) -> Path:
     """Train `agent` ("pg", "es", "simple"; "random"/"fixed" just play) on the train split of
     a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
@@ -180,6 +181,8 @@ def train(
     ignored); the dataset, split, pipeline and env settings must be the same (lambda_range may
     change); without it an existing run in `out` is an error unless `overwrite`. A stop signal
     writes everything of the last completed round and raises StopRequested (module docstring).
+    `use_depth=False` reads the dataset as RGB-only (its depth ignored; an RGB-only dataset is
+    RGB-only anyway): the actions that need depth are masked.
     """
     settings = settings or EnvSettings()
     if episodes < 1:
@@ -200,10 +203,10 @@ def train(
         raise FileNotFoundError(f"cannot resume: no checkpoint {ckpt_path}")
 
     # The split: train on the train image ids only.
-    ds = BopDataset(Path(dataset), split=split)
+    ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     train_keys, test_keys = split_image_keys(ds.image_keys(), test_fraction, split_seed)
     recipe = EnvRecipe(str(Path(dataset).resolve()), str(Path(pipeline).resolve()) if pipeline else None,
-                       tuple(train_keys), split, settings)
+                       tuple(train_keys), split, settings, use_depth=bool(use_depth))
     env = recipe.make()
     spec = EnvSpec.from_env(env)
     training_info = {
@@ -211,7 +214,7 @@ def train(
         "test_fraction": float(test_fraction),
         "train_image_keys": [list(k) for k in train_keys], "test_image_keys": [list(k) for k in test_keys],
         "train_episodes_available": len(env.source), "env_settings": settings.to_json(), "pipeline": recipe.pipeline,
-        "seed": int(seed),
+        "seed": int(seed), "use_depth": bool(use_depth),
     }
 
     history: dict[str, list[float]] = {k: [] for k in HISTORY_FIELDS}
@@ -223,9 +226,9 @@ def train(
         if meta["agent"] != name:
             raise PolicyError(f"checkpoint {ckpt_path} is a {meta['agent']!r} run, not {name!r}")
         saved = meta.get("extra", {})
-        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline"):
+        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "use_depth"):
             now = json.loads(json.dumps(training_info[key]))
-            if saved.get(key) != now:
+            if saved.get(key, True if key == "use_depth" else None) != now:  # runs before use_depth: RGB-D
                 raise PolicyError(f"checkpoint {ckpt_path} was trained with {key}={saved.get(key)!r}, "
                                   f"this run has {now!r}: resume with the same settings")
         try:

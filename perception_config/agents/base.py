@@ -80,12 +80,14 @@ class EnvRecipe:
     image_keys: tuple[tuple[int, int], ...] | None = None
     split: str = "test"
     settings: EnvSettings = field(default_factory=EnvSettings)
+    use_depth: bool = True  # False: the dataset read as RGB-only (BopDataset(use_depth=False))
 
     def make(self) -> Any:
         from ..env import PerceptionConfigEnv  # gymnasium and the blocks: only where an env is built
 
         keys = [tuple(k) for k in self.image_keys] if self.image_keys is not None else None
-        return PerceptionConfigEnv(Path(self.dataset), self.pipeline, self.settings, split=self.split, image_keys=keys)
+        return PerceptionConfigEnv(Path(self.dataset), self.pipeline, self.settings, split=self.split, image_keys=keys,
+                                   use_depth=self.use_depth)
 
 
 class Agent:
@@ -121,6 +123,10 @@ class Agent:
             self.rng = np.random.default_rng(seed)
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
+        """The next action. `info` is the env's (reset's or the last step's): its
+        `info["action_mask"]` (1 = the action can run) is the mask every agent respects; read it
+        with `allowed_actions(info)`. An agent that ignores it still works (a masked action
+        answers ok=False "needs depth")."""
         raise NotImplementedError
 
     def observe(self, reward: float, obs: np.ndarray, terminated: bool, truncated: bool, info: dict[str, Any]) -> None:
@@ -166,6 +172,22 @@ class Agent:
 
     def load_checkpoint(self, tensors: dict[str, np.ndarray], state: dict[str, Any]) -> None:
         """Restore what `checkpoint` returned (the policy itself is restored before)."""
+
+
+def allowed_actions(info: Any, n_actions: int) -> np.ndarray | None:
+    """The actions that can run, as a bool array of `n_actions`, from the env's
+    `info["action_mask"]`; None when there is no mask, when every action can run, or when none
+    can (then nothing is masked): an agent acts exactly as without a mask, with the same random
+    draws, whenever the mask does not restrict it."""
+    mask = info.get("action_mask") if isinstance(info, dict) else None
+    if mask is None:
+        return None
+    m = np.asarray(mask).reshape(-1) != 0
+    if m.shape != (n_actions,):
+        raise ValueError(f"info['action_mask'] has {m.size} entries, the agent has {n_actions} actions")
+    if m.all() or not m.any():
+        return None
+    return m
 
 
 def returns_to_go(rewards: np.ndarray, gamma: float = 1.0) -> np.ndarray:

@@ -1,7 +1,8 @@
 """The evolutionary agent: a population of three-layer networks, the best two breed.
 
 Network (numpy only): logits = W3 tanh(W2 tanh(W1 s + b1) + b2) + b3; the action is the
-argmax (a deterministic policy: the evolution, not the policy, explores).
+argmax (a deterministic policy: the evolution, not the policy, explores) over the actions that
+can run (`info["action_mask"]`).
 
 One generation (the trainer runs it, see perception_config.training):
 1. every one of the `population` individuals plays the same `episodes_per_generation`
@@ -22,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec
+from .base import Agent, EnvSpec, allowed_actions
 from .hparams import SEED, Float, Int, IntList
 
 Weights = list[np.ndarray]  # [W1, b1, W2, b2, W3, b3]
@@ -96,7 +97,11 @@ class EvolutionaryAgent(Agent):
         self.last_fitness: list[float] = []
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        return int(np.argmax(forward(self.weights, obs)))
+        logits = forward(self.weights, obs)
+        allowed = allowed_actions(info, self.spec.n_actions)
+        if allowed is not None:
+            logits = np.where(allowed, logits, -np.inf)
+        return int(np.argmax(logits))
 
     # -- evolution ------------------------------------------------------------------------
     @property

@@ -6,6 +6,11 @@ goes on (its pick failed, or it contains no pick), `after` decides:
   the whole sequence; restart=1 with [icp_coarse, icp_fine, pick] loops "icp_fine, pick");
 - "pick": keep picking (the sequence's last pick action, else the env's first pick action).
 The names are checked against the environment's action set when the agent is built.
+
+Actions that cannot run on the episode's frame (`info["action_mask"]`: e.g. the ICPs and
+depth_refine on an RGB-only frame) are skipped: the sequence is played without them
+([icp_coarse, icp_fine, pick] is [pick] on RGB-only data; `restart` indexes the full sequence
+and the loop is sequence[restart:] without them). A sequence left empty picks.
 """
 from __future__ import annotations
 
@@ -13,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .base import Agent, EnvSpec
+from .base import Agent, EnvSpec, allowed_actions
 from .hparams import SEED, Choice, Int, StrList
 
 DEFAULT_SEQUENCE = ("icp_coarse", "icp_fine", "pick")
@@ -61,12 +66,17 @@ class FixedAgent(Agent):
         # Steps count from the env when it tells us (robust if begin_episode was not called).
         t = int(info.get("steps", self._t)) if isinstance(info, dict) else self._t
         self._t = t + 1
-        n = len(self._ids)
+        ids, loop = self._ids, self._ids[self.restart:]
+        allowed = allowed_actions(info, self.spec.n_actions)
+        if allowed is not None:  # skip the actions that cannot run on this frame
+            ids, loop = [i for i in ids if allowed[i]], [i for i in loop if allowed[i]]
+            if not ids:
+                return self._pick
+        n = len(ids)
         if t < n:
-            return self._ids[t]
-        if self.after == "pick":
+            return ids[t]
+        if self.after == "pick" or not loop:
             return self._pick
-        loop = self._ids[self.restart:]
         return loop[(t - n) % len(loop)]
 
     def hparams(self) -> dict[str, Any]:

@@ -17,6 +17,8 @@ Search: uniform-cost (Dijkstra) over action sequences, costs = the env's own acc
   expanded; as nodes come off the queue cheapest first, the search ends when the next one
   does, and `best` is then optimal;
 - memo: a (pose, rng state) reached before at no higher cost and no deeper is pruned;
+- actions that cannot run on the episode's frame (`env.action_mask()`: depth blocks on an
+  RGB-only frame) are never tried;
 - depth is bounded by the env's remaining max_ops, work by `node_budget` operator calls.
 `exact` says the search finished within the budget: then no cheaper sequence exists (with
 cost-table time, exactly; with measured time, for the times measured during the search).
@@ -69,7 +71,9 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
         raise RuntimeError("oracle_search needs an episode: call env.reset() first")
     ops = env.ops
     names = env.action_names
-    pick_ids = [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick"]
+    runnable = [bool(m) for m in env.action_mask()] if hasattr(env, "action_mask") else [True] * len(names)
+    pick_ids = [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick" and runnable[i]]
+    pick_ids = pick_ids or [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick"]
     max_depth = env.max_ops - env.steps
     diameter = float(env.episode.model.diameter)
     cost_table = env.settings.time_mode == "cost_table"
@@ -95,6 +99,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
             if depth >= max_depth:
                 continue
             for a in range(len(names)):
+                if not runnable[a]:
+                    continue  # its block needs an input the frame lacks
                 if evaluations >= node_budget:
                     exhausted = True
                     break
@@ -132,7 +138,7 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
     finally:
         ops.restore(root)
     found = best < math.inf
-    non_pick = [a for a in range(len(names)) if a not in pick_ids] or pick_ids
+    non_pick = [a for a in range(len(names)) if a not in pick_ids and runnable[a]] or pick_ids
     cheapest = min(non_pick, key=lambda a: action_cost[a])
     return OracleResult([names[a] for a in best_path], best, found, not exhausted, evaluations, list(best_times),
                         cheapest)

@@ -13,6 +13,10 @@ One update per batch of `batch_episodes` complete episodes (sampled with the cur
     loss  = -mean_t[ log pi(a_t | s_t) A_t ] - entropy_coef * mean_t[ H(pi(. | s_t)) ]
     Adam step on the policy; Adam step on the value network's MSE (value baseline).
 Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
+Action mask (`info["action_mask"]`): the logits of the actions that cannot run are -inf, when
+acting and in the update's log pi and entropy (the masks of every step are in the trajectory),
+so pi is the distribution the actions were sampled from. Without a restricting mask nothing
+changes (same draws, same update).
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ import torch
 from torch import nn
 
 from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec, returns_to_go
+from .base import Agent, EnvSpec, allowed_actions, returns_to_go
 from .hparams import SEED, Choice, Float, Int
 
 MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare
@@ -103,13 +107,16 @@ class PolicyGradientAgent(Agent):
         self.updates = 0
 
     # -- acting ---------------------------------------------------------------------------
-    def probabilities(self, obs: np.ndarray) -> np.ndarray:
+    def probabilities(self, obs: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray:
+        """pi(. | obs); with `allowed` (bool per action) the others have probability 0."""
         with torch.no_grad():
             logits = self.policy(torch.as_tensor(np.asarray(obs, np.float32)))
+            if allowed is not None:
+                logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
             return torch.softmax(logits, -1).double().numpy()
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        p = self.probabilities(obs)
+        p = self.probabilities(obs, allowed_actions(info, self.spec.n_actions))
         if self.explore:
             return int(self.rng.choice(len(p), p=p / p.sum()))
         return int(np.argmax(p))
@@ -151,9 +158,20 @@ class PolicyGradientAgent(Agent):
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
         # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy.
-        logp_all = torch.log_softmax(self.policy(obs), -1)
+        # Masked actions (the trajectories' masks): -inf logits, as when the actions were sampled.
+        # Without a restricting mask the graph is the unmasked one, op for op (bitwise the same update).
+        allowed = np.concatenate([t.allowed_actions(self.spec.n_actions) for t in trajs])
+        masked = not allowed.all()
+        logits = self.policy(obs)
+        if masked:
+            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+        logp_all = torch.log_softmax(logits, -1)
         logp = logp_all.gather(1, actions.view(-1, 1)).squeeze(1)
-        entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+        if masked:  # p log p is 0 where p = 0: the -inf log p is kept out of the product and its gradient
+            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(()))
+            entropy = -(logp_all.exp() * safe).sum(-1).mean()
+        else:
+            entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
         loss = -(logp * advantages).mean() - self.entropy_coef * entropy
         self.optimizer.zero_grad()
         loss.backward()

@@ -1,11 +1,12 @@
-"""The random agent: every action uniformly at random, every step (the paper's baseline)."""
+"""The random agent: every action uniformly at random, every step (the paper's baseline).
+Uniform over the actions that can run (`info["action_mask"]`) when the mask restricts them."""
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
 
-from .base import Agent
+from .base import Agent, allowed_actions
 
 
 class RandomAgent(Agent):
@@ -14,4 +15,7 @@ class RandomAgent(Agent):
     kind = "random"
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        return int(self.rng.integers(self.spec.n_actions))
+        allowed = allowed_actions(info, self.spec.n_actions)
+        if allowed is None:
+            return int(self.rng.integers(self.spec.n_actions))
+        return int(self.rng.choice(np.flatnonzero(allowed)))

@@ -13,6 +13,8 @@ Acting: with probability xi a uniformly random action; otherwise the action with
 highest Q among those tried at this key; a key never seen before gets a random action.
 xi decays per training episode: xi = max(xi_min, xi_start * xi_decay ** episodes).
 A loaded agent is greedy (explore=False: xi = 0, still random at unseen keys).
+Only actions that can run (`info["action_mask"]`) are chosen: random among them, greedy among
+those tried (random among them when none was tried).
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec, returns_to_go
+from .base import Agent, EnvSpec, allowed_actions, returns_to_go
 from .hparams import SEED, Float, Int
 
 Key = tuple[int, ...]
@@ -70,13 +72,17 @@ class SimpleAgent(Agent):
             self._history = []  # a new episode even if begin_episode was not called
         k = self.key(self._history, obs)
         xi = self.xi if self.explore else 0.0
-        if k in self.n and self.rng.random() >= xi:
-            tried = self.n[k] > 0
+        allowed = allowed_actions(info, self.spec.n_actions)
+        if k in self.n and self.rng.random() >= xi \
+                and (allowed is None or (allowed & (self.n[k] > 0)).any()):
+            tried = self.n[k] > 0 if allowed is None else (self.n[k] > 0) & allowed
             q = np.where(tried, self.q[k], -np.inf)
             best = np.flatnonzero(q == q.max())
             a = int(self.rng.choice(best))
-        else:
+        elif allowed is None:
             a = int(self.rng.integers(self.spec.n_actions))
+        else:
+            a = int(self.rng.choice(np.flatnonzero(allowed)))
         self._history.append(a)
         return a
 

@@ -7,6 +7,8 @@ returns (`score_names`, `score_ranges`, `lower_is_better`). Calling a block retu
 `BlockResult` (pose and/or scores, `ok`, a reason when not ok, elapsed seconds). A block never
 raises on bad data: `Block.__call__` validates the inputs, times the call and turns any
 exception into `ok=False` with a reason, so an agent (or a ROS service) can always go on.
+A block that declares DEPTH answers ok=False "needs depth" at once, without work, on an RGB-only
+frame (`Frame.depth` None): `frame_lacks` says which blocks cannot run on a frame.
 """
 from __future__ import annotations
 
@@ -33,6 +35,18 @@ class Kind(str, Enum):
 
 # Inputs a block may declare.
 RGB, DEPTH, MODEL, POSE, GROUND_TRUTH = "rgb", "depth", "model", "pose", "ground_truth"
+# The reason a block that declares DEPTH gives, at once, on an RGB-only frame (Frame.depth None);
+# the environment masks such actions (PerceptionConfigEnv.action_mask).
+NEEDS_DEPTH = "needs depth"
+
+
+def frame_lacks(inputs: tuple[str, ...], frame: Frame | None) -> str:
+    """Why blocks with these `inputs` cannot run on `frame` at all, or '' when they can: a block
+    that declares DEPTH on an RGB-only frame (depth None) "needs depth". A missing frame (None:
+    through ROS the images stay in the operator nodes) is not judged here ('')."""
+    if DEPTH in inputs and frame is not None and frame.depth is None:
+        return f"{NEEDS_DEPTH}: the frame is RGB-only (no depth image)"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -158,6 +172,9 @@ class Block(ABC):
         """A reason the inputs are unusable for this block, or '' when they are fine."""
         if (RGB in self.inputs or DEPTH in self.inputs) and inp.frame is None:
             return "this block needs the camera frame, which is not there"
+        lacks = frame_lacks(self.inputs, inp.frame)
+        if lacks:
+            return f"{self.name} {lacks}"
         if DEPTH in self.inputs and not np.any(np.isfinite(inp.frame.depth)):
             return "the depth image has no valid pixel"
         if POSE in self.inputs:
@@ -168,6 +185,10 @@ class Block(ABC):
         if GROUND_TRUTH in self.inputs and inp.ground_truth is None:
             return "this block needs the ground-truth pose, which the frame does not have"
         return ""
+
+    def frame_lacks(self, frame: Frame | None) -> str:
+        """Why this block cannot run on `frame` at all ('needs depth' on an RGB-only frame), or ''."""
+        return frame_lacks(self.inputs, frame)
 
     def deadline(self, inp: BlockInput, start: float) -> float:
         """The perf_counter() time after which the call starts no new step: `start` plus the

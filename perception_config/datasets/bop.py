@@ -786,8 +786,23 @@ class SceneWriter:
             old = rgb_path.with_suffix(ext)
             if ext != self.rgb_ext and old.exists():
                 old.unlink()
+        depth_path = self.dir / "depth" / f"{im_id:06d}.png"
+        if frame.depth is None:  # an RGB-only frame: the scene must be RGB-only (no depth folder)
+            with_depth = [p.name for p in depth_path.parent.glob("*.png") if p != depth_path] \
+                if depth_path.parent.is_dir() else []
+            if with_depth:
+                raise ValueError(f"{self.dir}: image {im_id} has no depth but the scene's images {with_depth[:3]} "
+                                 "have: a scene is RGB-D or RGB-only, all or none")
+        elif others and not depth_path.parent.is_dir():
+            raise ValueError(f"{self.dir}: image {im_id} has depth but the scene's other images have none "
+                             "(no depth folder): a scene is RGB-D or RGB-only, all or none")
         write_rgb(rgb_path, frame.rgb, self.jpg_quality)
-        write_depth(self.dir / "depth" / f"{im_id:06d}.png", frame.depth, scale)
+        if frame.depth is None:
+            depth_path.unlink(missing_ok=True)
+            if depth_path.parent.is_dir() and not any(depth_path.parent.iterdir()):
+                depth_path.parent.rmdir()
+        else:
+            write_depth(depth_path, frame.depth, scale)
         self.cameras[im_id] = CameraInfo(frame.K.copy(), scale, world_to_cam)
         self.gts[im_id] = objs  # type: ignore[assignment]
         if infos is not None:
@@ -834,8 +849,10 @@ def compute_gt_info(frame: Frame, delta: float = 0.015) -> list[dict[str, Any]]:
     """scene_gt_info entries of a frame's objects with a gt pose and a model, as bop_toolkit's
     calc_gt_info (visib_mode bop19): each object rendered alone; a pixel is visible where the
     frame's distance is missing or not more than `delta` metres in front of the model.
-    bbox_obj may extend outside the image (rendered into a 3x larger virtual image)."""
-    from ..render import render_box
+    bbox_obj may extend outside the image (rendered into a 3x larger virtual image). An
+    RGB-only frame (depth None) is compared with the depth of all its objects rendered together
+    (occlusion among the annotated objects; clutter that is not annotated is not seen)."""
+    from ..render import render, render_box
 
     H, W = frame.height, frame.width
     K = frame.K
@@ -845,7 +862,12 @@ def compute_gt_info(frame: Frame, delta: float = 0.015) -> list[dict[str, Any]]:
     vv, uu = np.mgrid[0:H, 0:W]
     Kinv = np.linalg.inv(K)
     ray_norm = np.linalg.norm(np.stack([uu, vv, np.ones_like(uu)], -1) @ Kinv.T, axis=2)
-    dist_test = np.nan_to_num(frame.depth, nan=0.0) * ray_norm
+    depth = frame.depth
+    if depth is None:
+        shown = [o for o in frame.objects if o.gt is not None and o.model is not None]
+        depth = (render([o.model for o in shown], [o.gt for o in shown], K, W, H).depth if shown
+                 else np.full((H, W), np.nan, np.float32))
+    dist_test = np.nan_to_num(depth, nan=0.0) * ray_norm
     out = []
     for o in frame.objects:
         if o.gt is None:

@@ -52,15 +52,18 @@ def show_frame(
     scene_id: int | None = None,
     im_id: int | None = None,
     split: str = "test",
+    use_depth: bool = True,
 ) -> Path:
     """Write a PNG (2W x H) of a frame of a BOP dataset with its ground-truth models overlaid
-    (left) and its depth image (right). Defaults: the first scene and its first image."""
+    (left) and its depth image (right). Defaults: the first scene and its first image. An
+    RGB-only frame (or `use_depth=False`) shows on the right the ground truth's rendered depth,
+    labelled as such, and overlays the full silhouettes on the left."""
     import cv2
 
     from ..render import render
     from .bop import BopDataset
 
-    ds = BopDataset(dataset, split)
+    ds = BopDataset(dataset, split, use_depth=use_depth)
     scenes = ds.scene_ids()
     if not scenes:
         raise FileNotFoundError(f"no scenes in {ds.split_dir}")
@@ -90,7 +93,8 @@ def show_frame(
         mask, rdepth = r.mask, r.depth
     else:
         mask, rdepth = np.full((H, W), -1, np.int16), np.full((H, W), np.nan, np.float32)
-    measured = frame.depth
+    rgb_only = frame.depth is None
+    measured = rdepth if rgb_only else frame.depth  # RGB-only: the rendered ground truth instead
     agree = (mask >= 0) & (~np.isfinite(measured) | (np.nan_to_num(measured, nan=0.0) >= rdepth - 0.02))
 
     left = frame.rgb.astype(np.float32).copy()
@@ -108,7 +112,7 @@ def show_frame(
         right = cv2.cvtColor(cv2.applyColorMap(d8, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
     else:
         lo, hi = 0.0, 0.0
-    right[~valid] = MISSING_RGB
+    right[~valid] = (0, 0, 0) if rgb_only else MISSING_RGB
 
     # contours of the full silhouettes (each object rendered with the others: its visible-
     # among-objects outline) and labels
@@ -137,7 +141,10 @@ def show_frame(
 
     # header text and colour bar
     _text(left, f"{Path(dataset).name} {split} scene {scene_id} image {im_id}: {len(objs)} objects", (6, 16))
-    _text(right, f"depth {lo:.3f}-{hi:.3f} m, magenta = missing ({100 * (~valid).mean():.1f}%)", (6, 16))
+    if rgb_only:
+        _text(right, f"no depth image: ground truth rendered, {lo:.3f}-{hi:.3f} m", (6, 16))
+    else:
+        _text(right, f"depth {lo:.3f}-{hi:.3f} m, magenta = missing ({100 * (~valid).mean():.1f}%)", (6, 16))
     bar_w, bar_h = min(200, W - 20), 10
     x0, y0 = W - bar_w - 10, H - bar_h - 10
     ramp = np.tile(np.linspace(0, 255, bar_w).astype(np.uint8), (bar_h, 1))

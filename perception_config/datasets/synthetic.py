@@ -581,8 +581,12 @@ def generate(
     progress: bool = True,
     width: int = 640,
     height: int = 480,
+    depth: bool = True,
 ) -> Path:
     """Write a synthetic BOP dataset to `out` (split "test"); returns `out`.
+
+    `depth=False` writes an RGB-only dataset (no depth folders): the same scenes, images and
+    annotations as with depth (the same random draws), without the depth images.
 
     `models_dir`: a BOP models folder whose models are placed instead of the procedural
     parts (copied into out/models). An existing `out` is replaced only when it is an empty
@@ -629,9 +633,10 @@ def generate(
                     for im_id in range(images_per_scene):
                         rng = np.random.default_rng([seed, scene_id, im_id, 1])
                         w2c = _sample_camera(rng, scene, K, width, height)
-                        rgb, depth, poses, infos = _render_image(rng, scene, w2c, K, width, height, rays, noise)
+                        rgb, dimg, poses, infos = _render_image(rng, scene, w2c, K, width, height, rays, noise)
                         objects = [SceneObject(o.obj_id, gt=p) for o, p in zip(scene.objects, poses)]
-                        frame = Frame(rgb=rgb, depth=depth, K=K, scene_id=scene_id, im_id=im_id, objects=objects)
+                        frame = Frame(rgb=rgb, depth=dimg if depth else None, K=K, scene_id=scene_id, im_id=im_id,
+                                      objects=objects)
                         writer.add(frame, gt_info=infos, world_to_cam=w2c)
                         targets += [{"im_id": im_id, "inst_count": 1, "obj_id": o.obj_id, "scene_id": scene_id}
                                     for o, inf in zip(scene.objects, infos) if inf["visib_fract"] >= 0.1]
@@ -644,7 +649,7 @@ def generate(
             "generator": GENERATOR_NAME, "seed": int(seed), "scenes": int(scenes),
             "images_per_scene": int(images_per_scene), "width": int(width), "height": int(height),
             "models": "procedural parts" if models_dir is None else "copied from a BOP models folder",
-            "depth_scale": DEPTH_SCALE, "split": "test",
+            "depth_scale": DEPTH_SCALE, "split": "test", "depth": bool(depth),
         })
         (tmp / ".incomplete").unlink()
         if out.exists():

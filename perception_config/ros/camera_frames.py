@@ -9,6 +9,10 @@ image_transport's camera publishers do), else from the latest camera_info (a sta
 Frames are converted once, on arrival, and kept in a bounded `StampCache`, so a service request
 names its frame by stamp and large images cross the middleware once, not at every operator call.
 
+An RGB-only camera (`use_depth=False`; the operator nodes' parameter `use_depth`): no depth
+subscription, a frame is the colour image + camera_info alone (Frame.depth None); the blocks
+that need depth then answer "needs depth". The RGB-D path is unchanged.
+
 A frame that cannot be used (unsupported encoding, a step or data size that contradicts the
 image size, colour and depth of different sizes, a camera_info of another size or with a
 degenerate K) is cached as the error, so the request that names it gets a message saying what
@@ -71,19 +75,22 @@ def stamp_text(stamp_ns: int) -> str:
 
 
 def assemble_frame(color: Any, depth: Any, info: Any) -> Frame:
-    """Colour + depth + camera_info messages -> Frame; ValueError naming what is wrong."""
+    """Colour + depth + camera_info messages -> Frame; ValueError naming what is wrong. `depth`
+    None: an RGB-only frame (Frame.depth None)."""
     try:
         rgb = image_msg_to_rgb(color)
     except ValueError as exc:
         raise ValueError(f"colour image: {exc}") from None
-    try:
-        depth_m = image_msg_to_depth(depth)
-    except ValueError as exc:
-        raise ValueError(f"depth image: {exc}") from None
-    if rgb.shape[:2] != depth_m.shape:
-        raise ValueError(f"colour {rgb.shape[1]}x{rgb.shape[0]} and depth {depth_m.shape[1]}x{depth_m.shape[0]} "
-                         "differ in size (depth must be registered to colour)")
-    h, w = depth_m.shape
+    depth_m = None
+    if depth is not None:
+        try:
+            depth_m = image_msg_to_depth(depth)
+        except ValueError as exc:
+            raise ValueError(f"depth image: {exc}") from None
+        if rgb.shape[:2] != depth_m.shape:
+            raise ValueError(f"colour {rgb.shape[1]}x{rgb.shape[0]} and depth {depth_m.shape[1]}x{depth_m.shape[0]} "
+                             "differ in size (depth must be registered to colour)")
+    h, w = rgb.shape[:2]
     if (info.width, info.height) != (0, 0) and (info.width, info.height) != (w, h):
         raise ValueError(f"camera_info is {info.width}x{info.height} but the images are {w}x{h}")
     K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
@@ -97,7 +104,7 @@ class CameraFrames:
     from one executor thread while service callbacks read it from another)."""
 
     def __init__(self, node: Node, capacity: int, qos: str = "reliable", sync_tolerance: float = 0.0,
-                 callback_group: Any = None, on_arrival: Any = None) -> None:
+                 callback_group: Any = None, on_arrival: Any = None, use_depth: bool = True) -> None:
         if not (math.isfinite(sync_tolerance) and sync_tolerance >= 0):
             raise ValueError(f"sync_tolerance must be >= 0 seconds, got {sync_tolerance}")
         self.frames: StampCache[CameraFrame | FrameError] = StampCache(capacity)
@@ -108,11 +115,15 @@ class CameraFrames:
         self._info_stamped_with_images = False
         self._logger = node.get_logger()
         self._on_arrival = on_arrival
+        self.use_depth = bool(use_depth)
+        # the image roles a frame is made of: an RGB-only camera has no depth to wait for
+        self._roles = ("color", "depth") if self.use_depth else ("color",)
         profile = camera_qos(qos)
         node.create_subscription(Image, "camera/color/image_raw", lambda m: self._add("color", m), profile,
                                  callback_group=callback_group)
-        node.create_subscription(Image, "camera/depth/image_raw", lambda m: self._add("depth", m), profile,
-                                 callback_group=callback_group)
+        if self.use_depth:
+            node.create_subscription(Image, "camera/depth/image_raw", lambda m: self._add("depth", m), profile,
+                                     callback_group=callback_group)
         node.create_subscription(CameraInfo, "camera/camera_info", self._on_info, profile,
                                  callback_group=callback_group)
 
@@ -135,7 +146,7 @@ class CameraFrames:
                 self._info_stamped_with_images = True
             while len(self._infos) > MAX_PENDING:
                 self._infos.popitem(last=False)
-            ready = [s for s, parts in self._pending.items() if "color" in parts and "depth" in parts]
+            ready = [s for s, parts in self._pending.items() if all(r in parts for r in self._roles)]
         for stamp in ready:  # images that were waiting for a first camera_info
             self._try(stamp)
 
@@ -159,7 +170,7 @@ class CameraFrames:
     def _try(self, stamp: int) -> None:
         with self._lock:
             parts = self._pending.get(stamp)
-            if parts is None or "color" not in parts or "depth" not in parts:
+            if parts is None or not all(r in parts for r in self._roles):
                 return
             info = self._infos.get(stamp)
             if info is None and not self._info_stamped_with_images and self._infos:
@@ -172,7 +183,7 @@ class CameraFrames:
         color = parts["color"]
         try:
             item: CameraFrame | FrameError = CameraFrame(stamp, color.header.frame_id,
-                                                         assemble_frame(color, parts["depth"], info))
+                                                         assemble_frame(color, parts.get("depth"), info))
             item.frame.stamp = stamp * 1e-9
         except ValueError as exc:
             item = FrameError(stamp, str(exc))

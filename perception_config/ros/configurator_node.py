@@ -31,6 +31,9 @@ Parameters:
                     (true: one round trip per action); false: every scoring is a call to
                     scoring_node (ros_operators.py)
   auto, auto_objects, auto_every_frame, camera_qos   see above
+  use_depth         true (default): the camera gives depth; false: an RGB-only camera (the
+                    operator nodes' use_depth false): the actions that need depth are masked
+                    (info["action_mask"]), the agent never chooses them
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 
 Deadline: an estimate that reaches `estimate_timeout` between two operators answers
@@ -98,6 +101,8 @@ class ConfiguratorNode(Node):
         self.declare_parameter("auto_objects", [""])
         self.declare_parameter("auto_every_frame", False)
         self.declare_parameter("camera_qos", "reliable")
+        self.declare_parameter("use_depth", True)
+        self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
             "fused_scoring", "auto", "auto_objects", "camera_qos", "max_ops_cap", "estimate_timeout",
@@ -201,7 +206,7 @@ class ConfiguratorNode(Node):
         model = self.models.model(object_id)
         seed = int(seed) if seed else int(self._rng.integers(1, 2**31))
         episode = Episode(frame=None, model=model, ground_truth=None, noise_lambda=lam, seed=seed,
-                          key=(0, 0, model.obj_id), stamp_ns=stamp_ns)
+                          key=(0, 0, model.obj_id), stamp_ns=stamp_ns, has_depth=self.use_depth)
         limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
         limit = min(limit, self.max_ops_cap)
         deadline = time.monotonic() + self.estimate_timeout

@@ -51,7 +51,8 @@ def stamp_to_nanoseconds(stamp: Time) -> int:
 
 
 def frame_to_msgs(frame: "Frame", stamp_ns: int, frame_id: str = "camera_color_optical_frame"):
-    """A Frame as the (colour rgb8, depth 16UC1 mm, CameraInfo) messages a camera driver publishes."""
+    """A Frame as the (colour rgb8, depth 16UC1 mm, CameraInfo) messages a camera driver publishes;
+    depth None for an RGB-only frame."""
     from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
     from ..datasets.bag import camera_info_fields, depth_to_image_fields, rgb_to_image_fields
@@ -62,7 +63,7 @@ def frame_to_msgs(frame: "Frame", stamp_ns: int, frame_id: str = "camera_color_o
         return msg
 
     color = header(Image(**rgb_to_image_fields(frame.rgb)))
-    depth = header(Image(**depth_to_image_fields(frame.depth)))
+    depth = header(Image(**depth_to_image_fields(frame.depth))) if frame.depth is not None else None
     fields = camera_info_fields(frame.K, frame.width, frame.height)
     fields["roi"] = RegionOfInterest(**fields["roi"])
     info = header(CameraInfo(**fields))

@@ -7,6 +7,9 @@ Every operator node declares these parameters (and its own):
   frame_timeout  seconds a request waits for a frame that has not arrived yet (1.0)
   camera_qos     reliable | sensor_data (best effort), for the camera subscriptions
   sync_tolerance seconds between colour and depth stamps still paired (0 = equal stamps)
+  use_depth      true (default): frames are colour + depth + camera_info; false: an RGB-only
+                 camera, frames of colour + camera_info alone (no depth subscription), and a
+                 block that needs depth answers success=false "... needs depth"
 
 A request names its frame by stamp (a hypothesis' header.stamp; zero = the latest frame). The
 blocks run in the service callback; their per-frame precomputations are kept per cached frame.
@@ -75,6 +78,7 @@ class OperatorNode(Node):
         self.declare_parameter("frame_timeout", 1.0)
         self.declare_parameter("camera_qos", "reliable")
         self.declare_parameter("sync_tolerance", 0.0)
+        self.declare_parameter("use_depth", True)
         self.declare_parameter("request_queue", 10)
 
         self.pipeline = load_pipeline(self.param("pipeline") or None)
@@ -98,7 +102,7 @@ class OperatorNode(Node):
         self._deadline_timer.cancel()
         topics = MutuallyExclusiveCallbackGroup()
         self.camera = CameraFrames(self, cache_size, self.param("camera_qos"), float(self.param("sync_tolerance")),
-                                   topics, on_arrival=self._arrived)
+                                   topics, on_arrival=self._arrived, use_depth=bool(self.param("use_depth")))
         self.ground_truth: StampCache[dict[str, Any]] | None = None
         if ground_truth:
             self.ground_truth = StampCache(cache_size)

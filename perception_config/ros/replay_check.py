@@ -116,6 +116,7 @@ def replay_check(
     bag = out / "replay.mcap"
     for stale in (bag, out / "metadata.yaml"):
         stale.unlink(missing_ok=True)
+    rgb_only = ds.load_frame(*keys[0], with_models=False).depth is None  # an RGB-only dataset: no depth topic
     frames = (ds.load_frame(s, i, with_models=False) for s, i in keys)
     write_frames(frames, bag, RECORD_RATE_HZ, progress=not quiet, total=len(keys))
     stamps = {key: RECORDING_EPOCH_NS + round(i * 1e9 / RECORD_RATE_HZ) for i, key in enumerate(keys)}
@@ -132,12 +133,16 @@ def replay_check(
     common: dict[str, Any] = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": max(30, len(keys) + 5)}
     if settings.pipeline:
         common["pipeline"] = str(Path(settings.pipeline).resolve())
+    if rgb_only:  # the operators assemble colour + camera_info frames; the configurator masks depth actions
+        common["use_depth"] = False
     specs = [NodeSpec(name, params=dict(common))
              for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""),
                                                         "noise_lambda": float(noise_lambda),
                                                         "max_ops": settings.env.max_ops}))
-    wait_for = [f"{t}:4" for t in ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")]
+    cameras = ("camera/color/image_raw", "camera/camera_info") if rgb_only else \
+        ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
+    wait_for = [f"{t}:4" for t in cameras]
     specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
                                                      "wait_for": wait_for + ["perception/ground_truth:2"]}))
     log_dir = out / "logs"

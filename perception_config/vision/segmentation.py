@@ -120,8 +120,11 @@ def segment_scene(
     "fine" additionally opens the mask with a 3x3 square (breaks thin bridges between touching
     objects: needed on the cluttered LM-O frame), "coarse" does not (keeps thin rims of small
     parts in one piece: needed for the synthetic bushings and flanges). Regions smaller than
-    `min_pixels` are dropped; a coarse region identical to a fine one is kept once."""
+    `min_pixels` are dropped; a coarse region identical to a fine one is kept once. An RGB-only
+    frame (depth None) has no valid pixel: no plane, no region."""
     depth, K = frame.depth, frame.K
+    if depth is None:  # an RGB-only frame: no depth to segment, no region (as an all-missing depth)
+        depth = np.full((frame.height, frame.width), np.nan, np.float32)
     P = organised_points(depth, K)
     valid = np.isfinite(P[..., 2])
     n_valid = int(valid.sum())

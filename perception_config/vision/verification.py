@@ -121,8 +121,9 @@ def verify(
     the two segmentation levels) scales the score by (1 - explain_weight * (1 - explained)):
     it marks down a part hypothesised onto a face or corner of a larger object (an L-bracket
     on a box corner), which depth agreement alone accepts.
-    -inf when nothing is rendered. `rendering`: render_box of the model at `pose`, if at hand."""
-    if not pose.is_valid():
+    -inf when nothing is rendered or the frame is RGB-only (depth None). `rendering`: render_box
+    of the model at `pose`, if at hand."""
+    if not pose.is_valid() or frame.depth is None:  # an RGB-only frame: nothing to verify against
         return -math.inf, {}
     r = rendering if rendering is not None else render_box(model, pose, frame.K, frame.width, frame.height)
     m = r.mask >= 0

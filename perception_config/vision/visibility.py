@@ -146,10 +146,12 @@ def visible_edges(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | No
 
 def scene_xyz(frame: Frame, box: Box | None = None) -> np.ndarray:
     """(h, w, 3) float32 camera-frame points of the pixels of `box` (x, y, w, h; None = the
-    whole image), NaN where depth is missing. Back-projecting only the box is ~0.2 ms for an
-    object crop (the full frame is ~1.7 ms), so it is not cached."""
+    whole image), NaN where depth is missing (everywhere on an RGB-only frame). Back-projecting
+    only the box is ~0.2 ms for an object crop (the full frame is ~1.7 ms), so it is not cached."""
     x, y, w, h = box if box is not None else (0, 0, frame.width, frame.height)
     K = frame.K
+    if frame.depth is None:  # an RGB-only frame: no observed point
+        return np.full((max(0, h), max(0, w), 3), np.nan, np.float32)
     z = frame.depth[y:y + h, x:x + w]
     z = np.where(z > 0, z, np.nan).astype(np.float32)  # NaN stays NaN
     v = ((np.arange(y, y + h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1]))[:, None]

@@ -1,6 +1,6 @@
 """rosbag2 MCAP bags read back as Frames: `read_bag`.
 
-`read_bag` reads our bags and rosbag2 MCAP recordings of real RGB-D cameras: topics default to
+`read_bag` reads our bags and rosbag2 MCAP recordings of real RGB-D (or RGB-only) cameras: topics default to
 ours, and when those are absent the colour, depth and camera_info topics are found by message
 type and name (e.g. RealSense `/camera/camera/color/image_raw`,
 `/camera/camera/aligned_depth_to_color/image_raw`, `/camera/camera/color/camera_info`).
@@ -44,7 +44,8 @@ class _Assembler:
         self.path = path
         self.topics = topics
         self.tol = tolerance_ns
-        self.required = self.REQUIRED + (("gt",) if require_gt else ())
+        required = self.REQUIRED if topics.depth is not None else ("info",)  # RGB-only: no depth to wait for
+        self.required = required + (("gt",) if require_gt else ())
         self.max_pending = max_pending
         self.buf: dict[str, dict[int, Any]] = {r: {} for r in ("color", "depth", "info", "gt", "finfo")}
         self.max_seen: dict[str, int] = {}
@@ -136,12 +137,14 @@ class _Assembler:
             rgb = image_msg_to_rgb(color_msg)
         except ImageFormatError as exc:
             raise self._err(t.color, stamp, str(exc)) from None
-        try:
-            depth = image_msg_to_depth(parts["depth"])
-        except ImageFormatError as exc:
-            raise self._err(t.depth, stamp, str(exc)) from None
+        depth = None
+        if t.depth is not None:
+            try:
+                depth = image_msg_to_depth(parts["depth"])
+            except ImageFormatError as exc:
+                raise self._err(t.depth, stamp, str(exc)) from None
         h, w = rgb.shape[:2]
-        if depth.shape != (h, w):
+        if depth is not None and depth.shape != (h, w):
             raise self._err(t.depth, stamp, f"depth image is {depth.shape[1]}x{depth.shape[0]} but colour image "
                             f"{t.color} is {w}x{h}: depth must be registered to colour (e.g. RealSense "
                             "aligned_depth_to_color)")
@@ -214,7 +217,8 @@ def read_bag(
     partner are dropped (one BagWarning at the end says how many). `require_ground_truth`:
     None = required when the bag has a ground-truth topic. Topics: see `resolve_topics`.
 
-    Frame.stamp is the header stamp in seconds; depth is float32 metres with NaN = missing.
+    Frame.stamp is the header stamp in seconds; depth is float32 metres with NaN = missing. A
+    recording without a depth topic (or `depth_topic=""`) gives RGB-only frames (depth None).
     Raises BagFormatError (a ValueError) on images or camera_info that contradict themselves.
     A truncated/damaged file: the complete frames before the damage, then a
     BagTruncatedWarning; with strict=True, BagTruncatedError before any frame.
@@ -242,7 +246,9 @@ def read_bag(
     require_gt = (topics.ground_truth is not None) if require_ground_truth is None else bool(require_ground_truth)
     if require_gt and topics.ground_truth is None:
         raise BagFormatError(f"{path}: ground truth required but the bag has no ObjectPoses topic")
-    roles = {topics.color: "color", topics.depth: "depth", topics.camera_info: "info"}
+    roles = {topics.color: "color", topics.camera_info: "info"}
+    if topics.depth is not None:
+        roles[topics.depth] = "depth"
     if topics.ground_truth:
         roles[topics.ground_truth] = "gt"
     if topics.frame_info:

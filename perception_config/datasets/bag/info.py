@@ -64,7 +64,7 @@ def bag_info(path: str | os.PathLike) -> dict:
     }
     try:
         ft = resolve_topics(types, path)
-        info["frames"] = min(counts.get(ft.color, 0), counts.get(ft.depth, 0), counts.get(ft.camera_info, 0))
+        info["frames"] = min(counts.get(t, 0) for t in (ft.color, ft.depth, ft.camera_info) if t is not None)
         info["frame_topics"] = {k: v for k, v in ft.__dict__.items() if v}
     except BagFormatError as exc:
         info["frame_topics"] = f"not an RGB-D bag ({exc})"

@@ -23,7 +23,7 @@ FRAME_INFO_TOPIC = "/perception/frame_info"
 @dataclass(frozen=True)
 class FrameTopics:
     color: str
-    depth: str
+    depth: str | None  # None: an RGB-only recording (frames with depth None)
     camera_info: str
     ground_truth: str | None = None
     frame_info: str | None = None
@@ -51,7 +51,8 @@ def resolve_topics(
     (/camera/color/image_raw ...) when present, else by type and name: colour = an Image topic
     named like color/rgb (not depth/infra), depth = an Image topic named like depth, preferring
     the one registered to colour (aligned_depth_to_color, depth_registered), camera_info = the
-    CameraInfo beside the colour topic.
+    CameraInfo beside the colour topic. `depth_topic=""` reads the bag as RGB-only (depth None),
+    as does a bag without any depth-like Image topic; two or more candidates are an error.
     """
 
     def check(topic: str, want: str, what: str) -> str:
@@ -89,7 +90,10 @@ def resolve_topics(
             raise fail("colour image", best or cands, "color_topic")
         color = best[0]
     # Depth
-    if depth_topic is not None:
+    depth: str | None
+    if depth_topic == "":
+        depth = None  # RGB-only, on request
+    elif depth_topic is not None:
         depth = check(depth_topic, IMAGE, "depth")
     elif types.get(DEPTH_TOPIC) == IMAGE and color == COLOR_TOPIC:
         depth = DEPTH_TOPIC
@@ -98,9 +102,12 @@ def resolve_topics(
         best = _pick(cands, lambda t: (any(k in low[t] for k in ("aligned", "registered", "to_color")),
                                        low[t].endswith("image_raw") or low[t].endswith("image_rect_raw"),
                                        "compressed" not in low[t]))
-        if len(best) != 1:
+        if not cands:
+            depth = None  # no depth image at all: an RGB-only recording
+        elif len(best) != 1:
             raise fail("depth image", best or cands, "depth_topic")
-        depth = best[0]
+        else:
+            depth = best[0]
     # Camera info
     if camera_info_topic is not None:
         info = check(camera_info_topic, CAMERA_INFO, "camera_info")

@@ -19,6 +19,8 @@ topic                          type                                           co
                                                                               frame back to its BOP image
 =============================  =============================================  ==========================
 
+* RGB-only frames (`Frame.depth` None): the bag has no depth topic at all (a recording is
+  RGB-D or RGB-only, all frames alike; `read_bag` reads it back with depth None).
 * Ground truth: position = t, orientation = the quaternion of the rotation nearest to R (BOP
   stores R with a few digits, orthonormal only to ~1e-4; a quaternion can carry only a rotation).
 * Frame ids: every header says `camera_color_optical_frame`. BOP depth is registered to the
@@ -50,6 +52,7 @@ A rosbag2 bag is a directory holding `<name>_0.mcap` and `metadata.yaml`.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -153,7 +156,9 @@ class BagWriter:
     Use as a context manager; `write(frame)` stamps frame i at `start_time_ns + i / rate_hz`
     (the Frame's own stamp is ignored: a recording has its own clock). `close()` finishes the
     file (summary, footer) and writes metadata.yaml; call it also after errors (the context
-    manager does), the bag is then valid with the frames written so far.
+    manager does), the bag is then valid with the frames written so far. `depth=False` records
+    RGB-only frames (depth None): no depth topic; every frame must then lack depth (and with
+    depth=True have it).
     """
 
     def __init__(
@@ -165,6 +170,7 @@ class BagWriter:
         compression: str = "zstd",
         depth_encoding: str = "16UC1",
         custom_data: dict[str, str] | None = None,
+        depth: bool = True,
     ) -> None:
         from mcap.writer import CompressionType
         from mcap.writer import Writer as McapWriter
@@ -181,6 +187,7 @@ class BagWriter:
         self.rate_hz = float(rate_hz)
         self.start_time_ns = int(start_time_ns)
         self.depth_encoding = depth_encoding
+        self.depth = bool(depth)
         self.custom_data = {str(k): str(v) for k, v in (custom_data or {}).items()}
         self.path, self.metadata_path = _resolve_output(out_path)
         self.frames = 0
@@ -199,6 +206,8 @@ class BagWriter:
                 (FRAME_INFO_TOPIC, STRING), (CAMERA_INFO_TOPIC, CAMERA_INFO), (GROUND_TRUTH_TOPIC, OBJECT_POSES),
                 (DEPTH_TOPIC, IMAGE), (COLOR_TOPIC, IMAGE),
             ]
+            if not self.depth:  # an RGB-only recording: no depth topic at all
+                self._topics.remove((DEPTH_TOPIC, IMAGE))
             self._channels: dict[str, int] = {}
             self._encoders: dict[str, Callable[[Any], bytes]] = {}
             schema_ids: dict[str, int] = {}
@@ -214,7 +223,8 @@ class BagWriter:
             self._writer.add_metadata("perception_config", {
                 "rate_hz": repr(self.rate_hz), "start_time_ns": str(self.start_time_ns),
                 "depth_encoding": depth_encoding, "frame_id": OPTICAL_FRAME,
-                "frame_info_topic": FRAME_INFO_TOPIC, **self.custom_data,
+                "frame_info_topic": FRAME_INFO_TOPIC, **({} if self.depth else {"depth": "none"}),
+                **self.custom_data,
             })
             self._writer.flush()
         except BaseException:
@@ -238,18 +248,25 @@ class BagWriter:
                           "orientation": {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])}})
         info = {"stamp_ns": stamp_ns, "scene_id": int(frame.scene_id), "im_id": int(frame.im_id), "index": self.frames}
         enc = self._encoders
-        return [
+        msgs = [
             (FRAME_INFO_TOPIC, enc[STRING]({"data": json.dumps(info)})),
             (CAMERA_INFO_TOPIC, enc[CAMERA_INFO]({"header": header, **camera_info_fields(frame.K, w, h)})),
             (GROUND_TRUTH_TOPIC, enc[OBJECT_POSES]({"header": header, "object_ids": ids, "poses": poses})),
-            (DEPTH_TOPIC, enc[IMAGE]({"header": header, **depth_to_image_fields(frame.depth, self.depth_encoding)})),
-            (COLOR_TOPIC, enc[IMAGE]({"header": header, **rgb_to_image_fields(frame.rgb)})),
         ]
+        if self.depth:
+            msgs.append((DEPTH_TOPIC, enc[IMAGE]({"header": header,
+                                                  **depth_to_image_fields(frame.depth, self.depth_encoding)})))
+        msgs.append((COLOR_TOPIC, enc[IMAGE]({"header": header, **rgb_to_image_fields(frame.rgb)})))
+        return msgs
 
     def write(self, frame: Frame) -> int:
         """Append one frame (all its messages, one chunk, flushed); returns its stamp in ns."""
         if self._closed:
             raise ValueError(f"{self.path}: the bag writer is closed")
+        if (frame.depth is not None) != self.depth:
+            raise ValueError(f"{self.path}: frame {self.frames} (scene {frame.scene_id} image {frame.im_id}) "
+                             f"{'has' if frame.depth is not None else 'lacks'} depth but the recording is "
+                             f"{'RGB-D' if self.depth else 'RGB-only'}: all frames alike")
         stamp = self.stamp_ns(self.frames)
         msgs = self._messages(frame, stamp)  # serialise everything first: no half-written frames
         for topic, data in msgs:
@@ -320,8 +337,15 @@ def write_frames(
 
     Ctrl-C or SIGTERM stop the recording after the current frame; the bag is finished cleanly
     and `BagWriteInterrupted` (a KeyboardInterrupt carrying `.frames` and `.path`) is raised.
+    Without a `depth` option the first frame decides: RGB-only frames make an RGB-only bag.
     """
     from tqdm import tqdm
+
+    if "depth" not in writer_options:
+        it = iter(frames)
+        first = next(it, None)
+        writer_options["depth"] = first is None or first.depth is not None
+        frames = itertools.chain([first], it) if first is not None else it
 
     with _DeferSignals() as sig:
         writer = BagWriter(out_path, rate_hz, **writer_options)
@@ -350,6 +374,7 @@ def write_bag(
     *,
     compression: str = "zstd",
     depth_encoding: str = "16UC1",
+    use_depth: bool = True,
 ) -> int:
     """Record every image of a BOP dataset split as a rosbag2-compatible MCAP bag.
 
@@ -360,11 +385,12 @@ def write_bag(
     mapping each stamp to its BOP (scene_id, im_id). `out_path`: a bag directory (created, with
     `<name>_0.mcap` and metadata.yaml) or a `.mcap` file path (metadata.yaml beside it only when
     it is the only bag in that directory). Ctrl-C / SIGTERM finish the file cleanly, then raise
-    `BagWriteInterrupted`.
+    `BagWriteInterrupted`. An RGB-only dataset (or `use_depth=False`) gives a bag without the
+    depth topic.
     """
     from ..bop import BopDataset
 
-    ds = BopDataset(dataset_dir, split=split)
+    ds = BopDataset(dataset_dir, split=split, use_depth=use_depth)
     keys = list(ds.image_keys())
     frames = (ds.load_frame(scene_id, im_id, with_models=False) for scene_id, im_id in keys)
     return write_frames(
