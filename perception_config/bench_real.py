@@ -40,7 +40,7 @@ import numpy as np
 
 from .atomic_file import atomic_write
 from .blocks import load_all
-from .blocks.base import DEPTH, GROUND_TRUTH, RGB, Block, BlockInput, Kind
+from .blocks.base import GROUND_TRUTH, Block, BlockInput, Kind
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset, _jsonable
 from .geometry import Pose, perturb
@@ -57,15 +57,6 @@ def usable_objects(frame: Frame, min_visib: float) -> list[tuple[int, SceneObjec
     """(index in frame.objects, object) of the annotated objects with a model and visib_fract >= min_visib."""
     return [(i, o) for i, o in enumerate(frame.objects)
             if o.gt is not None and o.model is not None and (o.visib_fract is None or o.visib_fract >= min_visib)]
-
-
-def missing_inputs(block: Block, frame: Frame) -> str:
-    """Why the frame cannot feed the block ('' when it can)."""
-    if DEPTH in block.inputs and not frame.has_depth:
-        return "needs depth"
-    if RGB in block.inputs and frame.rgb is None:
-        return "needs rgb"
-    return ""
 
 
 def select_blocks(pipeline: Pipeline, names: Sequence[str] | None = None) -> tuple[dict[str, Block], dict[str, Block]]:
@@ -259,9 +250,9 @@ def bench_real(
         cache: dict[str, Any] = {}  # the frame's shared precomputations, as in the environment
         active_ref, active_sc = {}, {}
         for name, block in [*refiners.items(), *scorers.items()]:
-            why = missing_inputs(block, frame)
+            why = block.frame_lacks(frame)
             if why:
-                skipped.setdefault(name, why)
+                skipped.setdefault(name, why.split(":")[0])  # "needs depth", without the explanation
             else:
                 ran.add(name)
                 (active_ref if name in refiners else active_sc)[name] = block

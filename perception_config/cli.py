@@ -352,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
             c.add_argument("--lambdas", default="0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
             c.add_argument("--applications", type=int, default=5, help="max applications of the refiner")
     c = besub.add_parser("real", help="refiners and scores on a BOP dataset's frames (with or without depth)")
-    c.add_argument("--dataset", type=Path, required=True)
+    _add_dataset_args(c)
     c.add_argument("--out", type=Path, required=True, help="folder for real.json and real.png, or a .json file")
     c.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
     c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
@@ -361,8 +361,6 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--calls", type=int, default=3, help="successive calls of a refiner")
     c.add_argument("--min-visib", type=float, default=0.3, help="smallest visib_fract of an object")
     c.add_argument("--blocks", default=None, help="comma-separated action / block names (default: all)")
-    c.add_argument("--no-depth", dest="use_depth", action="store_false",
-                   help="read the frames as RGB-only (the blocks that need depth are skipped)")
     c.add_argument("--no-refiner-costs", action="store_true", help="do not rank the refiners' own costs as scores")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--split", default="test")
