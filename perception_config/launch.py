@@ -529,26 +529,40 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             if not rate > 0:
                 raise ValueError(f"--rate must be positive, got {rate}")
             set_param(replay, "rate", float(rate), True)
+        info = readable_bag_info(replay.params.get("bag"))
         user_waits = params_file_sets(pfile, replay.name) & {"wait_for", "wait_for_subscribers", "topics"}
-        waits = replay_waits(names, replay.params.get("bag"))
+        waits = replay_waits(names, info)
         if waits and not user_waits:
             replay.params["wait_for"] = waits
             set_param(replay, "wait_timeout", REPLAY_WAIT_TIMEOUT, False)
+        if info is not None and isinstance(info.get("frame_topics"), dict) and "depth" not in info["frame_topics"]:
+            say("the bag has no depth topic: the nodes run RGB-only (use_depth false; depth actions masked)")
+            for n, s in zip(names, specs):
+                if n in MODEL_NODES:
+                    set_param(s, "use_depth", False, False)
     return specs
 
 
-def replay_waits(names: list[str], bag: str | None) -> list[str]:
-    """bag_replay_node's default `wait_for`: "topic:count" for each topic of the bag that launched
-    nodes subscribe to, count = how many of them do. Empty when no bag is given or it cannot be
-    read (bag_replay_node then reports the bag itself)."""
+def readable_bag_info(bag: str | None) -> dict | None:
+    """`bag info` of the bag, or None when no bag is given or it cannot be read (bag_replay_node
+    then reports the bag itself)."""
     if not bag:
-        return []
+        return None
     from .datasets.bag.info import bag_info
 
     try:
-        in_bag = {t["topic"].lstrip("/") for t in bag_info(bag)["topics"]}
+        return bag_info(bag)
     except Exception:  # noqa: BLE001 - any unreadable bag: the replay node names the problem
+        return None
+
+
+def replay_waits(names: list[str], info: dict | None) -> list[str]:
+    """bag_replay_node's default `wait_for`: "topic:count" for each topic of the bag (its
+    `bag_info`) that launched nodes subscribe to, count = how many of them do. Empty without a
+    readable bag."""
+    if info is None:
         return []
+    in_bag = {t["topic"].lstrip("/") for t in info["topics"]}
     counts = collections.Counter(t for n in names for t in NODE_SUBSCRIPTIONS.get(n, ()) if t in in_bag)
     return [f"{topic}:{count}" for topic, count in counts.items()]
 

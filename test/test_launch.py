@@ -357,6 +357,34 @@ def test_bag_replay_waits_for_every_subscribing_node_unless_the_params_file_says
     assert "wait_for" not in _p(own) and "wait_timeout" not in _p(own)
 
 
+def test_an_rgb_only_bag_runs_the_nodes_rgb_only_unless_the_params_file_says(synthetic_dataset, tmp_path):
+    from perception_config.datasets.bag.writer import write_frames
+    from perception_config.datasets.bop import BopDataset
+
+    root = synthetic_dataset
+    ds = BopDataset(root, split="test", use_depth=False)
+    bag = tmp_path / "rgb.mcap"
+    write_frames([ds.load_frame(*next(iter(ds.image_keys())), with_models=False)], bag, 10.0)
+    said: list[str] = []
+    specs = resolve_nodes(bag=bag, models=root / "models", policy="none", cwd=tmp_path, say=said.append)
+    by_name = {s.name: _p(s) for s in specs}
+    for node in ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node"):
+        assert by_name[node]["use_depth"] == "false", node
+    assert "use_depth" not in by_name["bag_replay_node"]
+    assert "camera/depth/image_raw" not in by_name["bag_replay_node"]["wait_for"]
+    assert any("no depth topic" in line for line in said)
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text("/**:\n  ros__parameters:\n    use_depth: true\n")
+    own = resolve_nodes(bag=bag, models=root / "models", policy="none", params_file=params_file, cwd=tmp_path,
+                        say=lambda _: None)
+    assert all("use_depth" not in _p(s) for s in own)
+    rgbd = tmp_path / "rgbd.mcap"
+    write_frames([BopDataset(root, split="test").load_frame(*next(iter(ds.image_keys())), with_models=False)],
+                 rgbd, 10.0)
+    assert all("use_depth" not in _p(s) for s in resolve_nodes(bag=rgbd, models=root / "models", policy="none",
+                                                                 cwd=tmp_path, say=lambda _: None))
+
+
 @pytest.mark.ros
 def test_launch_bag_replays_a_short_bag_once_the_nodes_listen(ros_node, synthetic_dataset, tmp_path):
     """A 3-frame bag lasts 0.2 s and the nodes serve about 4 s after the start: without the
