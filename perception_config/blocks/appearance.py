@@ -1,0 +1,112 @@
+"""psi_rgb: how well a hypothesis explains the RGB image, without depth.
+
+psi_rgb = (region + edge_weight x edges) / (1 + edge_weight), both in [0, 1]:
+- region (`psi_rgb_region`) = 2 x (band colour separation - 0.5): the rendered outline's
+  inner and outer bands (`band` px) compared by their colour histograms, region-based tracking
+  style (vision/appearance.py); 0 when the outline separates nothing, 1 when the two sides
+  share no colour.
+- edges (`psi_rgb_edges`) = 1 - mean truncated, orientation-checked distance / `tau` from the
+  rendered outline to the image's Canny edges.
+
+It uses the image only (no depth, no model colour: models without vertex colours score alike;
+`info["used"]` says what was used). On real LM-O photographs (lmo-rgb) it ranks a pose within
+the pick tolerance above one outside at AUC 0.84 for the same object, where psi_c does 0.72
+(README, "Scoring on real photographs"). The per-frame work (colour codes, Canny, nearest-edge
+map) is cached in BlockInput.cache; the hypothesis render is shared with the other scores.
+
+Refused (ok=False with the reason): an object outside the image or under `min_in_image` of
+its surface in it, a projection under `min_pixels`, an image around the hypothesis that is
+flat (blank) or over-exposed.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..render import project
+from ..vision.appearance import (
+    colour_codes,
+    edge_agreement,
+    nearest_edges,
+    outline_bands,
+    padded_mask,
+    region_separation,
+)
+from ..vision.edges import canny_edges, silhouette_points
+from ..vision.visibility import hypothesis_rendering
+from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
+
+
+@register
+class PsiRgb(Block):
+    """Colour-region separation plus oriented edge agreement of the rendered outline (RGB only)."""
+
+    kind = Kind.SCORING
+    name = "psi_rgb"
+    default_cost = 0.003
+    inputs = (RGB, MODEL, POSE)
+    score_names = ("psi_rgb", "psi_rgb_region", "psi_rgb_edges")
+    score_ranges = {"psi_rgb": (0.0, 1.0), "psi_rgb_region": (0.0, 1.0), "psi_rgb_edges": (0.0, 1.0)}
+    params = (
+        Param("band", 10, 2, 100, doc="width (px) of the inner and outer bands along the rendered outline"),
+        Param("bits", 4, 2, 6, doc="bits per colour channel of the band histograms"),
+        Param("edge_weight", 0.5, 0.0, 10.0, doc="weight of the edge term against the region term"),
+        Param("tau", 10.0, 1.0, 100.0, doc="truncation (px) of the outline-to-edge distance"),
+        Param("max_angle_deg", 22.5, 1.0, 90.0, doc="edge direction mismatch (deg) beyond which an edge is ignored"),
+        Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold (as d2co's, so the edge map is shared)"),
+        Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
+        Param("min_pixels", 100, 1, 1000000, doc="minimum rendered object pixels inside the image"),
+        Param("min_in_image", 0.1, 0.0, 1.0, doc="minimum share of the model surface samples inside the image"),
+        Param("min_contrast", 2.0, 0.0, 255.0, doc="minimum grey-level standard deviation around the hypothesis"),
+        Param("max_saturated", 0.9, 0.0, 1.0, doc="maximum share of saturated (all channels >= 250) pixels around it"),
+    )
+
+    def run(self, inp: BlockInput) -> BlockResult:
+        c, frame, model, pose = self.config, inp.frame, inp.model, inp.pose
+        assert frame is not None and pose is not None
+        uv_all = project(pose.transform(model.points), frame.K)
+        with np.errstate(invalid="ignore"):
+            in_image = float(np.mean((uv_all[:, 0] >= 0) & (uv_all[:, 1] >= 0) & (uv_all[:, 0] <= frame.width - 1)
+                                     & (uv_all[:, 1] <= frame.height - 1)))
+        if in_image < c["min_in_image"]:
+            return BlockResult.fail(f"{100 * in_image:.0f} % of the object projects into the image "
+                                    f"(need {100 * c['min_in_image']:.0f} %): object outside the view?")
+        r = hypothesis_rendering(frame, model, pose, inp.cache)
+        n_obj = 0 if r.empty else int(np.count_nonzero(r.mask >= 0))
+        if n_obj < c["min_pixels"]:
+            return BlockResult.fail(f"the hypothesis covers {n_obj} image pixels (need {c['min_pixels']}): "
+                                    f"too small or outside the view")
+        band, bits = int(c["band"]), int(c["bits"])
+        mask, (x0, y0, x1, y1) = padded_mask(frame, r, band + 1)
+        inner, outer = outline_bands(mask, band)
+        if not inner.any() or not outer.any():
+            return BlockResult.fail("the hypothesis leaves no image pixels outside its outline")
+        rgb = frame.rgb[y0:y1, x0:x1]
+        around = rgb[inner | outer]
+        saturated = float(np.mean(np.all(around >= 250, axis=1)))
+        if saturated > c["max_saturated"]:
+            return BlockResult.fail(f"the image around the hypothesis is over-exposed ({100 * saturated:.0f} % of "
+                                    f"its pixels saturated)")
+        contrast = float(around.astype(np.float32).mean(axis=1).std())
+        if contrast < c["min_contrast"]:
+            return BlockResult.fail(f"the image around the hypothesis is flat (grey-level spread {contrast:.2f}, "
+                                    f"need {c['min_contrast']}): blank image?")
+        codes = colour_codes(frame, bits, inp.cache)[y0:y1, x0:x1]
+        region = max(0.0, 2.0 * region_separation(codes, inner, outer, bits) - 1.0)
+        edges_map, direction = canny_edges(frame, inp.cache, c["canny_low"], c["canny_high"])
+        distance, edge_angle = nearest_edges(frame, edges_map, direction, inp.cache)
+        uv, n = silhouette_points(r)
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-6
+        edges, n_outline = edge_agreement(distance, edge_angle, uv[ok], n[ok] / norm[ok, None], c["tau"],
+                                          math.radians(c["max_angle_deg"]))
+        w = c["edge_weight"]
+        score = (region + w * edges) / (1.0 + w)
+        return BlockResult(ok=True, scores={"psi_rgb": score, "psi_rgb_region": region, "psi_rgb_edges": edges},
+                           info={"used": "image colours (band histograms) and Canny edges; no depth, no model colour",
+                                 "object_pixels": n_obj, "outline_pixels": n_outline, "in_image": in_image,
+                                 "band_pixels": int(inner.sum() + outer.sum())})
+
+
+__all__ = ["PsiRgb"]

@@ -1,0 +1,122 @@
+"""Appearance agreement of a hypothesis with an RGB image, without depth (the psi_rgb score).
+
+Two cues, both smooth over the few pixels by which real annotations and good hypotheses are
+off (the LM-O ground truth is itself 2-6 px off the image in places, so a score that peaks
+within 1-2 px ranks noise):
+
+- `region_separation`: how well the hypothesis's outline separates the image colours, as in
+  region-based tracking (PWP3D, RBOT). Colour histograms (`bits` per channel) of a band
+  `band` px wide inside the rendered outline (foreground) and of the same band outside it
+  (background) give each band pixel a foreground posterior P = h_f / (h_f + h_b); the score
+  is the mean of P inside and of 1 - P outside, 0.5 when the two bands look alike and 1 when
+  they share no colour. Only the image's colours are used, so it needs no model colour and
+  does not depend on the lighting the model was scanned under; occluders inside the band
+  lower it alike for every hypothesis of the instance.
+- `edge_agreement`: the rendered outline against the image's Canny edges, orientation-aware
+  and truncated: each outline pixel's distance to the nearest edge pixel (distance transform
+  with labels, once per frame) counts as `tau` when that edge's direction differs from the
+  outline's by more than `max_angle`; the score is 1 - mean(min(distance, tau)) / tau.
+
+Measured on lmo-rgb (20 real frames, 142 instances, 5680 poses at lambda 0.05-0.5; AUC of
+in-tolerance over out-of-tolerance poses of the same instance): region 0.837 (band 10 px,
+4 bits), edges 0.797, region + 0.25 x edges 0.842; a histogram from the model's vertex
+colours instead of the inner band 0.751; image-gradient profiles along the outline normals
+(the 1D search of edge trackers) 0.733; psi_c 0.718.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..render import Rendering
+from ..scene import Frame
+
+_CODES_KEY = "appearance:codes"
+_NEAREST_KEY = "appearance:nearest-edge"
+
+
+def colour_codes(frame: Frame, bits: int, cache: dict | None = None) -> np.ndarray:
+    """(H, W) int32 colour bin of every pixel: the top `bits` bits of R, G and B; per frame."""
+    key = (_CODES_KEY, bits)
+    if cache is not None and key in cache and cache[key][0] is frame.rgb:
+        return cache[key][1]
+    q = (frame.rgb >> (8 - bits)).astype(np.int32)
+    codes = (q[..., 0] << (2 * bits)) | (q[..., 1] << bits) | q[..., 2]
+    if cache is not None:
+        cache[key] = (frame.rgb, codes)
+    return codes
+
+
+def padded_mask(frame: Frame, rendering: Rendering, pad: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The rendered object mask (uint8 0/1) in its box grown by `pad` px (clipped to the image),
+    and that box as (x0, y0, x1, y1)."""
+    x, y, w, h = rendering.box
+    x0, y0 = max(0, x - pad), max(0, y - pad)
+    x1, y1 = min(frame.width, x + w + pad), min(frame.height, y + h + pad)
+    m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    m[y - y0:y - y0 + h, x - x0:x - x0 + w] = rendering.mask >= 0
+    return m, (x0, y0, x1, y1)
+
+
+def outline_bands(mask: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean (inner, outer) bands of a 0/1 mask: pixels within `band` px of the outline."""
+    din = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
+    dout = cv2.distanceTransform(1 - mask, cv2.DIST_L2, 3)
+    return (mask > 0) & (din <= band), (mask == 0) & (dout <= band)
+
+
+def region_separation(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, bits: int) -> float:
+    """Mean foreground posterior inside plus mean background posterior outside, halved, from
+    the colour histograms of the two bands (see the module docstring); in [0.5, 1] up to the
+    histograms' smoothing. `codes` and the bands are arrays of one crop."""
+    n_bins = 1 << (3 * bits)
+    qi, qo = codes[inner], codes[outer]
+    hf = np.bincount(qi, minlength=n_bins).astype(np.float64)
+    hb = np.bincount(qo, minlength=n_bins).astype(np.float64)
+    hf = hf / max(hf.sum(), 1.0) + 1e-4
+    hb = hb / max(hb.sum(), 1.0) + 1e-4
+    pf = hf / (hf + hb)
+    return 0.5 * (float(pf[qi].mean()) + float(1.0 - pf[qo].mean()))
+
+
+def nearest_edges(frame: Frame, edges: np.ndarray, direction: np.ndarray,
+                  cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(distance float32 HxW to the nearest edge pixel, direction float32 HxW in [0, pi) of that
+    edge pixel) for a Canny map and its directions; cached per frame. All-inf distance when the
+    image has no edge."""
+    if cache is not None and _NEAREST_KEY in cache and cache[_NEAREST_KEY][0] is frame.rgb:
+        return cache[_NEAREST_KEY][1]
+    ys, xs = np.nonzero(edges)
+    if len(ys) == 0:
+        out = (np.full(edges.shape, np.inf, np.float32), np.zeros(edges.shape, np.float32))
+    else:
+        src = np.where(edges > 0, 0, 255).astype(np.uint8)
+        dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        # DIST_LABEL_PIXEL numbers the zero pixels 1..N in row-major order, as np.nonzero lists them
+        angle = np.zeros(len(ys) + 1, np.float32)
+        angle[1:] = direction[ys, xs]
+        out = (dist, angle[labels])
+    if cache is not None:
+        cache[_NEAREST_KEY] = (frame.rgb, out)
+    return out
+
+
+def edge_agreement(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, normals: np.ndarray,
+                   tau: float, max_angle: float) -> tuple[float, int]:
+    """1 - mean truncated oriented distance / tau of outline pixels `uv` (N, 2; integer-valued)
+    with unit 2D normals (N, 2), and how many lie inside the image (only those count)."""
+    h, w = distance.shape
+    u, v = uv[:, 0].astype(np.intp), uv[:, 1].astype(np.intp)
+    inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
+    if not inside.any():
+        return 0.0, 0
+    u, v, n = u[inside], v[inside], normals[inside]
+    d = np.minimum(distance[v, u], tau)
+    along = np.mod(np.arctan2(n[:, 1], n[:, 0]) + np.pi / 2, np.pi)  # outline direction
+    diff = np.abs(edge_angle[v, u] - along)
+    diff = np.minimum(diff, np.pi - diff)
+    d = np.where(diff <= max_angle, d, tau)
+    return float(1.0 - d.mean() / tau), int(len(u))
+
+
+__all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "nearest_edges", "edge_agreement"]
