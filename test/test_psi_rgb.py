@@ -15,7 +15,9 @@ from perception_config.blocks.scoring import PsiC
 from perception_config.datasets.bop import BopDataset
 from perception_config.geometry import Pose, perturb
 from perception_config.scene import Frame
-from perception_config.vision.appearance import nearest_edges, outline_bands, region_separation
+from perception_config.vision.appearance import edge_agreement, nearest_edges, outline_bands, region_separation
+from perception_config.vision.edges import canny_edges, silhouette_points
+from perception_config.vision.visibility import hypothesis_rendering
 
 
 def score(frame: Frame, model, pose: Pose, cache: dict | None = None, **params):
@@ -34,14 +36,28 @@ def test_nearest_edge_direction_is_that_of_the_nearest_edge_pixel() -> None:
     ys, xs = rng.integers(0, 40, 30), rng.integers(0, 50, 30)
     edges[ys, xs] = 255
     direction = rng.uniform(0, math.pi, edges.shape).astype(np.float32)
-    frame = Frame(np.zeros((40, 50, 3), np.uint8), None, np.eye(3))
-    dist, angle = nearest_edges(frame, edges, direction)
+    dist, angle = nearest_edges(edges, direction)
     ey, ex = np.nonzero(edges)
     for v, u in zip(rng.integers(0, 40, 60), rng.integers(0, 50, 60)):
         d = np.hypot(ex - u, ey - v)
         assert dist[v, u] == pytest.approx(d.min(), rel=0.03, abs=0.05)  # OpenCV's 5x5 mask: ~2 % off
         nearest = np.flatnonzero(d <= d.min() * 1.03 + 1e-6)  # ties and near-ties: any of them
         assert np.any(np.isclose(angle[v, u], direction[ey[nearest], ex[nearest]]))
+
+
+def test_edge_term_on_the_crop_equals_the_whole_frame_one() -> None:
+    """The crop is the outline's box grown by tau + 1: truncated distances are exact."""
+    model, gt, frame = random_box_scene(3)
+    edges, direction = canny_edges(frame, None)
+    r = hypothesis_rendering(frame, model, gt)
+    uv, n = silhouette_points(r)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    full = edge_agreement(*nearest_edges(edges, direction), uv, n, 10.0, 0.4)
+    x, y, w, h = r.box
+    x0, y0 = max(0, x - 11), max(0, y - 11)
+    crop = nearest_edges(edges[y0:y + h + 11, x0:x + w + 11], direction[y0:y + h + 11, x0:x + w + 11])
+    assert edge_agreement(*crop, uv - (x0, y0), n, 10.0, 0.4) == pytest.approx(full, abs=1e-6)
+    assert full[0] > 0.5 and full[1] == len(uv)
 
 
 def test_region_separation_peaks_on_the_true_outline() -> None:

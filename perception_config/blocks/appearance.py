@@ -12,8 +12,9 @@ psi_rgb = (region + edge_weight x edges) / (1 + edge_weight), both in [0, 1]:
 It uses the image only (no depth, no model colour: models without vertex colours score alike;
 `info["used"]` says what was used). On real LM-O photographs (lmo-rgb) it ranks a pose within
 the pick tolerance above one outside at AUC 0.84 for the same object, where psi_c does 0.72
-(README, "Scoring on real photographs"). The per-frame work (colour codes, Canny, nearest-edge
-map) is cached in BlockInput.cache; the hypothesis render is shared with the other scores.
+(README, "Scoring on real photographs"). The Canny map is computed once per frame and shared
+with d2co/chamfer through BlockInput.cache, the hypothesis render with the other scores; the
+rest works on the hypothesis's crop.
 
 Refused (ok=False with the reason): an object outside the image or under `min_in_image` of
 its surface in it, a projection under `min_pixels`, an image around the hypothesis that is
@@ -83,7 +84,8 @@ class PsiRgb(Block):
         band, bits = int(c["band"]), int(c["bits"])
         if c["band_fraction"] > 0:  # scale with the object's size in the image, so small objects keep their band
             band = int(np.clip(round(c["band_fraction"] * math.sqrt(n_obj)), 2, band))
-        mask, (x0, y0, x1, y1) = padded_mask(frame, r, band + 1)
+        # one crop serves both cues: the bands, and every edge within tau of the outline
+        mask, (x0, y0, x1, y1) = padded_mask(frame, r, max(band, math.ceil(c["tau"])) + 1)
         inner, outer = outline_bands(mask, band)
         if not inner.any() or not outer.any():
             return BlockResult.fail("the hypothesis leaves no image pixels outside its outline")
@@ -97,14 +99,13 @@ class PsiRgb(Block):
         if contrast < c["min_contrast"]:
             return BlockResult.fail(f"the image around the hypothesis is flat (grey-level spread {contrast:.2f}, "
                                     f"need {c['min_contrast']}): blank image?")
-        codes = colour_codes(frame, bits, inp.cache)[y0:y1, x0:x1]
-        region = max(0.0, 2.0 * region_separation(codes, inner, outer, bits) - 1.0)
+        region = max(0.0, 2.0 * region_separation(colour_codes(rgb, bits), inner, outer, bits) - 1.0)
         edges_map, direction = canny_edges(frame, inp.cache, c["canny_low"], c["canny_high"])
-        distance, edge_angle = nearest_edges(frame, edges_map, direction, inp.cache)
+        distance, edge_angle = nearest_edges(edges_map[y0:y1, x0:x1], direction[y0:y1, x0:x1])
         uv, n = silhouette_points(r)
         norm = np.linalg.norm(n, axis=1)
         ok = norm > 1e-6
-        edges, n_outline = edge_agreement(distance, edge_angle, uv[ok], n[ok] / norm[ok, None], c["tau"],
+        edges, n_outline = edge_agreement(distance, edge_angle, uv[ok] - (x0, y0), n[ok] / norm[ok, None], c["tau"],
                                           math.radians(c["max_angle_deg"]))
         w = c["edge_weight"]
         score = (region + w * edges) / (1.0 + w)

@@ -14,7 +14,7 @@ within 1-2 px ranks noise):
   lower it alike for every hypothesis of the instance.
 - `edge_agreement`: the rendered outline against the image's Canny edges, orientation-aware
   and truncated: each outline pixel's distance to the nearest edge pixel (distance transform
-  with labels, once per frame) counts as `tau` when that edge's direction differs from the
+  with labels on the hypothesis's crop) counts as `tau` when that edge's direction differs from the
   outline's by more than `max_angle`; the score is 1 - mean(min(distance, tau)) / tau.
 
 Measured on lmo-rgb (20 real frames, 142 instances, 5680 poses at lambda 0.05-0.5; AUC of
@@ -33,20 +33,12 @@ import numpy as np
 from ..render import Rendering
 from ..scene import Frame
 
-_CODES_KEY = "appearance:codes"
-_NEAREST_KEY = "appearance:nearest-edge"
 
-
-def colour_codes(frame: Frame, bits: int, cache: dict | None = None) -> np.ndarray:
-    """(H, W) int32 colour bin of every pixel: the top `bits` bits of R, G and B; per frame."""
-    key = (_CODES_KEY, bits)
-    if cache is not None and key in cache and cache[key][0] is frame.rgb:
-        return cache[key][1]
-    q = (frame.rgb >> (8 - bits)).astype(np.int32)
-    codes = (q[..., 0] << (2 * bits)) | (q[..., 1] << bits) | q[..., 2]
-    if cache is not None:
-        cache[key] = (frame.rgb, codes)
-    return codes
+def colour_codes(rgb: np.ndarray, bits: int) -> np.ndarray:
+    """(H, W) int32 colour bin of every pixel of an (H, W, 3) uint8 image: the top `bits` bits
+    of R, G and B."""
+    q = (rgb >> (8 - bits)).astype(np.int32)
+    return (q[..., 0] << (2 * bits)) | (q[..., 1] << bits) | q[..., 2]
 
 
 def padded_mask(frame: Frame, rendering: Rendering, pad: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
@@ -81,32 +73,28 @@ def region_separation(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, b
     return 0.5 * (float(pf[qi].mean()) + float(1.0 - pf[qo].mean()))
 
 
-def nearest_edges(frame: Frame, edges: np.ndarray, direction: np.ndarray,
-                  cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+def nearest_edges(edges: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(distance float32 HxW to the nearest edge pixel, direction float32 HxW in [0, pi) of that
-    edge pixel) for a Canny map and its directions; cached per frame. All-inf distance when the
-    image has no edge."""
-    if cache is not None and _NEAREST_KEY in cache and cache[_NEAREST_KEY][0] is frame.rgb:
-        return cache[_NEAREST_KEY][1]
+    edge pixel) for an edge map (non-zero = edge) and its directions, e.g. a crop of
+    edges.canny_edges; all-inf distance when there is no edge. Run on a crop around the
+    hypothesis grown by the truncation distance, it is exact for truncated distances and costs
+    ~0.5 ms (the whole 640x480 frame: ~7 ms)."""
     ys, xs = np.nonzero(edges)
     if len(ys) == 0:
-        out = (np.full(edges.shape, np.inf, np.float32), np.zeros(edges.shape, np.float32))
-    else:
-        src = np.where(edges > 0, 0, 255).astype(np.uint8)
-        dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-        # DIST_LABEL_PIXEL numbers the zero pixels 1..N in row-major order, as np.nonzero lists them
-        angle = np.zeros(len(ys) + 1, np.float32)
-        angle[1:] = direction[ys, xs]
-        out = (dist, angle[labels])
-    if cache is not None:
-        cache[_NEAREST_KEY] = (frame.rgb, out)
-    return out
+        return np.full(edges.shape, np.inf, np.float32), np.zeros(edges.shape, np.float32)
+    src = np.where(edges > 0, 0, 255).astype(np.uint8)
+    dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    # DIST_LABEL_PIXEL numbers the zero pixels 1..N in row-major order, as np.nonzero lists them
+    angle = np.zeros(len(ys) + 1, np.float32)
+    angle[1:] = direction[ys, xs]
+    return dist, angle[labels]
 
 
 def edge_agreement(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, normals: np.ndarray,
                    tau: float, max_angle: float) -> tuple[float, int]:
-    """1 - mean truncated oriented distance / tau of outline pixels `uv` (N, 2; integer-valued)
-    with unit 2D normals (N, 2), and how many lie inside the image (only those count)."""
+    """1 - mean truncated oriented distance / tau of outline pixels `uv` (N, 2; integer-valued,
+    in the coordinates of `distance`) with unit 2D normals (N, 2), and how many lie inside
+    `distance` (only those count)."""
     h, w = distance.shape
     u, v = uv[:, 0].astype(np.intp), uv[:, 1].astype(np.intp)
     inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
