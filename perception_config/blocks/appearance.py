@@ -28,12 +28,16 @@ import numpy as np
 
 from ..render import project
 from ..vision.appearance import (
+    band_posterior,
     colour_codes,
+    disc_shifts,
     edge_agreement,
     nearest_edges,
     outline_bands,
     padded_mask,
     region_separation,
+    shifted_edges,
+    shifted_region,
 )
 from ..vision.edges import canny_edges, silhouette_points
 from ..vision.visibility import hypothesis_rendering
@@ -58,6 +62,8 @@ class PsiRgb(Block):
         Param("edge_weight", 0.5, 0.0, 10.0, doc="weight of the edge term against the region term"),
         Param("tau", 10.0, 1.0, 100.0, doc="truncation (px) of the outline-to-edge distance"),
         Param("max_angle_deg", 22.5, 1.0, 90.0, doc="edge direction mismatch (deg) beyond which an edge is ignored"),
+        Param("search_radius", 8, 0, 32,
+              doc="psi_rgb is the best fit of the outline moved up to this many px over the image (0: at the pose)"),
         Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold (as d2co's, so the edge map is shared)"),
         Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
         Param("min_pixels", 100, 1, 1000000, doc="minimum rendered object pixels inside the image"),
@@ -99,20 +105,43 @@ class PsiRgb(Block):
         if contrast < c["min_contrast"]:
             return BlockResult.fail(f"the image around the hypothesis is flat (grey-level spread {contrast:.2f}, "
                                     f"need {c['min_contrast']}): blank image?")
-        region = max(0.0, 2.0 * region_separation(colour_codes(rgb, bits), inner, outer, bits) - 1.0)
+        codes = colour_codes(rgb, bits)
+        region = max(0.0, 2.0 * region_separation(codes, inner, outer, bits) - 1.0)
+        # the search maps: the crop grown by the search radius, "no information" beyond the image
+        R = int(c["search_radius"])
+        X0, Y0, X1, Y1 = x0 - R, y0 - R, x1 + R, y1 + R
+        cx0, cy0, cx1, cy1 = max(0, X0), max(0, Y0), min(frame.width, X1), min(frame.height, Y1)
+        inside = (slice(cy0 - Y0, cy1 - Y0), slice(cx0 - X0, cx1 - X0))
         edges_map, direction = canny_edges(frame, inp.cache, c["canny_low"], c["canny_high"])
-        distance, edge_angle = nearest_edges(edges_map[y0:y1, x0:x1], direction[y0:y1, x0:x1])
+        dist, angle = nearest_edges(edges_map[cy0:cy1, cx0:cx1], direction[cy0:cy1, cx0:cx1])
+        distance = np.full((Y1 - Y0, X1 - X0), c["tau"], np.float32)
+        edge_angle = np.zeros(distance.shape, np.float32)
+        distance[inside], edge_angle[inside] = np.minimum(dist, c["tau"]), angle
         uv, n = silhouette_points(r)
         norm = np.linalg.norm(n, axis=1)
         ok = norm > 1e-6
-        edges, n_outline = edge_agreement(distance, edge_angle, uv[ok] - (x0, y0), n[ok] / norm[ok, None], c["tau"],
-                                          math.radians(c["max_angle_deg"]))
+        uv, n = uv[ok] - (X0, Y0), n[ok] / norm[ok, None]
+        max_angle = math.radians(c["max_angle_deg"])
+        edges, n_outline = edge_agreement(distance, edge_angle, uv, n, c["tau"], max_angle)
         w = c["edge_weight"]
-        score = (region + w * edges) / (1.0 + w)
+        score, shift = (region + w * edges) / (1.0 + w), (0, 0)
+        if R > 0 and n_outline:
+            # the hypothesis's outline moved over the image (histograms kept): its best fit within R px
+            posterior = np.full(distance.shape, 0.5, np.float32)
+            posterior[inside] = band_posterior(codes, inner, outer, bits).astype(np.float32)[
+                colour_codes(frame.rgb[cy0:cy1, cx0:cx1], bits)]
+            surface = shifted_region(posterior, inner, outer, R)
+            shifts = disc_shifts(R)
+            fit = (np.maximum(surface[shifts[:, 1] + R, shifts[:, 0] + R], 0.0)
+                   + w * shifted_edges(distance, edge_angle, uv, n, shifts, c["tau"], max_angle)) / (1.0 + w)
+            best = int(np.argmax(fit))
+            if fit[best] > score:
+                score, shift = float(fit[best]), (int(shifts[best, 0]), int(shifts[best, 1]))
         return BlockResult(ok=True, scores={"psi_rgb": score, "psi_rgb_region": region, "psi_rgb_edges": edges},
                            info={"used": "image colours (band histograms) and Canny edges; no depth, no model colour",
                                  "object_pixels": n_obj, "band_px": band, "outline_pixels": n_outline,
-                                 "in_image": in_image, "band_pixels": int(inner.sum() + outer.sum())})
+                                 "in_image": in_image, "shift_px": shift,
+                                 "band_pixels": int(inner.sum() + outer.sum())})
 
 
 __all__ = ["PsiRgb"]

@@ -63,14 +63,20 @@ def region_separation(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, b
     """Mean foreground posterior inside plus mean background posterior outside, halved, from
     the colour histograms of the two bands (see the module docstring); in [0.5, 1] up to the
     histograms' smoothing. `codes` and the bands are arrays of one crop."""
-    n_bins = 1 << (3 * bits)
     qi, qo = codes[inner], codes[outer]
-    hf = np.bincount(qi, minlength=n_bins).astype(np.float64)
-    hb = np.bincount(qo, minlength=n_bins).astype(np.float64)
+    pf = band_posterior(codes, inner, outer, bits)
+    return 0.5 * (float(pf[qi].mean()) + float(1.0 - pf[qo].mean()))
+
+
+def band_posterior(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, bits: int) -> np.ndarray:
+    """Foreground posterior h_f / (h_f + h_b) of every colour bin (2^(3 bits) float64), from
+    the normalised colour histograms of the inner and outer bands (+1e-4 each)."""
+    n_bins = 1 << (3 * bits)
+    hf = np.bincount(codes[inner], minlength=n_bins).astype(np.float64)
+    hb = np.bincount(codes[outer], minlength=n_bins).astype(np.float64)
     hf = hf / max(hf.sum(), 1.0) + 1e-4
     hb = hb / max(hb.sum(), 1.0) + 1e-4
-    pf = hf / (hf + hb)
-    return 0.5 * (float(pf[qi].mean()) + float(1.0 - pf[qo].mean()))
+    return hf / (hf + hb)
 
 
 def nearest_edges(edges: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,4 +115,40 @@ def edge_agreement(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray,
     return float(1.0 - d.mean() / tau), int(len(u))
 
 
-__all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "nearest_edges", "edge_agreement"]
+def disc_shifts(radius: int) -> np.ndarray:
+    """(S, 2) integer image shifts (dx, dy) with |shift| <= radius, (0, 0) first."""
+    r = int(radius)
+    a = np.arange(-r, r + 1)
+    dx, dy = (g.ravel() for g in np.meshgrid(a, a))
+    keep = dx * dx + dy * dy <= r * r
+    order = np.argsort(dx[keep] ** 2 + dy[keep] ** 2, kind="stable")
+    return np.stack([dx[keep], dy[keep]], axis=1)[order]
+
+
+def shifted_region(posterior: np.ndarray, inner: np.ndarray, outer: np.ndarray, radius: int) -> np.ndarray:
+    """(2r+1, 2r+1) region term (mean foreground posterior over the inner band minus over the
+    outer band) with both bands shifted by every (dx, dy) in [-r, r]^2 (entry [dy + r, dx + r]),
+    the posterior map kept fixed. `posterior` (float32) covers the bands' array grown by
+    `radius` on every side; one correlation (cv2.matchTemplate) gives all shifts."""
+    ni, no = max(int(inner.sum()), 1), max(int(outer.sum()), 1)
+    template = inner.astype(np.float32) / ni - outer.astype(np.float32) / no
+    return cv2.matchTemplate(posterior, template, cv2.TM_CCORR)
+
+
+def shifted_edges(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, normals: np.ndarray,
+                  shifts: np.ndarray, tau: float, max_angle: float) -> np.ndarray:
+    """edge_agreement of the outline (uv, normals; uv in the maps' coordinates) moved by each of
+    `shifts` (S, 2); the maps must cover every shifted pixel (grow them by the largest shift,
+    distance `tau` where there is no image)."""
+    w = distance.shape[1]
+    at = uv[:, 1].astype(np.intp) * w + uv[:, 0].astype(np.intp)
+    flat = at[None, :] + (shifts[:, 1] * w + shifts[:, 0]).astype(np.intp)[:, None]
+    along = np.mod(np.arctan2(normals[:, 1], normals[:, 0]) + np.pi / 2, np.pi)
+    diff = np.abs(edge_angle.ravel()[flat] - along[None, :])
+    diff = np.minimum(diff, np.pi - diff)
+    d = np.where(diff <= max_angle, np.minimum(distance.ravel()[flat], tau), tau)
+    return 1.0 - d.mean(axis=1) / tau
+
+
+__all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "nearest_edges", "edge_agreement",
+           "band_posterior", "disc_shifts", "shifted_region", "shifted_edges"]
