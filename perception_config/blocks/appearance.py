@@ -38,6 +38,7 @@ from ..vision.appearance import (
     region_separation,
     shifted_edges,
     shifted_region,
+    shifted_separation,
 )
 from ..vision.edges import canny_edges, silhouette_points
 from ..vision.visibility import hypothesis_rendering
@@ -64,6 +65,7 @@ class PsiRgb(Block):
         Param("max_angle_deg", 22.5, 1.0, 90.0, doc="edge direction mismatch (deg) beyond which an edge is ignored"),
         Param("search_radius", 8, 0, 32,
               doc="psi_rgb is the best fit of the outline moved up to this many px over the image (0: at the pose)"),
+        Param("search_step", 2, 1, 8, doc="step (px) of the shifts searched"),
         Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold (as d2co's, so the edge map is shared)"),
         Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
         Param("min_pixels", 100, 1, 1000000, doc="minimum rendered object pixels inside the image"),
@@ -126,14 +128,18 @@ class PsiRgb(Block):
         w = c["edge_weight"]
         score, shift = (region + w * edges) / (1.0 + w), (0, 0)
         if R > 0 and n_outline:
-            # the hypothesis's outline moved over the image (histograms kept): its best fit within R px
-            posterior = np.full(distance.shape, 0.5, np.float32)
-            posterior[inside] = band_posterior(codes, inner, outer, bits).astype(np.float32)[
-                colour_codes(frame.rgb[cy0:cy1, cx0:cx1], bits)]
-            surface = shifted_region(posterior, inner, outer, R)
+            # the hypothesis's outline moved over the image, every `search_step` px up to R px: its
+            # region term with the hypothesis's band histograms kept (one correlation) and with
+            # histograms re-estimated at the moved outline, averaged; psi_rgb is the best fit
+            grown = np.full(distance.shape, -1, np.int32)
+            grown[inside] = colour_codes(frame.rgb[cy0:cy1, cx0:cx1], bits)
+            posterior = np.append(band_posterior(codes, inner, outer, bits), 0.5).astype(np.float32)[grown]
             shifts = disc_shifts(R)
-            fit = (np.maximum(surface[shifts[:, 1] + R, shifts[:, 0] + R], 0.0)
-                   + w * shifted_edges(distance, edge_angle, uv, n, shifts, c["tau"], max_angle)) / (1.0 + w)
+            shifts = shifts[np.all(shifts % int(c["search_step"]) == 0, axis=1)]
+            kept = shifted_region(posterior, inner, outer, R)[shifts[:, 1] + R, shifts[:, 0] + R]
+            moved = shifted_separation(grown, inner, outer, shifts, R, bits)
+            region_s = 0.5 * (np.maximum(kept, 0.0) + np.maximum(moved, 0.0))
+            fit = (region_s + w * shifted_edges(distance, edge_angle, uv, n, shifts, c["tau"], max_angle)) / (1.0 + w)
             best = int(np.argmax(fit))
             if fit[best] > score:
                 score, shift = float(fit[best]), (int(shifts[best, 0]), int(shifts[best, 1]))

@@ -135,6 +135,30 @@ def shifted_region(posterior: np.ndarray, inner: np.ndarray, outer: np.ndarray, 
     return cv2.matchTemplate(posterior, template, cv2.TM_CCORR)
 
 
+def shifted_separation(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, shifts: np.ndarray, radius: int,
+                       bits: int) -> np.ndarray:
+    """(S,) region term (as `shifted_region`) with both bands moved by each of `shifts` and the
+    histograms re-estimated there: 2 x region_separation - 1 of every shifted outline. `codes`
+    covers the bands' array grown by `radius` on every side, -1 where there is no image (not
+    counted); one bincount over all shifts."""
+    n_bins = 1 << (3 * bits)
+    w, n = codes.shape[1], len(shifts)
+    off = (shifts[:, 1] * w + shifts[:, 0]).astype(np.intp)[:, None]
+    rows = np.arange(n, dtype=np.intp)[:, None] * (n_bins + 1)
+    flat = codes.ravel()
+
+    def histograms(band: np.ndarray) -> np.ndarray:
+        ys, xs = np.nonzero(band)
+        q = flat[((ys + radius) * w + xs + radius)[None, :] + off]
+        h = np.bincount((rows + np.where(q < 0, n_bins, q)).ravel(), minlength=n * (n_bins + 1))
+        h = h.reshape(n, n_bins + 1)[:, :n_bins].astype(np.float64)
+        return h / np.maximum(h.sum(axis=1, keepdims=True), 1.0)
+
+    hf, hb = histograms(inner), histograms(outer)
+    pf = (hf + 1e-4) / (hf + hb + 2e-4)
+    return (hf * pf).sum(axis=1) - (hb * pf).sum(axis=1)
+
+
 def shifted_edges(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, normals: np.ndarray,
                   shifts: np.ndarray, tau: float, max_angle: float) -> np.ndarray:
     """edge_agreement of the outline (uv, normals; uv in the maps' coordinates) moved by each of
@@ -151,4 +175,4 @@ def shifted_edges(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, 
 
 
 __all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "nearest_edges", "edge_agreement",
-           "band_posterior", "disc_shifts", "shifted_region", "shifted_edges"]
+           "band_posterior", "disc_shifts", "shifted_region", "shifted_separation", "shifted_edges"]
