@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -15,7 +16,17 @@ from perception_config.blocks.scoring import PsiC
 from perception_config.datasets.bop import BopDataset
 from perception_config.geometry import Pose, perturb
 from perception_config.scene import Frame
-from perception_config.vision.appearance import edge_agreement, nearest_edges, outline_bands, region_separation
+from perception_config.vision.appearance import (
+    band_posterior,
+    disc_shifts,
+    edge_agreement,
+    nearest_edges,
+    outline_bands,
+    region_separation,
+    shifted_edges,
+    shifted_region,
+    shifted_separation,
+)
 from perception_config.vision.edges import canny_edges, silhouette_points
 from perception_config.vision.visibility import hypothesis_rendering
 
@@ -69,6 +80,53 @@ def test_region_separation_peaks_on_the_true_outline() -> None:
     off = region_separation(codes, *outline_bands(shifted, 8), bits=2)
     noise = region_separation(rng.integers(0, 64, (40, 60)).astype(np.int32), *outline_bands(true, 8), bits=2)
     assert at_truth > 0.99 and off < at_truth - 0.3 and abs(noise - 0.5) < 0.1, (at_truth, off, noise)
+
+
+def test_shifted_terms_equal_the_terms_of_the_moved_outline() -> None:
+    """The search's correlation / batched histograms / gathers give, at each shift, what the
+    direct cues give for the outline moved there (maps grown by the radius on every side)."""
+    rng = np.random.default_rng(2)
+    R, bits = 6, 3
+    codes = rng.integers(0, 1 << (3 * bits), (60 + 2 * R, 70 + 2 * R)).astype(np.int32)
+    codes[R + 20:R + 40, R + 25:R + 50] = 7  # an object of one colour
+    mask = np.zeros((60, 70), np.uint8)
+    mask[22:41, 24:47] = 1
+    inner, outer = outline_bands(mask, 5)
+    pf = band_posterior(codes[R:-R, R:-R], inner, outer, bits).astype(np.float32)
+    region = shifted_region(pf[codes], inner, outer, R)
+    shifts = disc_shifts(R)
+    assert tuple(shifts[0]) == (0, 0) and len(shifts) == int(np.sum(np.hypot(*np.mgrid[-R:R + 1, -R:R + 1]) <= R))
+    separation = shifted_separation(codes, inner, outer, shifts, R, bits)
+    dist = rng.uniform(0, 12, codes.shape).astype(np.float32)
+    angle = rng.uniform(0, math.pi, codes.shape).astype(np.float32)
+    uv = np.stack(np.nonzero(mask & ~cv2.erode(mask, np.ones((3, 3), np.uint8))), axis=1)[:, ::-1] + R
+    normals = rng.normal(size=uv.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    edges = shifted_edges(dist, angle, uv, normals, shifts, 10.0, 0.4)
+    for k in rng.choice(len(shifts), 12, replace=False):
+        dx, dy = shifts[k]
+        moved = codes[R + dy:R + dy + 60, R + dx:R + dx + 70]
+        direct = pf[moved][inner].mean() - pf[moved][outer].mean()
+        assert region[dy + R, dx + R] == pytest.approx(direct, abs=1e-5)
+        assert separation[k] == pytest.approx(2 * region_separation(moved, inner, outer, bits) - 1, abs=1e-9)
+        assert edges[k] == pytest.approx(edge_agreement(dist, angle, uv + (dx, dy), normals, 10.0, 0.4)[0], abs=1e-9)
+
+
+def test_the_search_finds_a_few_pixel_offset_and_scores_the_outline_there() -> None:
+    model, gt, frame = random_box_scene(4)
+    rgb_only = Frame(frame.rgb, None, frame.K)
+    px = 4.0
+    moved = Pose(gt.R, gt.t + [px * gt.t[2] / frame.K[0, 0], 0.0, 0.0])  # 4 px to the right
+    at_gt, searched = score(rgb_only, model, gt), score(rgb_only, model, moved)
+    fixed = score(rgb_only, model, moved, search_radius=0)
+    assert at_gt.ok and searched.ok and fixed.ok
+    dx, dy = searched.info["shift_px"]
+    assert abs(dx + px) <= 2 and abs(dy) <= 2, searched.info["shift_px"]
+    assert searched.scores["psi_rgb"] > fixed.scores["psi_rgb"] + 0.05, (searched.scores, fixed.scores)
+    assert searched.scores["psi_rgb"] <= at_gt.scores["psi_rgb"] + 0.02
+    # the sub-scores stay the cues at the pose itself
+    assert searched.scores["psi_rgb_region"] == pytest.approx(fixed.scores["psi_rgb_region"])
+    assert searched.scores["psi_rgb_edges"] == pytest.approx(fixed.scores["psi_rgb_edges"])
 
 
 def test_high_at_the_ground_truth_of_a_constructed_frame_without_depth_or_model_colour() -> None:
