@@ -1,6 +1,12 @@
 """psi_rgb: how well a hypothesis explains the RGB image, without depth.
 
-psi_rgb = (region + edge_weight x edges) / (1 + edge_weight), both in [0, 1]:
+psi_rgb is the best fit (region + edge_weight x edges) / (1 + edge_weight), all in [0, 1], of the
+hypothesis's rendered outline moved over the image by up to `search_radius` px (every
+`search_step` px; the region term there averages the band histograms of the hypothesis, kept,
+and histograms re-estimated at the moved outline). The fit at a shift is what the outline,
+not its exact placement, explains: the LM-O annotations are themselves 2-6 px off the image in
+places, and a good hypothesis a few px off fits as well as the annotation. Its sub-scores are
+the cues at the pose itself (`info["shift_px"]` gives the best shift):
 - region (`psi_rgb_region`) = 2 x (band colour separation - 0.5): the rendered outline's
   inner and outer bands compared by their colour histograms, region-based tracking style
   (vision/appearance.py); 0 when the outline separates nothing, 1 when the two sides share no
@@ -11,7 +17,7 @@ psi_rgb = (region + edge_weight x edges) / (1 + edge_weight), both in [0, 1]:
 
 It uses the image only (no depth, no model colour: models without vertex colours score alike;
 `info["used"]` says what was used). On real LM-O photographs (lmo-rgb) it ranks a pose within
-the pick tolerance above one outside at AUC 0.84 for the same object, where psi_c does 0.72
+the pick tolerance above one outside at AUC 0.876 for the same object, where psi_c does 0.72
 (README, "Scoring on real photographs"). The Canny map is computed once per frame and shared
 with d2co/chamfer through BlockInput.cache, the hypothesis render with the other scores; the
 rest works on the hypothesis's crop.
@@ -47,7 +53,8 @@ from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param,
 
 @register
 class PsiRgb(Block):
-    """Colour-region separation plus oriented edge agreement of the rendered outline (RGB only)."""
+    """Colour-region separation plus oriented edge agreement of the rendered outline, best within a few px
+    (RGB only)."""
 
     kind = Kind.SCORING
     name = "psi_rgb"

@@ -17,13 +17,23 @@ within 1-2 px ranks noise):
   with labels on the hypothesis's crop) counts as `tau` when that edge's direction differs from the
   outline's by more than `max_angle`; the score is 1 - mean(min(distance, tau)) / tau.
 
+The search (`disc_shifts`, `shifted_region`, `shifted_separation`, `shifted_edges`): the same
+cues with the hypothesis's outline moved over the image by every shift up to a radius, the
+region term both with the hypothesis's band histograms kept (one cv2.matchTemplate correlation
+of the posterior map with the +1/n_inner, -1/n_outer band template) and with the histograms
+re-estimated at the moved outline (one bincount over all shifts); psi_rgb takes the best fit.
+
 Measured on lmo-rgb (20 real frames, 142 instances, 5680 poses at lambda 0.05-0.5; AUC of
-in-tolerance over out-of-tolerance poses of the same instance): region 0.837 with a 10 px band
-and 4 bits (3 bits 0.827, 4 px 0.792, 12 px 0.832, a band scaled with the object 0.831),
-edges 0.797 (unoriented 0.724), region + edges 0.838-0.842; tried and dropped: a foreground
-histogram from the model's vertex colours (0.751), per-sector histograms (0.818), the score
-relative to the outline shifted by 4-8 px (0.756-0.804), image-gradient profiles along the
-outline normals (the 1D search of edge trackers, 0.733), adding psi_c (0.833); psi_c 0.718.
+in-tolerance over out-of-tolerance poses of the same instance): at the pose, region 0.831,
+edges 0.797, region + 0.5 edges 0.838; best fit within 8 px with kept histograms 0.861, with
+re-estimated ones 0.849 (within 4 px 0.868, 16 px 0.797: the re-estimated optimum wanders on
+weak colour contrast), the two averaged 0.876. The shift of the optimum ranks worse than the
+fit (its length within 16 px: 0.52 kept, 0.79 re-estimated, 0.59 on object 10), and subtracting
+it or the gain of moving from the fit lowers the AUC (0.80-0.85).
+Tried and dropped: histograms from the model's vertex colours (0.751), per-sector histograms
+(0.818), the score relative to the outline shifted by 4-8 px (0.756-0.804), image-gradient
+profiles along the outline normals (0.733), adding psi_c (0.833), histograms of the whole
+object against a wider ring (0.824-0.836); psi_c 0.718.
 """
 from __future__ import annotations
 
