@@ -129,6 +129,23 @@ def test_the_search_finds_a_few_pixel_offset_and_scores_the_outline_there() -> N
     assert searched.scores["psi_rgb_edges"] == pytest.approx(fixed.scores["psi_rgb_edges"])
 
 
+def test_objects_cut_by_the_image_border_are_scored() -> None:
+    """The outline's points beyond the image (where the border cuts the object) are dropped,
+    also when the search moves the outline towards the border (an IndexError before)."""
+    model, gt, frame = random_box_scene(5)
+    rgb_only, z = Frame(frame.rgb, None, frame.K), gt.t[2]
+    scored = 0
+    for side, limit in ((1, frame.height), (0, frame.width), (1, 0), (0, 0)):
+        for px in (-30.0, -10.0, 0.0, 10.0):  # object centre that far inside / outside the border
+            t = gt.t.copy()
+            t[side] = (limit - px * np.sign(limit - 0.5) - frame.K[side, 2]) * z / frame.K[side, side]
+            r = score(rgb_only, model, Pose(gt.R, t))
+            assert r.ok or "failed" not in r.reason, r.reason
+            assert not r.ok or all(0.0 <= v <= 1.0 for v in r.scores.values()), r.scores
+            scored += r.ok
+    assert scored >= 8, scored
+
+
 def test_high_at_the_ground_truth_of_a_constructed_frame_without_depth_or_model_colour() -> None:
     model, gt, frame = random_box_scene(1)
     assert model.colors is None

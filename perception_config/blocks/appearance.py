@@ -128,7 +128,9 @@ class PsiRgb(Block):
         distance[inside], edge_angle[inside] = np.minimum(dist, c["tau"]), angle
         uv, n = silhouette_points(r)
         norm = np.linalg.norm(n, axis=1)
-        ok = norm > 1e-6
+        # outline pixels beyond the image border (silhouette_points' padding where the border cuts
+        # the object) are not outline
+        ok = (norm > 1e-6) & np.all((uv >= 0) & (uv < (frame.width, frame.height)), axis=1)
         uv, n = uv[ok] - (X0, Y0), n[ok] / norm[ok, None]
         max_angle = math.radians(c["max_angle_deg"])
         edges, n_outline = edge_agreement(distance, edge_angle, uv, n, c["tau"], max_angle)
