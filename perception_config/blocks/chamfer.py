@@ -25,8 +25,8 @@ import numpy as np
 from ..geometry import Pose, exp_so3
 from ..render import projected_box
 from ..scene import Frame
-from ..vision.edges import bilinear, canny_edges, model_contour, project_with_directions
-from ..vision.pose_solver import levenberg_marquardt, project_with_jacobian
+from ..vision.edges import bilinear, canny_edges, crop_problem, model_contour, project_with_directions
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -59,21 +59,32 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     """Common checks: (reason or '', edge distance, contour points, contour directions)."""
     frame, pose = inp.frame, inp.pose
     assert pose is not None
-    if projected_box(inp.model, pose, frame.K, frame.width, frame.height) is None:
-        return "the object at the hypothesis is outside the image", None, np.zeros((0, 3)), np.zeros((0, 3))
+    none = np.zeros((0, 3))
+    box = projected_box(inp.model, pose, frame.K, frame.width, frame.height)
+    if box is None:
+        return "the object at the hypothesis is outside the image", None, none, none
+    why = crop_problem(frame, box)
+    if why:
+        return why, None, none, none
     edge = edge_distance(frame, inp.cache, c["canny_low"], c["canny_high"], labels)
     if edge[3] == 0:
-        return "the image has no edges", None, np.zeros((0, 3)), np.zeros((0, 3))
-    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng)
+        return "the image has no edges", None, none, none
+    x, y, w, h = box
+    if not np.any(edge[0][y:y + h, x:x + w] < 1.0):
+        return "no image edges around the hypothesis", None, none, none
+    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"])
     if len(P) < 6:
         return f"only {len(P)} contour points visible from the hypothesis", None, P, D
     return "", edge, P, D
 
 
 _COMMON = (
-    Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold"),
-    Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
+    Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
+    Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
     Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
+    Param("mesh_edges", False, doc="use the model's visible sharp mesh edges besides the silhouette"),
+    Param("accept_margin", 0.0, 0.0, 0.9,
+          doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
 )
 
 
@@ -92,9 +103,10 @@ class ChamferMatching(Block):
         Param("rounds", 4, 1, 20, doc="search rounds; the radius halves each round"),
         Param("candidates", 40, 4, 1000, doc="random poses tried per round"),
         Param("batch", 10, 1, 1000, doc="candidates evaluated together; the best of a batch becomes the centre"),
-        Param("rotation_deg", 4.0, 0.1, 45.0, doc="first-round rotation radius (deg)"),
-        Param("translation_mm", 6.0, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
-        Param("max_distance", 20.0, 1.0, 200.0, doc="truncation of the chamfer distance (px)"),
+        Param("rotation_deg", 2.0, 0.1, 45.0, doc="first-round rotation radius (deg)"),
+        Param("translation_mm", 3.0, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
+        Param("max_distance", 6.0, 1.0, 200.0,
+              doc="truncation of the chamfer distance (px): occluded or unsupported points stop counting"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -143,8 +155,11 @@ class ChamferMatching(Block):
                 done += k
             tried += done
             rot, trans = rot / 2, trans / 2
+        info = {"cost_before": cost0, "candidates": tried, "points": len(P), "cost_candidate": best}
+        if not best < cost0 * (1.0 - c["accept_margin"]):
+            return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})
         return BlockResult(ok=True, pose=Pose(best_R, best_t), scores={"chamfer_cost": best},
-                           info={"cost_before": cost0, "improved": best < cost0, "candidates": tried, "points": len(P)})
+                           info={**info, "improved": True})
 
 
 @register
@@ -165,6 +180,10 @@ class ChamferIcp(Block):
         Param("max_match_px", 15.0, 1.0, 200.0, doc="first-iteration matching distance (px)"),
         Param("min_match_px", 3.0, 0.5, 200.0, doc="last-iteration matching distance (px)"),
         Param("depth_prior_mm", 5.0, 0.1, 1000.0, doc="depth shift (mm) that costs as much as every point 1 px"),
+        Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
+              doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
+        Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the reprojection error"),
+        Param("max_distance", 20.0, 1.0, 200.0, doc="truncation of the chamfer distance of the reported cost (px)"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -178,8 +197,17 @@ class ChamferIcp(Block):
         dt, labels, lut, _ = edge
         H, W = dt.shape
         K = frame.K
+        cap = float(c["max_distance"])
+        dtc = np.minimum(dt, cap)
+
+        def chamfer_cost(R_: np.ndarray, t_: np.ndarray) -> float:
+            uv_, _ = project_with_directions(R_, t_, P, D, K)
+            return float(np.mean(bilinear(dtc, uv_[:, 0], uv_[:, 1], cap)))
+
+        cost0 = chamfer_cost(pose0.R, pose0.t)
         ray = pose0.t / np.linalg.norm(pose0.t)
         prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
+        rot_prior = np.sqrt(len(P)) / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
         R, t = pose0.R, pose0.t
         n_it = int(c["iterations"])
         dists = np.geomspace(c["max_match_px"], min(c["min_match_px"], c["max_match_px"]), n_it)
@@ -207,13 +235,16 @@ class ChamferIcp(Block):
                 uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
                 return (uv_ - target).ravel(), J.reshape(-1, 6)
 
-            # the depth prior is anchored at the call's start, not at each iteration's pose
+            # the priors are anchored at the call's start, not at each iteration's pose
             R, t, _ = levenberg_marquardt(evaluate, R, t, prior, huber=max(2.0, float(dists[it])),
                                           max_iterations=int(c["steps"]), deadline=deadline,
-                                          anchor=pose0.t)
+                                          anchor=pose0.t, loss=str(c["loss"]), rotation_prior=rot_prior,
+                                          rotation_anchor=pose0.R)
         if not np.isfinite(mean_dist):
             return BlockResult.fail("too few contour points near image edges to match")
-        uv, _ = project_with_directions(R, t, P, D, K)
-        cost = float(np.mean(bilinear(np.minimum(dt, 20.0), uv[:, 0], uv[:, 1], 20.0)))
-        return BlockResult(ok=True, pose=Pose(R, t), scores={"chamfer_cost": cost},
-                           info={"match_distance": mean_dist, "matches": matched, "iterations": it + 1})
+        cost = chamfer_cost(R, t)
+        info = {"match_distance": mean_dist, "matches": matched, "iterations": it + 1, "cost_before": cost0,
+                "cost_candidate": cost}
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and cost < cost0 * (1.0 - c["accept_margin"])):
+            return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})
+        return BlockResult(ok=True, pose=Pose(R, t), scores={"chamfer_cost": cost}, info={**info, "improved": True})

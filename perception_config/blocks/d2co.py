@@ -27,8 +27,8 @@ import numpy as np
 
 from ..geometry import Pose
 from ..render import projected_box
-from ..vision.edges import TensorCache, model_contour, sample_tensor
-from ..vision.pose_solver import levenberg_marquardt, project_with_jacobian
+from ..vision.edges import TensorCache, crop_problem, model_contour, sample_tensor
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -49,13 +49,25 @@ class D2CO(Block):
               doc="tensor cost per bin of orientation difference (px); the notes: 0.5 works, 5 hurts"),
         Param("max_distance", 30.0, 2.0, 200.0, doc="truncation of the chamfer distance (px): robustness to clutter"),
         Param("crop_margin", 40, 0, 400, doc="pixels around the hypothesis's box the tensor covers"),
-        Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold"),
-        Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
+        Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
+        Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
         Param("depth_prior_mm", 5.0, 0.1, 1000.0,
               doc="depth shift (mm) that costs as much as every point 1 px: keeps the weakly observed depth"),
+        Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
+              doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
         Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
-        Param("mesh_edges", True, doc="use the model's visible sharp mesh edges besides the silhouette"),
-        Param("huber_px", 2.0, 0.1, 50.0, doc="Huber threshold of the per-point cost (px)"),
+        Param("mesh_edges", False, doc="use the model's visible sharp mesh edges besides the silhouette (scanned meshes' "
+              "\"sharp\" edges are mostly spurious)"),
+        Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the per-point cost"),
+        Param("huber_px", 2.0, 0.1, 50.0, doc="scale of the robust loss (px): the final stage's"),
+        Param("coarse_factor", 1.0, 1.0, 10.0,
+              doc="first stage's scale = coarse_factor x huber_px, halving down to huber_px (1: one stage)"),
+        Param("accept_margin", 0.0, 0.0, 0.9,
+              doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
+        Param("holdout", 0.0, 0.0, 0.8,
+              doc="share of the contour points held out of the fit: the result must lower their cost too"),
+        Param("min_support", 0.0, 0.0, 1.0,
+              doc="share of contour points within huber_px of a matching image edge at the start required"),
         Param("max_iterations", 30, 1, 500, doc="LM iterations"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
@@ -67,6 +79,9 @@ class D2CO(Block):
         box = projected_box(model, pose0, frame.K, frame.width, frame.height)
         if box is None:
             return BlockResult.fail("the object at the hypothesis is outside the image")
+        why = crop_problem(frame, box)
+        if why:
+            return BlockResult.fail(why)
         margin = int(c["crop_margin"])
         dct, crop, n_edges = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
                                              c["max_distance"], c["canny_low"], c["canny_high"])
@@ -76,23 +91,49 @@ class D2CO(Block):
         if len(P) < 6:
             return BlockResult.fail(f"only {len(P)} contour points visible from the hypothesis")
         K, cap, (x0, y0) = frame.K, float(c["max_distance"]), crop[:2]
+        loss, scale = str(c["loss"]), float(c["huber_px"])
 
-        def evaluate(R: np.ndarray, t: np.ndarray, jacobian: bool = True):
+        def residuals(R: np.ndarray, t: np.ndarray, P=P, D=D, jacobian: bool = True):
             uv, ang, Jp = project_with_jacobian(R, t, P, D, K)
             r, gx, gy = sample_tensor(dct, uv[:, 0] - x0, uv[:, 1] - y0, ang, cap, gradient=True)
             return r, gx[:, None] * Jp[:, 0, :] + gy[:, None] * Jp[:, 1, :]
 
+        def cost(r: np.ndarray) -> float:
+            return float(np.mean(robust_rho(r, loss, scale)))
+
+        r0, _ = residuals(pose0.R, pose0.t)
+        support = float(np.mean(r0 <= scale))
+        if support < c["min_support"]:
+            return BlockResult.fail(f"only {support:.0%} of the contour lies on matching image edges (occluded, "
+                                    "blurred or far off)")
+        n_hold = int(round(c["holdout"] * len(P))) if len(P) - int(round(c["holdout"] * len(P))) >= 6 else 0
+        order = inp.rng.permutation(len(P))
+        fit, hold = order[n_hold:], order[:n_hold]
+        Pf, Df = P[fit], D[fit]
         # Edges barely constrain depth along the viewing ray: a weak prior keeps it where it was
-        # (a shift of depth_prior_mm costs as much as every point 1 px further off).
+        # (a shift of depth_prior_mm costs as much as every point 1 px further off); likewise rotation.
         ray = pose0.t / np.linalg.norm(pose0.t)
-        prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
-        r0, _ = evaluate(pose0.R, pose0.t)
-        cost0 = float(np.mean(r0))
-        R, t, iterations = levenberg_marquardt(evaluate, pose0.R, pose0.t, prior, float(c["huber_px"]),
-                                               int(c["max_iterations"]), self.deadline(inp, start))
-        r, _ = evaluate(R, t)
-        cost = float(np.mean(r))
-        info = {"cost_before": cost0, "iterations": iterations, "points": len(P), "tensor_crop": crop}
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or cost >= cost0:
+        prior = ray * np.sqrt(len(Pf)) / (c["depth_prior_mm"] * 1e-3)
+        rot_prior = np.sqrt(len(Pf)) / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
+        cost0 = cost(r0)
+        deadline = self.deadline(inp, start)
+        R, t, iterations = pose0.R, pose0.t, 0
+        stage = scale * float(c["coarse_factor"])
+        while True:  # coarse to fine: the robust scale halves down to huber_px
+            s = max(stage, scale)
+            R, t, it = levenberg_marquardt(lambda R_, t_: residuals(R_, t_, Pf, Df), R, t, prior, s,
+                                           int(c["max_iterations"]), deadline, loss=loss,
+                                           rotation_prior=rot_prior, anchor=pose0.t, rotation_anchor=pose0.R)
+            iterations += it
+            if s <= scale or time.perf_counter() > deadline:
+                break
+            stage /= 2.0
+        r, _ = residuals(R, t)
+        cost1 = cost(r)
+        info = {"cost_before": cost0, "iterations": iterations, "points": len(P), "tensor_crop": crop,
+                "support": support, "cost_candidate": cost1}
+        accept = (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and cost1 < cost0 * (1.0 - c["accept_margin"])
+                  and (n_hold == 0 or cost(r[hold]) < cost(r0[hold])))
+        if not accept:
             return BlockResult(ok=True, pose=pose0, scores={"d2co_cost": cost0}, info={**info, "improved": False})
-        return BlockResult(ok=True, pose=Pose(R, t), scores={"d2co_cost": cost}, info={**info, "improved": True})
+        return BlockResult(ok=True, pose=Pose(R, t), scores={"d2co_cost": cost1}, info={**info, "improved": True})

@@ -226,6 +226,24 @@ class TensorCache:
         return dct, crop, n_edges
 
 
+def crop_problem(frame: Frame, box: Box, min_size: int = 8, min_contrast: float = 2.0,
+                 max_saturated: float = 0.9) -> str:
+    """Why the image inside `box` cannot guide an edge refiner, or '' when it can: the object
+    projects to fewer than `min_size` px across, the grey crop is blank (standard deviation
+    under `min_contrast` grey levels) or over-exposed (more than `max_saturated` of its pixels
+    at 250 or above)."""
+    x, y, w, h = box
+    if min(w, h) < min_size:
+        return f"the object projects to only {w}x{h} px (needs {min_size} px across)"
+    grey = cv2.cvtColor(np.ascontiguousarray(frame.rgb[y:y + h, x:x + w]), cv2.COLOR_RGB2GRAY)
+    if float(grey.std()) < min_contrast:
+        return f"the image around the hypothesis is blank (grey-level spread {grey.std():.1f})"
+    saturated = float(np.mean(grey >= 250))
+    if saturated > max_saturated:
+        return f"the image around the hypothesis is over-exposed ({saturated:.0%} of the pixels saturated)"
+    return ""
+
+
 def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
     """The box grown by `margin` px, its corners snapped outwards to multiples of `align` (so
     nearby hypotheses share a crop and its cached tensor), clipped to the image."""
