@@ -25,7 +25,7 @@ import numpy as np
 from ..geometry import Pose, exp_so3
 from ..render import projected_box
 from ..scene import Frame
-from ..vision.edges import bilinear, canny_edges, crop_problem, model_contour, project_with_directions
+from ..vision.edges import bilinear, canny_edges, edge_refinement_problem, model_contour, project_with_directions
 from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -61,9 +61,7 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     assert pose is not None
     none = np.zeros((0, 3))
     box = projected_box(inp.model, pose, frame.K, frame.width, frame.height)
-    if box is None:
-        return "the object at the hypothesis is outside the image", None, none, none
-    why = crop_problem(frame, box)
+    why = edge_refinement_problem(frame, inp.model, pose, box)
     if why:
         return why, None, none, none
     edge = edge_distance(frame, inp.cache, c["canny_low"], c["canny_high"], labels)
@@ -104,9 +102,11 @@ class ChamferMatching(Block):
         Param("candidates", 40, 4, 1000, doc="random poses tried per round"),
         Param("batch", 10, 1, 1000, doc="candidates evaluated together; the best of a batch becomes the centre"),
         Param("rotation_deg", 2.0, 0.1, 45.0, doc="first-round rotation radius (deg)"),
-        Param("translation_mm", 3.0, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
+        Param("translation_mm", 1.5, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
         Param("max_distance", 6.0, 1.0, 200.0,
               doc="truncation of the chamfer distance (px): occluded or unsupported points stop counting"),
+        Param("rotation_prior_deg", 2.0, 0.1, 1000.0,
+              doc="rotation away from the start (deg) that costs as much as every point 1 px further (1000: none)"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -131,8 +131,18 @@ class ChamferMatching(Block):
             u[z <= 1e-3] = np.nan
             return bilinear(dtc, u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
 
+        prior = 1.0 / np.radians(c["rotation_prior_deg"]) ** 2 if c["rotation_prior_deg"] < 1000 else 0.0
+
+        def objective(Rs: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """(chamfer cost + rotation prior, chamfer cost) of each candidate."""
+            data = costs(Rs, ts)
+            if prior == 0:
+                return data, data
+            cos = np.clip((np.einsum("cij,ij->c", Rs, pose0.R) - 1.0) / 2.0, -1.0, 1.0)
+            return data + prior * np.arccos(cos) ** 2, data
+
         best_R, best_t = pose0.R, pose0.t
-        best = cost0 = float(costs(best_R[None], best_t[None])[0])
+        best = cost0 = best_data = float(costs(best_R[None], best_t[None])[0])
         rot, trans = np.radians(c["rotation_deg"]), c["translation_mm"] * 1e-3
         # the image plane at the object: translations perpendicular to the viewing ray
         ray = pose0.t / np.linalg.norm(pose0.t)
@@ -148,17 +158,17 @@ class ChamferMatching(Block):
                 ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
                 Rs = np.stack([exp_so3(w) @ best_R for w in ws])
                 ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
-                values = costs(Rs, ts)
+                values, data = objective(Rs, ts)
                 i = int(np.argmin(values))
                 if values[i] < best:
-                    best, best_R, best_t = float(values[i]), Rs[i], ts[i]
+                    best, best_data, best_R, best_t = float(values[i]), float(data[i]), Rs[i], ts[i]
                 done += k
             tried += done
             rot, trans = rot / 2, trans / 2
-        info = {"cost_before": cost0, "candidates": tried, "points": len(P), "cost_candidate": best}
-        if not best < cost0 * (1.0 - c["accept_margin"]):
+        info = {"cost_before": cost0, "candidates": tried, "points": len(P), "cost_candidate": best_data}
+        if not best_data < cost0 * (1.0 - c["accept_margin"]):
             return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})
-        return BlockResult(ok=True, pose=Pose(best_R, best_t), scores={"chamfer_cost": best},
+        return BlockResult(ok=True, pose=Pose(best_R, best_t), scores={"chamfer_cost": best_data},
                            info={**info, "improved": True})
 
 

@@ -27,9 +27,27 @@ import numpy as np
 
 from ..geometry import Pose
 from ..render import projected_box
-from ..vision.edges import TensorCache, crop_problem, model_contour, sample_tensor
+from ..vision.edges import TensorCache, edge_refinement_problem, model_contour, sample_tensor
 from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
+
+
+def best_shift(dct: np.ndarray, origin: tuple[int, int], cap: float, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+               P: np.ndarray, D: np.ndarray, radius: int, step: int, cost) -> np.ndarray:
+    """The translation, moved parallel to the image plane, whose contour costs least over a grid
+    of image shifts within `radius` px (`cost` maps residuals (S, N) to (S,)); `t` itself when
+    no shift is cheaper."""
+    uv, ang, _ = project_with_jacobian(R, t, P, D, K)
+    g = np.arange(-radius, radius + 1, step, dtype=np.float64)
+    du, dv = (a.ravel() for a in np.meshgrid(g, g))
+    xs = uv[None, :, 0] - origin[0] + du[:, None]
+    ys = uv[None, :, 1] - origin[1] + dv[:, None]
+    values = cost(sample_tensor(dct, xs.ravel(), ys.ravel(), np.tile(ang, len(du)), cap).reshape(len(du), -1))
+    i = int(np.argmin(values))
+    if du[i] == 0 and dv[i] == 0:
+        return t
+    z = float(t[2])
+    return t + np.array([du[i] * z / K[0, 0], dv[i] * z / K[1, 1], 0.0])
 
 
 @register
@@ -51,13 +69,14 @@ class D2CO(Block):
         Param("crop_margin", 40, 0, 400, doc="pixels around the hypothesis's box the tensor covers"),
         Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
         Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
+        Param("blur_px", 1.0, 0.5, 5.0, doc="sigma (px) of the Gaussian before Canny"),
         Param("depth_prior_mm", 5.0, 0.1, 1000.0,
               doc="depth shift (mm) that costs as much as every point 1 px: keeps the weakly observed depth"),
         Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
               doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
         Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
-        Param("mesh_edges", False, doc="use the model's visible sharp mesh edges besides the silhouette (scanned meshes' "
-              "\"sharp\" edges are mostly spurious)"),
+        Param("mesh_edges", False,
+              doc="add the visible sharp mesh edges to the silhouette (a scanned mesh's are mostly spurious)"),
         Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the per-point cost"),
         Param("huber_px", 2.0, 0.1, 50.0, doc="scale of the robust loss (px): the final stage's"),
         Param("coarse_factor", 1.0, 1.0, 10.0,
@@ -68,6 +87,9 @@ class D2CO(Block):
               doc="share of the contour points held out of the fit: the result must lower their cost too"),
         Param("min_support", 0.0, 0.0, 1.0,
               doc="share of contour points within huber_px of a matching image edge at the start required"),
+        Param("shift_search_px", 0, 0, 40,
+              doc="radius (px) of an exhaustive image-plane shift search before LM (0: none): widens the basin"),
+        Param("shift_step_px", 2, 1, 10, doc="grid step (px) of the shift search"),
         Param("max_iterations", 30, 1, 500, doc="LM iterations"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
@@ -77,14 +99,12 @@ class D2CO(Block):
         assert pose0 is not None
         start = time.perf_counter()
         box = projected_box(model, pose0, frame.K, frame.width, frame.height)
-        if box is None:
-            return BlockResult.fail("the object at the hypothesis is outside the image")
-        why = crop_problem(frame, box)
+        why = edge_refinement_problem(frame, model, pose0, box)
         if why:
             return BlockResult.fail(why)
         margin = int(c["crop_margin"])
         dct, crop, n_edges = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
-                                             c["max_distance"], c["canny_low"], c["canny_high"])
+                                             c["max_distance"], c["canny_low"], c["canny_high"], c["blur_px"])
         if dct is None or n_edges == 0:
             return BlockResult.fail("no image edges around the hypothesis")
         P, D = model_contour(frame, model, pose0, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"])
@@ -118,6 +138,9 @@ class D2CO(Block):
         cost0 = cost(r0)
         deadline = self.deadline(inp, start)
         R, t, iterations = pose0.R, pose0.t, 0
+        if c["shift_search_px"] > 0:
+            t = best_shift(dct, (x0, y0), cap, K, R, t, Pf, Df, int(c["shift_search_px"]), int(c["shift_step_px"]),
+                           lambda r: robust_rho(r, loss, 2.0 * scale).mean(axis=-1))
         stage = scale * float(c["coarse_factor"])
         while True:  # coarse to fine: the robust scale halves down to huber_px
             s = max(stage, scale)

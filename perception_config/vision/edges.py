@@ -78,13 +78,16 @@ def silhouette_points(rendering: Rendering) -> tuple[np.ndarray, np.ndarray]:
 
 
 def canny_edges(frame: Frame, cache: dict | None, low: float = 40.0,
-                high: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
-    """(edges uint8 HxW, direction float32 HxW in [0, pi) along the edge), cached per frame."""
-    key = f"edges:canny:{low}:{high}"
+                high: float = 100.0, blur: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(edges uint8 HxW, direction float32 HxW in [0, pi) along the edge), cached per frame;
+    Canny runs on the grey image after a Gaussian of sigma `blur` px (a wider one keeps the
+    outlines of a blurred photograph and drops fine texture)."""
+    key = f"edges:canny:{low}:{high}" + (f":{float(blur)}" if blur != 1.0 else "")
     if cache is not None and key in cache and cache[key][0] is frame.rgb:
         return cache[key][1]
     gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
-    edges = cv2.Canny(cv2.GaussianBlur(gray, (5, 5), 1.0), low, high)
+    ksize = 5 if blur == 1.0 else 2 * int(math.ceil(3 * blur)) + 1
+    edges = cv2.Canny(cv2.GaussianBlur(gray, (ksize, ksize), float(blur)), low, high)
     gx, gy = image_derivatives(frame, cache)
     # The edge runs perpendicular to the gradient.
     direction = np.mod(np.arctan2(gy, gx) + np.pi / 2, np.pi).astype(np.float32)
@@ -200,9 +203,10 @@ class TensorCache:
 
     @staticmethod
     def get(frame: Frame, cache: dict | None, box: Box, margin: int, reuse_margin: int, n_bins: int,
-            penalty: float, max_distance: float, low: float, high: float) -> tuple[np.ndarray, Box, int]:
-        """(tensor, crop box, edge pixels in the crop)."""
-        params = (n_bins, float(penalty), float(max_distance), float(low), float(high))
+            penalty: float, max_distance: float, low: float, high: float,
+            blur: float = 1.0) -> tuple[np.ndarray, Box, int]:
+        """(tensor, crop box, edge pixels in the crop); `blur` is canny_edges's."""
+        params = (n_bins, float(penalty), float(max_distance), float(low), float(high), float(blur))
         entries = cache.setdefault(TensorCache.KEY, []) if cache is not None else []
         if entries and entries[0][0] is not frame.rgb:  # a new frame in an old cache
             entries.clear()
@@ -214,7 +218,7 @@ class TensorCache:
             if p == params and cx <= need[0] and cy <= need[1] and cx + cw >= need[2] and cy + ch >= need[3]:
                 return dct, crop, n_edges
         crop = crop_box(frame, box, margin, align=8)
-        edges, direction = canny_edges(frame, cache, low, high)
+        edges, direction = canny_edges(frame, cache, low, high, blur)
         cx, cy, cw, ch = crop
         e = edges[cy:cy + ch, cx:cx + cw]
         n_edges = int(np.count_nonzero(e))
@@ -242,6 +246,31 @@ def crop_problem(frame: Frame, box: Box, min_size: int = 8, min_contrast: float 
     if saturated > max_saturated:
         return f"the image around the hypothesis is over-exposed ({saturated:.0%} of the pixels saturated)"
     return ""
+
+
+def share_in_image(frame: Frame, model: ObjectModel, pose: Pose) -> float:
+    """Share of the model's surface samples that project inside the image in front of the
+    camera at `pose` (an object mostly beyond the image border shows too little to fit)."""
+    pc = pose.transform(model.points)
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = frame.K[0, 0] * pc[:, 0] / z + frame.K[0, 1] * pc[:, 1] / z + frame.K[0, 2]
+        v = frame.K[1, 1] * pc[:, 1] / z + frame.K[1, 2]
+        inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= frame.width - 1) & (v <= frame.height - 1)
+    return float(np.mean(inside)) if len(pc) else 0.0
+
+
+def edge_refinement_problem(frame: Frame, model: ObjectModel, pose: Pose, box: Box | None,
+                            min_share: float = 0.1) -> str:
+    """The common input checks of the edge refiners: why the hypothesis cannot be refined on
+    this image ('' when it can): outside the image, under `min_share` of it inside, or a crop
+    that is tiny, blank or over-exposed (crop_problem)."""
+    if box is None:
+        return "the object at the hypothesis is outside the image"
+    share = share_in_image(frame, model, pose)
+    if share < min_share:
+        return f"only {share:.0%} of the object at the hypothesis lies inside the image"
+    return crop_problem(frame, box)
 
 
 def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
