@@ -70,7 +70,8 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     x, y, w, h = box
     if not np.any(edge[0][y:y + h, x:x + w] < 1.0):
         return "no image edges around the hypothesis", None, none, none
-    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"])
+    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"],
+                         c["edge_coherence"])
     if len(P) < 6:
         return f"only {len(P)} contour points visible from the hypothesis", None, P, D
     return "", edge, P, D
@@ -80,7 +81,9 @@ _COMMON = (
     Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
     Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
     Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
-    Param("mesh_edges", False, doc="use the model's visible sharp mesh edges besides the silhouette"),
+    Param("mesh_edges", True, doc="add the visible sharp mesh edges to the silhouette"),
+    Param("edge_coherence", 0.95, 0.0, 1.0,
+          doc="sharp-edge samples less straight than this are left out (a scanned mesh's are mostly spurious)"),
     Param("accept_margin", 0.0, 0.0, 0.9,
           doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
 )
@@ -107,6 +110,11 @@ class ChamferMatching(Block):
               doc="truncation of the chamfer distance (px): occluded or unsupported points stop counting"),
         Param("rotation_prior_deg", 2.0, 0.1, 1000.0,
               doc="rotation away from the start (deg) that costs as much as every point 1 px further (1000: none)"),
+        Param("wide_rotation_deg", 4.0, 0.0, 45.0, doc="the wide search's first-round rotation radius (deg; 0: none)"),
+        Param("wide_translation_mm", 6.0, 0.1, 100.0, doc="the wide search's first-round translation radius (mm)"),
+        Param("wide_max_distance", 20.0, 1.0, 200.0, doc="the wide search's truncation of the chamfer distance (px)"),
+        Param("wide_margin", 0.2, 0.0, 0.9,
+              doc="the wide search's result replaces the careful one's only if its cost is this fraction lower"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -117,54 +125,65 @@ class ChamferMatching(Block):
         why, edge, P, D = _start(inp, c, labels=False)
         if why:
             return BlockResult.fail(why)
-        cap = float(c["max_distance"])
-        dtc = np.minimum(edge[0], cap)
         K = frame.K
 
-        def costs(Rs: np.ndarray, ts: np.ndarray) -> np.ndarray:
-            """Mean truncated chamfer distance of the contour under each of C poses (C, 3, 3), (C, 3)."""
+        def costs(Rs: np.ndarray, ts: np.ndarray, cap: float) -> np.ndarray:
+            """Mean chamfer distance truncated at `cap` of the contour under each of C poses (C, 3, 3), (C, 3)."""
             pc = np.einsum("cij,nj->cni", Rs, P) + ts[:, None, :]
             z = pc[..., 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (K[0, 0] * pc[..., 0] + K[0, 1] * pc[..., 1]) / z + K[0, 2]
                 v = K[1, 1] * pc[..., 1] / z + K[1, 2]
             u[z <= 1e-3] = np.nan
-            return bilinear(dtc, u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
+            return bilinear(np.minimum(edge[0], cap), u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
 
-        prior = 1.0 / np.radians(c["rotation_prior_deg"]) ** 2 if c["rotation_prior_deg"] < 1000 else 0.0
-
-        def objective(Rs: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """(chamfer cost + rotation prior, chamfer cost) of each candidate."""
-            data = costs(Rs, ts)
-            if prior == 0:
-                return data, data
-            cos = np.clip((np.einsum("cij,ij->c", Rs, pose0.R) - 1.0) / 2.0, -1.0, 1.0)
-            return data + prior * np.arccos(cos) ** 2, data
-
-        best_R, best_t = pose0.R, pose0.t
-        best = cost0 = best_data = float(costs(best_R[None], best_t[None])[0])
-        rot, trans = np.radians(c["rotation_deg"]), c["translation_mm"] * 1e-3
         # the image plane at the object: translations perpendicular to the viewing ray
         ray = pose0.t / np.linalg.norm(pose0.t)
         e1 = np.cross(ray, [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         plane = np.stack([e1, np.cross(ray, e1)])
-        tried, n_batch = 0, int(c["batch"])
         deadline = self.deadline(inp, start)
-        for _ in range(int(c["rounds"])):
-            done = 0
-            while done < c["candidates"] and time.perf_counter() < deadline:
-                k = int(min(n_batch, c["candidates"] - done))
-                ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
-                Rs = np.stack([exp_so3(w) @ best_R for w in ws])
-                ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
-                values, data = objective(Rs, ts)
-                i = int(np.argmin(values))
-                if values[i] < best:
-                    best, best_data, best_R, best_t = float(values[i]), float(data[i]), Rs[i], ts[i]
-                done += k
-            tried += done
-            rot, trans = rot / 2, trans / 2
+
+        def search(rot_deg: float, trans_mm: float, cap: float, prior_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
+            """The random local search from the start: (R, t, candidates tried); the objective is
+            the chamfer distance truncated at `cap` plus (rotation from the start / prior_deg)^2."""
+            prior = 1.0 / np.radians(prior_deg) ** 2 if prior_deg < 1000 else 0.0
+            best_R, best_t = pose0.R, pose0.t
+            best = float(costs(best_R[None], best_t[None], cap)[0])
+            rot, trans = np.radians(rot_deg), trans_mm * 1e-3
+            tried, n_batch = 0, int(c["batch"])
+            for _ in range(int(c["rounds"])):
+                done = 0
+                while done < c["candidates"] and time.perf_counter() < deadline:
+                    k = int(min(n_batch, c["candidates"] - done))
+                    ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
+                    Rs = np.stack([exp_so3(w) @ best_R for w in ws])
+                    ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
+                    values = costs(Rs, ts, cap)
+                    if prior:
+                        cos = np.clip((np.einsum("cij,ij->c", Rs, pose0.R) - 1.0) / 2.0, -1.0, 1.0)
+                        values = values + prior * np.arccos(cos) ** 2
+                    i = int(np.argmin(values))
+                    if values[i] < best:
+                        best, best_R, best_t = float(values[i]), Rs[i], ts[i]
+                    done += k
+                tried += done
+                rot, trans = rot / 2, trans / 2
+            return best_R, best_t, tried
+
+        cap = float(c["max_distance"])
+        own = lambda R_, t_: float(costs(R_[None], t_[None], cap)[0])  # noqa: E731
+        cost0 = own(pose0.R, pose0.t)
+        # Two searches: a careful one (small radii, short truncation, rotation prior) and a wide
+        # one (larger radii, long truncation, no prior) that must beat it by wide_margin on the
+        # careful one's cost: it reaches farther but also finds clutter on real photographs.
+        best_R, best_t, tried = search(c["rotation_deg"], c["translation_mm"], cap, c["rotation_prior_deg"])
+        if c["wide_rotation_deg"] > 0 and time.perf_counter() < deadline:
+            Rw, tw, n = search(c["wide_rotation_deg"], c["wide_translation_mm"], c["wide_max_distance"], 1000.0)
+            tried += n
+            if own(Rw, tw) < own(best_R, best_t) * (1.0 - c["wide_margin"]):
+                best_R, best_t = Rw, tw
+        best_data = own(best_R, best_t)
         info = {"cost_before": cost0, "candidates": tried, "points": len(P), "cost_candidate": best_data}
         if not best_data < cost0 * (1.0 - c["accept_margin"]):
             return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})

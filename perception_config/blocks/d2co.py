@@ -75,12 +75,17 @@ class D2CO(Block):
         Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
               doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
         Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
-        Param("mesh_edges", False,
-              doc="add the visible sharp mesh edges to the silhouette (a scanned mesh's are mostly spurious)"),
+        Param("mesh_edges", True, doc="add the visible sharp mesh edges to the silhouette"),
+        Param("edge_coherence", 0.95, 0.0, 1.0,
+              doc="sharp-edge samples less straight than this are left out (a scanned mesh's are mostly spurious)"),
         Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the per-point cost"),
         Param("huber_px", 2.0, 0.1, 50.0, doc="scale of the robust loss (px): the final stage's"),
-        Param("coarse_factor", 1.0, 1.0, 10.0,
-              doc="first stage's scale = coarse_factor x huber_px, halving down to huber_px (1: one stage)"),
+        Param("coarse_factor", 2.0, 1.0, 10.0,
+              doc="a second, coarse-to-fine descent starts at coarse_factor x huber_px (1: none)"),
+        Param("coarse_rotation_prior_deg", 1000.0, 0.1, 1000.0, doc="rotation_prior_deg of the coarse descent"),
+        Param("coarse_loss", "huber", choices=LOSSES, doc="robust loss of the coarse descent's wide stages"),
+        Param("coarse_margin", 0.2, 0.0, 0.9,
+              doc="the coarse-to-fine result replaces the local one only if its cost is this fraction lower"),
         Param("accept_margin", 0.0, 0.0, 0.9,
               doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
         Param("holdout", 0.0, 0.0, 0.8,
@@ -107,7 +112,8 @@ class D2CO(Block):
                                              c["max_distance"], c["canny_low"], c["canny_high"], c["blur_px"])
         if dct is None or n_edges == 0:
             return BlockResult.fail("no image edges around the hypothesis")
-        P, D = model_contour(frame, model, pose0, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"])
+        P, D = model_contour(frame, model, pose0, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"],
+                             c["edge_coherence"])
         if len(P) < 6:
             return BlockResult.fail(f"only {len(P)} contour points visible from the hypothesis")
         K, cap, (x0, y0) = frame.K, float(c["max_distance"]), crop[:2]
@@ -141,16 +147,34 @@ class D2CO(Block):
         if c["shift_search_px"] > 0:
             t = best_shift(dct, (x0, y0), cap, K, R, t, Pf, Df, int(c["shift_search_px"]), int(c["shift_step_px"]),
                            lambda r: robust_rho(r, loss, 2.0 * scale).mean(axis=-1))
-        stage = scale * float(c["coarse_factor"])
-        while True:  # coarse to fine: the robust scale halves down to huber_px
-            s = max(stage, scale)
-            R, t, it = levenberg_marquardt(lambda R_, t_: residuals(R_, t_, Pf, Df), R, t, prior, s,
-                                           int(c["max_iterations"]), deadline, loss=loss,
-                                           rotation_prior=rot_prior, anchor=pose0.t, rotation_anchor=pose0.R)
+        fit_cost = lambda R_, t_: cost(residuals(R_, t_, Pf, Df)[0])  # noqa: E731
+
+        def descend(R: np.ndarray, t: np.ndarray, first: float, rot_prior: float,
+                    wide_loss: str) -> tuple[np.ndarray, np.ndarray, int]:
+            """LM with the robust scale halving from `first` down to huber_px (`wide_loss` above it)."""
+            stage, total = first, 0
+            while True:
+                s = max(stage, scale)
+                R, t, it = levenberg_marquardt(lambda R_, t_: residuals(R_, t_, Pf, Df), R, t, prior, s,
+                                               int(c["max_iterations"]), deadline,
+                                               loss=loss if s <= scale else wide_loss,
+                                               rotation_prior=rot_prior, anchor=pose0.t, rotation_anchor=pose0.R)
+                total += it
+                if s <= scale or time.perf_counter() > deadline:
+                    return R, t, total
+                stage /= 2.0
+
+        # Two hypotheses: a local descent at the final scale, and a coarse-to-fine one whose wide
+        # first stage reaches farther; the wide one must beat the local one by coarse_margin (it
+        # also finds spurious minima on cluttered photographs).
+        R, t, iterations = descend(R, t, scale, rot_prior, loss)
+        if c["coarse_factor"] > 1 and time.perf_counter() < deadline:
+            wide = c["coarse_rotation_prior_deg"]
+            Rc, tc, it = descend(pose0.R, pose0.t, scale * float(c["coarse_factor"]),
+                                 np.sqrt(len(Pf)) / np.radians(wide) if wide < 1000 else 0.0, str(c["coarse_loss"]))
             iterations += it
-            if s <= scale or time.perf_counter() > deadline:
-                break
-            stage /= 2.0
+            if fit_cost(Rc, tc) < fit_cost(R, t) * (1.0 - c["coarse_margin"]):
+                R, t = Rc, tc
         r, _ = residuals(R, t)
         cost1 = cost(r)
         info = {"cost_before": cost0, "iterations": iterations, "points": len(P), "tensor_crop": crop,

@@ -20,6 +20,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 
 import cv2
 import numpy as np
@@ -230,21 +231,21 @@ class TensorCache:
         return dct, crop, n_edges
 
 
-def crop_problem(frame: Frame, box: Box, min_size: int = 8, min_contrast: float = 2.0,
+def crop_problem(frame: Frame, box: Box, min_size: int = 8, min_contrast: float = 1.0,
                  max_saturated: float = 0.9) -> str:
     """Why the image inside `box` cannot guide an edge refiner, or '' when it can: the object
-    projects to fewer than `min_size` px across, the grey crop is blank (standard deviation
-    under `min_contrast` grey levels) or over-exposed (more than `max_saturated` of its pixels
-    at 250 or above)."""
+    projects to fewer than `min_size` px across, the grey crop is over-exposed (more than
+    `max_saturated` of its pixels at 250 or above) or blank (standard deviation under
+    `min_contrast` grey levels)."""
     x, y, w, h = box
     if min(w, h) < min_size:
         return f"the object projects to only {w}x{h} px (needs {min_size} px across)"
     grey = cv2.cvtColor(np.ascontiguousarray(frame.rgb[y:y + h, x:x + w]), cv2.COLOR_RGB2GRAY)
-    if float(grey.std()) < min_contrast:
-        return f"the image around the hypothesis is blank (grey-level spread {grey.std():.1f})"
     saturated = float(np.mean(grey >= 250))
     if saturated > max_saturated:
         return f"the image around the hypothesis is over-exposed ({saturated:.0%} of the pixels saturated)"
+    if float(grey.std()) < min_contrast:
+        return f"the image around the hypothesis is blank (grey-level spread {grey.std():.1f})"
     return ""
 
 
@@ -283,15 +284,43 @@ def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
     return (x0, y0, x1 - x0, y1 - y0)
 
 
+_COHERENCE: "weakref.WeakKeyDictionary[ObjectModel, np.ndarray]" = weakref.WeakKeyDictionary()
+
+
+def edge_coherence(model: ObjectModel, neighbours: int = 4) -> np.ndarray:
+    """Per sharp-edge sample of the model, the mean |cos| between its direction and those of its
+    `neighbours` nearest edge samples: ~1 on the long straight edges of a CAD model, lower on
+    the short zig-zag "sharp" edges of a scanned mesh (LM-O's: 0.69-0.91 on average, where
+    procedural models give 0.98-1.0). Computed once per model."""
+    value = _COHERENCE.get(model)
+    if value is None:
+        P, D = model.edge_points, model.edge_dirs
+        if len(P) <= 1:
+            value = np.zeros(len(P))
+        else:
+            from scipy.spatial import cKDTree
+
+            k = min(neighbours + 1, len(P))
+            _, idx = cKDTree(P).query(P, k=k)
+            value = np.abs(np.einsum("nj,nkj->nk", D, D[idx[:, 1:]])).mean(axis=1)
+        _COHERENCE[model] = value
+    return value
+
+
 def model_contour(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, max_points: int,
-                  rng: np.random.Generator, mesh_edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                  rng: np.random.Generator, mesh_edges: bool = True,
+                  min_coherence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Model-frame contour points (N, 3) and unit tangent directions (N, 3) visible from `pose`;
-    `mesh_edges=False` keeps the silhouette only."""
+    `mesh_edges=False` keeps the silhouette only; sharp-edge samples whose edge_coherence is
+    under `min_coherence` (noise of a scanned mesh) are left out."""
     pts, dirs = [], []
     edges = visible_edges(frame, model, pose, cache) if mesh_edges else ()
     if len(edges):
-        pts.append(model.edge_points[edges.index])
-        dirs.append(model.edge_dirs[edges.index])
+        index = edges.index
+        if min_coherence > 0:
+            index = index[edge_coherence(model)[index] >= min_coherence]
+        pts.append(model.edge_points[index])
+        dirs.append(model.edge_dirs[index])
     r = hypothesis_rendering(frame, model, pose, cache)
     uv, n2d = silhouette_points(r)
     if len(uv):
