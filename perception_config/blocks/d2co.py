@@ -95,7 +95,7 @@ class D2CO(Block):
         Param("shift_search_px", 0, 0, 40,
               doc="radius (px) of an exhaustive image-plane shift search before LM (0: none): widens the basin"),
         Param("shift_step_px", 2, 1, 10, doc="grid step (px) of the shift search"),
-        Param("max_iterations", 30, 1, 500, doc="LM iterations"),
+        Param("max_iterations", 30, 1, 500, doc="LM iterations per descent stage"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
 
