@@ -93,6 +93,22 @@ def _cmd_bench_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_real(args: argparse.Namespace) -> int:
+    _one_core()
+    from .bench_real import bench_real, format_real, save_real
+    from .blocks.pipeline import load_pipeline
+
+    result = bench_real(args.dataset, load_pipeline(args.pipeline), n_frames=args.frames, seeds=args.seeds,
+                        lambdas=[float(x) for x in args.lambdas.split(",")], max_calls=args.calls,
+                        min_visib=args.min_visib, seed=args.seed, split=args.split, progress=not args.quiet,
+                        blocks=args.blocks.split(",") if args.blocks else None,
+                        refiner_costs=not args.no_refiner_costs, use_depth=args.use_depth)
+    paths = save_real(result, args.out)
+    print(format_real(result))
+    print(f"wrote {paths[0]} and {paths[1]}")
+    return 0
+
+
 def _cmd_blocks(args: argparse.Namespace) -> int:
     from .blocks import load_all
 
@@ -320,6 +336,23 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             c.add_argument("--lambdas", default="0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
             c.add_argument("--applications", type=int, default=5, help="max applications of the refiner")
+    c = besub.add_parser("real", help="refiners and scores on a BOP dataset's frames (with or without depth)")
+    c.add_argument("--dataset", type=Path, required=True)
+    c.add_argument("--out", type=Path, required=True, help="folder for real.json and real.png, or a .json file")
+    c.add_argument("--pipeline", type=Path, default=None, help="pipeline YAML (default: the shipped one)")
+    c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
+    c.add_argument("--seeds", type=int, default=5, help="perturbations per object and lambda")
+    c.add_argument("--lambdas", default="0,0.1,0.3", help="starting noise levels of the refiners (0 = ground truth)")
+    c.add_argument("--calls", type=int, default=3, help="successive calls of a refiner")
+    c.add_argument("--min-visib", type=float, default=0.3, help="smallest visib_fract of an object")
+    c.add_argument("--blocks", default=None, help="comma-separated action / block names (default: all)")
+    c.add_argument("--no-depth", dest="use_depth", action="store_false",
+                   help="read the frames as RGB-only (the blocks that need depth are skipped)")
+    c.add_argument("--no-refiner-costs", action="store_true", help="do not rank the refiners' own costs as scores")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--split", default="test")
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=_cmd_bench_real)
     _add_train_parser(sub)
     _add_evaluate_parser(sub)
     _add_launch_parser(sub)
