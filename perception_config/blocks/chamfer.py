@@ -6,11 +6,16 @@ the whole image (a few ms; more with the nearest-pixel labels chamfer-ICP needs)
 by every object and every call on that frame.
 - `chamfer`: local search over pose perturbations (random rotations about the object origin
   and image-plane translations, the radius halving each round), evaluated in batches, keeping
-  the pose with the lowest mean truncated chamfer distance of the projected contour points.
+  the pose with the lowest mean truncated chamfer distance of the projected contour points. A
+  careful search (small radii, short truncation, a rotation prior) and a wide one (the paper's
+  radii, long truncation); the wide result must be `wide_margin` cheaper on the careful cost.
 - `chamfer_icp`: ICP in the image: each projected contour point is matched to its nearest
   image edge pixel (the distance transform's labels), then a few damped Gauss-Newton
   (Levenberg-Marquardt) steps minimise the reprojection error of the 3D contour points to
-  their matches; the matching distance shrinks from `max_match_px` to `min_match_px`.
+  their matches (Geman-McClure-robust, with rotation and depth priors anchored at the start);
+  the matching distance shrinks from `max_match_px` to `min_match_px`.
+Both return the start unchanged unless their own cost (`chamfer_cost`, the mean truncated
+chamfer distance) is lower at the result.
 Like D2CO, both fix the image-plane position and rotation well and depth weakly: chamfer does
 not search depth at all, chamfer-ICP keeps it with the same weak prior as D2CO (unconstrained
 PnP on nearest-edge matches drifts along the viewing ray by centimetres).

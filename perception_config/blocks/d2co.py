@@ -1,23 +1,29 @@
 """D2CO: direct directional chamfer optimisation (Imperoli & Pretto, ICVS 2015).
 
-The model contour visible from the hypothesis (visible sharp mesh edges plus the rendered
-silhouette, as 3D model points with 3D tangents; vision.edges.model_contour) is projected into
-the image with its 2D directions; each point's residual is the directional chamfer tensor (DCT)
-at its pixel and orientation (bilinear in the pixel, linear across the two nearest bins).
-A hand-written Levenberg-Marquardt loop (vision.pose_solver) minimises the Huber-robustified
-sum of squared residuals over the 6-DoF pose, parametrised as a rotation about the object
-origin and a translation (R = exp([w]x) R0, t = t0 + d), with the analytic Jacobian (the
-spatial gradient of the interpolated tensor times the projection Jacobian; the orientation is
-held fixed within a step, as in the paper). Analytic steps make an iteration ~0.2 ms, where SciPy's
-least_squares with finite differences spent 7 cost evaluations per Jacobian.
+The model contour visible from the hypothesis (the rendered silhouette plus the visible sharp mesh
+edges that are straight, as 3D model points with 3D tangents; vision.edges.model_contour) is
+projected into the image with its 2D directions; each point's residual is the directional chamfer
+tensor (DCT) at its pixel and orientation (bilinear in the pixel, linear across the two nearest
+bins). A hand-written Levenberg-Marquardt loop (vision.pose_solver) minimises the robustified sum
+of squared residuals over the 6-DoF pose, parametrised as a rotation about the object origin and a
+translation (R = exp([w]x) R0, t = t0 + d), with the analytic Jacobian (the spatial gradient of the
+interpolated tensor times the projection Jacobian; the orientation is held fixed within a step, as
+in the paper). Analytic steps make an iteration ~0.2 ms.
+
+For real photographs (blurred outlines, clutter, occlusion; the edge cost's minimum is shallow):
+- the loss is redescending (Geman-McClure at `huber_px`): a point far from any matching edge
+  (occluded, clutter) stops pulling;
+- weak priors anchored at the call's start hold depth along the viewing ray (edges observe it
+  only through the projected size) and the rotation (`rotation_prior_deg`);
+- two descents: a local one at the final scale, and a coarse-to-fine one (Huber at
+  `coarse_factor` x the scale, then the final loss) kept only if its cost is `coarse_margin` lower
+  (it reaches farther on clean edges but also finds clutter);
+- the start comes back unchanged unless the block's own cost (`d2co_cost`, the mean robust loss
+  of the contour) is lower at the result.
 
 The tensor is built on a crop around the hypothesis's projected box (+ `crop_margin`) and kept
 in the per-frame cache (vision.edges.TensorCache): a later call whose box lies inside a cached
-crop pays only the optimisation.
-
-Edges constrain the image-plane position and the rotation well; depth along the viewing ray is
-weakly constrained (only through the projected size), so a weak prior keeps the depth where it
-was, and D2CO pairs well with depth refinement or ICP.
+crop pays only the optimisation. D2CO pairs well with depth refinement or ICP.
 """
 from __future__ import annotations
 

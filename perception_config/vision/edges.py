@@ -13,8 +13,11 @@
   `sample_tensor` interpolates it at (x, y, theta) with its spatial gradient; `TensorCache`
   keeps tensors per frame and crop so repeated calls on a frame do not rebuild them.
 - `model_contour`: 3D model-frame points with 3D tangent directions on the contour visible from
-  a hypothesis: visible sharp mesh edges plus the rendered silhouette back-projected (scanned
-  meshes such as LM-O have few sharp edges, so the outline carries most of the signal).
+  a hypothesis: visible sharp mesh edges plus the rendered silhouette back-projected; with
+  `min_coherence`, only sharp-edge samples on straight edges (`edge_coherence`: a scanned
+  mesh's "sharp" edges, such as LM-O's, are mostly zig-zag noise; the outline carries the signal).
+- `crop_problem` / `share_in_image` / `edge_refinement_problem`: the edge refiners' input checks
+  (a tiny, blank or over-exposed crop; an object mostly beyond the image border).
 - `project_with_directions`: pixel positions and image-plane directions (angle in [0, pi)).
 """
 from __future__ import annotations
