@@ -3,13 +3,16 @@ reduces the image-plane error of perturbed hypotheses (synthetic and the real LM
 bad input gives ok=False with a reason."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
 from frames import box_model, default_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.geometry import Pose
+from perception_config.geometry import Pose, perturb
+from perception_config.metrics import pose_mssd
 from perception_config.render import project
 from perception_config.vision.edges import crop_box, directional_chamfer_tensor
 
@@ -83,3 +86,145 @@ def test_bad_input_gives_a_reason(name):
     for what, inp in cases.items():
         r = block(inp)
         assert not r.ok and r.reason, f"{name} accepted {what}"
+
+
+
+REFINERS = ("d2co", "chamfer", "chamfer_icp")
+COST = {"d2co": "d2co_cost", "chamfer": "chamfer_cost", "chamfer_icp": "chamfer_cost"}
+
+
+@pytest.fixture(scope="module")
+def lmo_rgb_frames(lmo_rgb_root):
+    """Two real LM-O RGB photographs (no depth); read-only."""
+    from perception_config.datasets.bop import BopDataset
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the annotations' near-rotations are projected, with a warning
+        ds = BopDataset(lmo_rgb_root, use_depth=False)
+        frames = [ds.load_frame(*ds.image_keys()[i]) for i in (4, 9)]
+    for frame in frames:
+        frame.rgb.flags.writeable = False
+    return frames
+
+
+@pytest.fixture(scope="module")
+def lmo_rgb_frame(lmo_rgb_frames):
+    return lmo_rgb_frames[0]
+
+
+def _visible(frame, least: float = 0.5):
+    return [o for o in frame.objects if o.visib_fract is not None and o.visib_fract >= least and o.model is not None]
+
+
+@pytest.mark.parametrize("name, need", [("d2co", 0.9), ("chamfer", 0.7), ("chamfer_icp", 0.9)])
+def test_ground_truth_is_a_fixed_point_on_a_real_photograph(lmo_rgb_frame, name, need):
+    """Started at the annotated pose, one call stays within the pick tolerance (MSSD <= 0.1 d).
+    Plain chamfer matching (the paper's baseline) keeps less: its undirected distance finds
+    cheaper poses in the clutter (measured over lmo-rgb: d2co and chamfer_icp ~100 %, chamfer ~80 %)."""
+    frame, block, cache = lmo_rgb_frame, create(name), {}
+    stays = []
+    for obj in _visible(frame):
+        for seed in range(2):
+            r = block(BlockInput(frame=frame, model=obj.model, pose=obj.gt, cache=cache,
+                                 rng=np.random.default_rng(seed)))
+            assert r.ok, r.reason
+            stays.append(pose_mssd(r.pose, obj.gt, obj.model) <= 0.1 * obj.model.diameter)
+    assert len(stays) >= 10
+    assert np.mean(stays) >= need, f"{name}: {np.mean(stays):.0%} stayed within tolerance"
+
+
+def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
+    """From lambda 0.3 on two real frames the mean MSSD drops and at least 40 % of the calls
+    improve it (56 % over all 20 lmo-rgb frames; on real photographs the edge signal is weak)."""
+    block, rng = create("d2co"), np.random.default_rng(0)
+    before, after, moved = [], [], []
+    for frame in lmo_rgb_frames:
+        cache: dict = {}
+        for obj in _visible(frame):
+            for seed in range(3):
+                start = perturb(obj.gt, 0.3, obj.model.diameter, rng)
+                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
+                                     rng=np.random.default_rng(seed)))
+                assert r.ok, r.reason
+                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
+                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
+                moved.append(r.info["improved"])
+    before, after, moved = np.array(before), np.array(after), np.array(moved)
+    better = after < before
+    print(f"d2co lambda 0.3: mean MSSD/d {np.mean(before):.3f} -> {np.mean(after):.3f}, "
+          f"improved {np.mean(better):.0%}, "
+          f"moved {np.mean(moved):.0%}, improved when moved {np.mean(better[moved]):.0%}")
+    assert len(before) >= 30
+    assert np.mean(after) < np.mean(before) and np.mean(better) >= 0.4  # a no-op: 0 %
+
+
+@pytest.mark.parametrize("name", REFINERS)
+def test_a_call_never_returns_a_pose_its_own_cost_judges_worse(lmo_rgb_frame, name):
+    frame, block, cache = lmo_rgb_frame, create(name), {}
+    rng = np.random.default_rng(1)
+    for obj in _visible(frame, 0.3)[:4]:
+        for lam in (0.0, 0.1, 0.3, 0.6):
+            start = perturb(obj.gt, lam, obj.model.diameter, rng)
+            r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache, rng=np.random.default_rng(0)))
+            if not r.ok:
+                continue
+            assert r.scores[COST[name]] <= r.info["cost_before"] + 1e-12
+            if not r.info["improved"]:  # the start comes back unchanged
+                assert r.pose is start or (np.array_equal(r.pose.R, start.R) and np.array_equal(r.pose.t, start.t))
+
+
+def _sphere_model():
+    """A UV sphere (r = 4 cm): no sharp edges and no inner contour at all."""
+    from perception_config.models import make_model
+
+    n_lat, n_lon = 12, 24
+    th = np.linspace(0, np.pi, n_lat + 1)
+    ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    v = 0.04 * np.array([[np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)] for a in th for b in ph])
+    faces = []
+    for i in range(n_lat):
+        for j in range(n_lon):
+            a, b = i * n_lon + j, i * n_lon + (j + 1) % n_lon
+            c, d = a + n_lon, b + n_lon
+            faces += [[a, c, b], [b, c, d]]
+    return make_model(7, v, np.array(faces, np.int32))
+
+
+@pytest.mark.parametrize("name", REFINERS)
+def test_hostile_images_and_objects_give_a_reason_within_the_time_bound(name):
+    model, gt = box_model(), default_pose()
+    frame = synthetic_frame([model], [gt], seed=0)
+    block = create(name)
+    bright = synthetic_frame([model], [gt], seed=0)
+    bright.rgb[:] = 255  # over-exposed: saturated everywhere
+    specks = synthetic_frame([model], [gt], seed=0)
+    specks.rgb[:] = 254
+    specks.rgb[::7, ::5] = 200  # saturated but for a few darker specks (which Canny would find)
+    blank = synthetic_frame([model], [gt], seed=0)
+    blank.rgb[:] = 90
+    far = Pose(gt.R, gt.t * 20.0)  # 14 m away: a few pixels across
+    border = Pose(gt.R, gt.t + np.array([0.40, 0.0, 0.0]))  # 5 % of it inside the right image border
+    cases = {  # what: (input, a word the reason must contain)
+        "over-exposed": (BlockInput(frame=bright, model=model, pose=gt), "over-exposed"),
+        "over-exposed with specks": (BlockInput(frame=specks, model=model, pose=gt), "over-exposed"),
+        "blank": (BlockInput(frame=blank, model=model, pose=gt), "blank"),
+        "tiny crop": (BlockInput(frame=frame, model=model, pose=far), "px"),
+        "under 10 % inside the image": (BlockInput(frame=frame, model=model, pose=border), "inside the image"),
+    }
+    for what, (inp, word) in cases.items():
+        r = block(inp)
+        assert not r.ok and word in r.reason, f"{name} on {what}: {r.ok} {r.reason!r}"
+        assert r.elapsed < block.config["max_seconds"] + 0.05, f"{name} took {r.elapsed:.3f} s on {what}"
+        print(f"{name}, {what}: {r.reason}")
+    # A model without inner edges (a sphere): refined on its outline or refused, never a crash,
+    # within the time bound, and never worse by the block's own cost.
+    sphere = _sphere_model()
+    s_gt = Pose(np.eye(3), [0.0, 0.0, 0.6])
+    s_frame = synthetic_frame([sphere], [s_gt], seed=4)
+    start = Pose(s_gt.R, s_gt.t + np.array([0.004, -0.003, 0.0]))
+    r = block(BlockInput(frame=s_frame, model=sphere, pose=start, rng=np.random.default_rng(0)))
+    assert r.elapsed < block.config["max_seconds"] + 0.05
+    assert r.ok or r.reason
+    if r.ok:
+        assert r.scores[COST[name]] <= r.info["cost_before"] + 1e-12
+        assert np.linalg.norm(r.pose.t - s_gt.t) <= np.linalg.norm(start.t - s_gt.t) + 1e-3

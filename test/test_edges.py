@@ -90,3 +90,41 @@ def test_tensor_cache_reuses_a_containing_crop_and_reports_empty_edges():
     flat = Frame(rgb=frame.rgb.copy(), depth=frame.depth, K=frame.K)
     dct4, _, n4 = TensorCache.get(flat, cache, (300, 200, 60, 50), **args)
     assert dct4 is None and n4 == 0
+
+
+def test_edge_coherence_keeps_straight_edges_and_drops_zigzag_ones():
+    import dataclasses
+
+    from perception_config.vision.edges import edge_coherence
+
+    model = box_model()
+    assert edge_coherence(model).mean() > 0.95  # a box: long straight edges
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=model.edge_dirs.shape)
+    noisy = dataclasses.replace(model, edge_dirs=dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
+    assert edge_coherence(noisy).mean() < 0.8  # directions at random: a scanned mesh's "sharp" edges
+
+
+@pytest.mark.parametrize("loss", ["huber", "geman_mcclure", "tukey"])
+def test_robust_weights_are_the_derivative_of_the_loss_over_the_residual(loss):
+    from perception_config.vision.pose_solver import robust_rho, robust_weights
+
+    r = np.array([-7.0, -2.5, -0.3, 0.4, 1.9, 2.1, 6.0])
+    eps = 1e-6
+    deriv = (robust_rho(r + eps, loss, 2.0) - robust_rho(r - eps, loss, 2.0)) / (2 * eps)
+    np.testing.assert_allclose(robust_weights(r, loss, 2.0) * r, deriv, atol=1e-5)
+    np.testing.assert_allclose(robust_rho(np.array([1e-3]), loss, 2.0), 0.5e-6, rtol=1e-3)  # 0.5 r^2 near 0
+    if loss != "huber":  # redescending: a far point hardly pulls (Tukey: not at all)
+        assert robust_weights(np.array([10.0]), loss, 2.0)[0] < 0.01
+
+
+def test_crop_problem_names_tiny_blank_and_over_exposed_crops():
+    from perception_config.vision.edges import crop_problem
+
+    frame = synthetic_frame([box_model()], [default_pose()], seed=0)
+    assert crop_problem(frame, (250, 180, 120, 100)) == ""
+    assert "px" in crop_problem(frame, (300, 200, 5, 40))
+    frame.rgb[:] = 255
+    assert "over-exposed" in crop_problem(frame, (250, 180, 120, 100))
+    frame.rgb[:] = 90
+    assert "blank" in crop_problem(frame, (250, 180, 120, 100))

@@ -6,11 +6,16 @@ the whole image (a few ms; more with the nearest-pixel labels chamfer-ICP needs)
 by every object and every call on that frame.
 - `chamfer`: local search over pose perturbations (random rotations about the object origin
   and image-plane translations, the radius halving each round), evaluated in batches, keeping
-  the pose with the lowest mean truncated chamfer distance of the projected contour points.
+  the pose with the lowest mean truncated chamfer distance of the projected contour points. A
+  careful search (small radii, short truncation, a rotation prior) and a wide one (the paper's
+  radii, long truncation); the wide result must be `wide_margin` cheaper on the careful cost.
 - `chamfer_icp`: ICP in the image: each projected contour point is matched to its nearest
   image edge pixel (the distance transform's labels), then a few damped Gauss-Newton
   (Levenberg-Marquardt) steps minimise the reprojection error of the 3D contour points to
-  their matches; the matching distance shrinks from `max_match_px` to `min_match_px`.
+  their matches (Geman-McClure-robust, with rotation and depth priors anchored at the start);
+  the matching distance shrinks from `max_match_px` to `min_match_px`.
+Both return the start unchanged unless their own cost (`chamfer_cost`, the mean truncated
+chamfer distance) is lower at the result.
 Like D2CO, both fix the image-plane position and rotation well and depth weakly: chamfer does
 not search depth at all, chamfer-ICP keeps it with the same weak prior as D2CO (unconstrained
 PnP on nearest-edge matches drifts along the viewing ray by centimetres).
@@ -25,8 +30,8 @@ import numpy as np
 from ..geometry import Pose, exp_so3
 from ..render import projected_box
 from ..scene import Frame
-from ..vision.edges import bilinear, canny_edges, model_contour, project_with_directions
-from ..vision.pose_solver import levenberg_marquardt, project_with_jacobian
+from ..vision.edges import bilinear, canny_edges, edge_refinement_problem, model_contour, project_with_directions
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -59,21 +64,33 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     """Common checks: (reason or '', edge distance, contour points, contour directions)."""
     frame, pose = inp.frame, inp.pose
     assert pose is not None
-    if projected_box(inp.model, pose, frame.K, frame.width, frame.height) is None:
-        return "the object at the hypothesis is outside the image", None, np.zeros((0, 3)), np.zeros((0, 3))
+    none = np.zeros((0, 3))
+    box = projected_box(inp.model, pose, frame.K, frame.width, frame.height)
+    why = edge_refinement_problem(frame, inp.model, pose, box)
+    if why:
+        return why, None, none, none
     edge = edge_distance(frame, inp.cache, c["canny_low"], c["canny_high"], labels)
     if edge[3] == 0:
-        return "the image has no edges", None, np.zeros((0, 3)), np.zeros((0, 3))
-    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng)
+        return "the image has no edges", None, none, none
+    x, y, w, h = box
+    if not np.any(edge[0][y:y + h, x:x + w] < 1.0):
+        return "no image edges around the hypothesis", None, none, none
+    P, D = model_contour(frame, inp.model, pose, inp.cache, int(c["max_points"]), inp.rng, c["mesh_edges"],
+                         c["edge_coherence"])
     if len(P) < 6:
         return f"only {len(P)} contour points visible from the hypothesis", None, P, D
     return "", edge, P, D
 
 
 _COMMON = (
-    Param("canny_low", 40.0, 0.0, 1000.0, doc="Canny low threshold"),
-    Param("canny_high", 100.0, 0.0, 1000.0, doc="Canny high threshold"),
+    Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
+    Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
     Param("max_points", 300, 20, 5000, doc="contour points used (random subset)"),
+    Param("mesh_edges", True, doc="add the visible sharp mesh edges to the silhouette"),
+    Param("edge_coherence", 0.95, 0.0, 1.0,
+          doc="sharp-edge samples less straight than this are left out (a scanned mesh's are mostly spurious)"),
+    Param("accept_margin", 0.0, 0.0, 0.9,
+          doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
 )
 
 
@@ -92,9 +109,17 @@ class ChamferMatching(Block):
         Param("rounds", 4, 1, 20, doc="search rounds; the radius halves each round"),
         Param("candidates", 40, 4, 1000, doc="random poses tried per round"),
         Param("batch", 10, 1, 1000, doc="candidates evaluated together; the best of a batch becomes the centre"),
-        Param("rotation_deg", 4.0, 0.1, 45.0, doc="first-round rotation radius (deg)"),
-        Param("translation_mm", 6.0, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
-        Param("max_distance", 20.0, 1.0, 200.0, doc="truncation of the chamfer distance (px)"),
+        Param("rotation_deg", 2.0, 0.1, 45.0, doc="first-round rotation radius (deg)"),
+        Param("translation_mm", 1.5, 0.1, 100.0, doc="first-round image-plane translation radius (mm)"),
+        Param("max_distance", 6.0, 1.0, 200.0,
+              doc="truncation of the chamfer distance (px): occluded or unsupported points stop counting"),
+        Param("rotation_prior_deg", 2.0, 0.1, 1000.0,
+              doc="rotation away from the start (deg) that costs as much as every point 1 px further (1000: none)"),
+        Param("wide_rotation_deg", 4.0, 0.0, 45.0, doc="the wide search's first-round rotation radius (deg; 0: none)"),
+        Param("wide_translation_mm", 6.0, 0.1, 100.0, doc="the wide search's first-round translation radius (mm)"),
+        Param("wide_max_distance", 20.0, 1.0, 200.0, doc="the wide search's truncation of the chamfer distance (px)"),
+        Param("wide_margin", 0.2, 0.0, 0.9,
+              doc="the wide search's result replaces the careful one's only if its cost is this fraction lower"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -105,46 +130,70 @@ class ChamferMatching(Block):
         why, edge, P, D = _start(inp, c, labels=False)
         if why:
             return BlockResult.fail(why)
-        cap = float(c["max_distance"])
-        dtc = np.minimum(edge[0], cap)
         K = frame.K
 
-        def costs(Rs: np.ndarray, ts: np.ndarray) -> np.ndarray:
-            """Mean truncated chamfer distance of the contour under each of C poses (C, 3, 3), (C, 3)."""
+        def costs(Rs: np.ndarray, ts: np.ndarray, cap: float) -> np.ndarray:
+            """Mean chamfer distance truncated at `cap` of the contour under each of C poses (C, 3, 3), (C, 3)."""
             pc = np.einsum("cij,nj->cni", Rs, P) + ts[:, None, :]
             z = pc[..., 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (K[0, 0] * pc[..., 0] + K[0, 1] * pc[..., 1]) / z + K[0, 2]
                 v = K[1, 1] * pc[..., 1] / z + K[1, 2]
             u[z <= 1e-3] = np.nan
-            return bilinear(dtc, u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
+            return bilinear(np.minimum(edge[0], cap), u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
 
-        best_R, best_t = pose0.R, pose0.t
-        best = cost0 = float(costs(best_R[None], best_t[None])[0])
-        rot, trans = np.radians(c["rotation_deg"]), c["translation_mm"] * 1e-3
         # the image plane at the object: translations perpendicular to the viewing ray
         ray = pose0.t / np.linalg.norm(pose0.t)
         e1 = np.cross(ray, [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         plane = np.stack([e1, np.cross(ray, e1)])
-        tried, n_batch = 0, int(c["batch"])
         deadline = self.deadline(inp, start)
-        for _ in range(int(c["rounds"])):
-            done = 0
-            while done < c["candidates"] and time.perf_counter() < deadline:
-                k = int(min(n_batch, c["candidates"] - done))
-                ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
-                Rs = np.stack([exp_so3(w) @ best_R for w in ws])
-                ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
-                values = costs(Rs, ts)
-                i = int(np.argmin(values))
-                if values[i] < best:
-                    best, best_R, best_t = float(values[i]), Rs[i], ts[i]
-                done += k
-            tried += done
-            rot, trans = rot / 2, trans / 2
-        return BlockResult(ok=True, pose=Pose(best_R, best_t), scores={"chamfer_cost": best},
-                           info={"cost_before": cost0, "improved": best < cost0, "candidates": tried, "points": len(P)})
+
+        def search(rot_deg: float, trans_mm: float, cap: float, prior_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
+            """The random local search from the start: (R, t, candidates tried); the objective is
+            the chamfer distance truncated at `cap` plus (rotation from the start / prior_deg)^2."""
+            prior = 1.0 / np.radians(prior_deg) ** 2 if prior_deg < 1000 else 0.0
+            best_R, best_t = pose0.R, pose0.t
+            best = float(costs(best_R[None], best_t[None], cap)[0])
+            rot, trans = np.radians(rot_deg), trans_mm * 1e-3
+            tried, n_batch = 0, int(c["batch"])
+            for _ in range(int(c["rounds"])):
+                done = 0
+                while done < c["candidates"] and time.perf_counter() < deadline:
+                    k = int(min(n_batch, c["candidates"] - done))
+                    ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
+                    Rs = np.stack([exp_so3(w) @ best_R for w in ws])
+                    ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
+                    values = costs(Rs, ts, cap)
+                    if prior:
+                        cos = np.clip((np.einsum("cij,ij->c", Rs, pose0.R) - 1.0) / 2.0, -1.0, 1.0)
+                        values = values + prior * np.arccos(cos) ** 2
+                    i = int(np.argmin(values))
+                    if values[i] < best:
+                        best, best_R, best_t = float(values[i]), Rs[i], ts[i]
+                    done += k
+                tried += done
+                rot, trans = rot / 2, trans / 2
+            return best_R, best_t, tried
+
+        cap = float(c["max_distance"])
+        own = lambda R_, t_: float(costs(R_[None], t_[None], cap)[0])  # noqa: E731
+        cost0 = own(pose0.R, pose0.t)
+        # Two searches: a careful one (small radii, short truncation, rotation prior) and a wide
+        # one (larger radii, long truncation, no prior) that must beat it by wide_margin on the
+        # careful one's cost: it reaches farther but also finds clutter on real photographs.
+        best_R, best_t, tried = search(c["rotation_deg"], c["translation_mm"], cap, c["rotation_prior_deg"])
+        if c["wide_rotation_deg"] > 0 and time.perf_counter() < deadline:
+            Rw, tw, n = search(c["wide_rotation_deg"], c["wide_translation_mm"], c["wide_max_distance"], 1000.0)
+            tried += n
+            if own(Rw, tw) < own(best_R, best_t) * (1.0 - c["wide_margin"]):
+                best_R, best_t = Rw, tw
+        best_data = own(best_R, best_t)
+        info = {"cost_before": cost0, "candidates": tried, "points": len(P), "cost_candidate": best_data}
+        if not best_data < cost0 * (1.0 - c["accept_margin"]):
+            return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})
+        return BlockResult(ok=True, pose=Pose(best_R, best_t), scores={"chamfer_cost": best_data},
+                           info={**info, "improved": True})
 
 
 @register
@@ -165,6 +214,10 @@ class ChamferIcp(Block):
         Param("max_match_px", 15.0, 1.0, 200.0, doc="first-iteration matching distance (px)"),
         Param("min_match_px", 3.0, 0.5, 200.0, doc="last-iteration matching distance (px)"),
         Param("depth_prior_mm", 5.0, 0.1, 1000.0, doc="depth shift (mm) that costs as much as every point 1 px"),
+        Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
+              doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
+        Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the reprojection error"),
+        Param("max_distance", 20.0, 1.0, 200.0, doc="truncation of the chamfer distance of the reported cost (px)"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -178,8 +231,17 @@ class ChamferIcp(Block):
         dt, labels, lut, _ = edge
         H, W = dt.shape
         K = frame.K
+        cap = float(c["max_distance"])
+        dtc = np.minimum(dt, cap)
+
+        def chamfer_cost(R_: np.ndarray, t_: np.ndarray) -> float:
+            uv_, _ = project_with_directions(R_, t_, P, D, K)
+            return float(np.mean(bilinear(dtc, uv_[:, 0], uv_[:, 1], cap)))
+
+        cost0 = chamfer_cost(pose0.R, pose0.t)
         ray = pose0.t / np.linalg.norm(pose0.t)
         prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
+        rot_prior = np.sqrt(len(P)) / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
         R, t = pose0.R, pose0.t
         n_it = int(c["iterations"])
         dists = np.geomspace(c["max_match_px"], min(c["min_match_px"], c["max_match_px"]), n_it)
@@ -207,13 +269,16 @@ class ChamferIcp(Block):
                 uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
                 return (uv_ - target).ravel(), J.reshape(-1, 6)
 
-            # the depth prior is anchored at the call's start, not at each iteration's pose
+            # the priors are anchored at the call's start, not at each iteration's pose
             R, t, _ = levenberg_marquardt(evaluate, R, t, prior, huber=max(2.0, float(dists[it])),
                                           max_iterations=int(c["steps"]), deadline=deadline,
-                                          anchor=pose0.t)
+                                          anchor=pose0.t, loss=str(c["loss"]), rotation_prior=rot_prior,
+                                          rotation_anchor=pose0.R)
         if not np.isfinite(mean_dist):
             return BlockResult.fail("too few contour points near image edges to match")
-        uv, _ = project_with_directions(R, t, P, D, K)
-        cost = float(np.mean(bilinear(np.minimum(dt, 20.0), uv[:, 0], uv[:, 1], 20.0)))
-        return BlockResult(ok=True, pose=Pose(R, t), scores={"chamfer_cost": cost},
-                           info={"match_distance": mean_dist, "matches": matched, "iterations": it + 1})
+        cost = chamfer_cost(R, t)
+        info = {"match_distance": mean_dist, "matches": matched, "iterations": it + 1, "cost_before": cost0,
+                "cost_candidate": cost}
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and cost < cost0 * (1.0 - c["accept_margin"])):
+            return BlockResult(ok=True, pose=pose0, scores={"chamfer_cost": cost0}, info={**info, "improved": False})
+        return BlockResult(ok=True, pose=Pose(R, t), scores={"chamfer_cost": cost}, info={**info, "improved": True})

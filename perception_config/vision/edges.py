@@ -13,13 +13,17 @@
   `sample_tensor` interpolates it at (x, y, theta) with its spatial gradient; `TensorCache`
   keeps tensors per frame and crop so repeated calls on a frame do not rebuild them.
 - `model_contour`: 3D model-frame points with 3D tangent directions on the contour visible from
-  a hypothesis: visible sharp mesh edges plus the rendered silhouette back-projected (scanned
-  meshes such as LM-O have few sharp edges, so the outline carries most of the signal).
+  a hypothesis: visible sharp mesh edges plus the rendered silhouette back-projected; with
+  `min_coherence`, only sharp-edge samples on straight edges (`edge_coherence`: a scanned
+  mesh's "sharp" edges, such as LM-O's, are mostly zig-zag noise; the outline carries the signal).
+- `crop_problem` / `share_in_image` / `edge_refinement_problem`: the edge refiners' input checks
+  (a tiny, blank or over-exposed crop; an object mostly beyond the image border).
 - `project_with_directions`: pixel positions and image-plane directions (angle in [0, pi)).
 """
 from __future__ import annotations
 
 import math
+import weakref
 
 import cv2
 import numpy as np
@@ -78,13 +82,16 @@ def silhouette_points(rendering: Rendering) -> tuple[np.ndarray, np.ndarray]:
 
 
 def canny_edges(frame: Frame, cache: dict | None, low: float = 40.0,
-                high: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
-    """(edges uint8 HxW, direction float32 HxW in [0, pi) along the edge), cached per frame."""
-    key = f"edges:canny:{low}:{high}"
+                high: float = 100.0, blur: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(edges uint8 HxW, direction float32 HxW in [0, pi) along the edge), cached per frame;
+    Canny runs on the grey image after a Gaussian of sigma `blur` px (a wider one keeps the
+    outlines of a blurred photograph and drops fine texture)."""
+    key = f"edges:canny:{low}:{high}" + (f":{float(blur)}" if blur != 1.0 else "")
     if cache is not None and key in cache and cache[key][0] is frame.rgb:
         return cache[key][1]
     gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
-    edges = cv2.Canny(cv2.GaussianBlur(gray, (5, 5), 1.0), low, high)
+    ksize = 5 if blur == 1.0 else 2 * int(math.ceil(3 * blur)) + 1
+    edges = cv2.Canny(cv2.GaussianBlur(gray, (ksize, ksize), float(blur)), low, high)
     gx, gy = image_derivatives(frame, cache)
     # The edge runs perpendicular to the gradient.
     direction = np.mod(np.arctan2(gy, gx) + np.pi / 2, np.pi).astype(np.float32)
@@ -200,9 +207,10 @@ class TensorCache:
 
     @staticmethod
     def get(frame: Frame, cache: dict | None, box: Box, margin: int, reuse_margin: int, n_bins: int,
-            penalty: float, max_distance: float, low: float, high: float) -> tuple[np.ndarray, Box, int]:
-        """(tensor, crop box, edge pixels in the crop)."""
-        params = (n_bins, float(penalty), float(max_distance), float(low), float(high))
+            penalty: float, max_distance: float, low: float, high: float,
+            blur: float = 1.0) -> tuple[np.ndarray, Box, int]:
+        """(tensor, crop box, edge pixels in the crop); `blur` is canny_edges's."""
+        params = (n_bins, float(penalty), float(max_distance), float(low), float(high), float(blur))
         entries = cache.setdefault(TensorCache.KEY, []) if cache is not None else []
         if entries and entries[0][0] is not frame.rgb:  # a new frame in an old cache
             entries.clear()
@@ -214,7 +222,7 @@ class TensorCache:
             if p == params and cx <= need[0] and cy <= need[1] and cx + cw >= need[2] and cy + ch >= need[3]:
                 return dct, crop, n_edges
         crop = crop_box(frame, box, margin, align=8)
-        edges, direction = canny_edges(frame, cache, low, high)
+        edges, direction = canny_edges(frame, cache, low, high, blur)
         cx, cy, cw, ch = crop
         e = edges[cy:cy + ch, cx:cx + cw]
         n_edges = int(np.count_nonzero(e))
@@ -224,6 +232,49 @@ class TensorCache:
             entries.append((frame.rgb, params, crop, dct, n_edges))
             del entries[:-TensorCache.SIZE]
         return dct, crop, n_edges
+
+
+def crop_problem(frame: Frame, box: Box, min_size: int = 8, min_contrast: float = 1.0,
+                 max_saturated: float = 0.9) -> str:
+    """Why the image inside `box` cannot guide an edge refiner, or '' when it can: the object
+    projects to fewer than `min_size` px across, the grey crop is over-exposed (more than
+    `max_saturated` of its pixels at 250 or above) or blank (standard deviation under
+    `min_contrast` grey levels)."""
+    x, y, w, h = box
+    if min(w, h) < min_size:
+        return f"the object projects to only {w}x{h} px (needs {min_size} px across)"
+    grey = cv2.cvtColor(np.ascontiguousarray(frame.rgb[y:y + h, x:x + w]), cv2.COLOR_RGB2GRAY)
+    saturated = float(np.mean(grey >= 250))
+    if saturated > max_saturated:
+        return f"the image around the hypothesis is over-exposed ({saturated:.0%} of the pixels saturated)"
+    if float(grey.std()) < min_contrast:
+        return f"the image around the hypothesis is blank (grey-level spread {grey.std():.1f})"
+    return ""
+
+
+def share_in_image(frame: Frame, model: ObjectModel, pose: Pose) -> float:
+    """Share of the model's surface samples that project inside the image in front of the
+    camera at `pose` (an object mostly beyond the image border shows too little to fit)."""
+    pc = pose.transform(model.points)
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = frame.K[0, 0] * pc[:, 0] / z + frame.K[0, 1] * pc[:, 1] / z + frame.K[0, 2]
+        v = frame.K[1, 1] * pc[:, 1] / z + frame.K[1, 2]
+        inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= frame.width - 1) & (v <= frame.height - 1)
+    return float(np.mean(inside)) if len(pc) else 0.0
+
+
+def edge_refinement_problem(frame: Frame, model: ObjectModel, pose: Pose, box: Box | None,
+                            min_share: float = 0.1) -> str:
+    """The common input checks of the edge refiners: why the hypothesis cannot be refined on
+    this image ('' when it can): outside the image, under `min_share` of it inside, or a crop
+    that is tiny, blank or over-exposed (crop_problem)."""
+    if box is None:
+        return "the object at the hypothesis is outside the image"
+    share = share_in_image(frame, model, pose)
+    if share < min_share:
+        return f"only {share:.0%} of the object at the hypothesis lies inside the image"
+    return crop_problem(frame, box)
 
 
 def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
@@ -236,15 +287,43 @@ def crop_box(frame: Frame, box: Box, margin: int, align: int = 1) -> Box:
     return (x0, y0, x1 - x0, y1 - y0)
 
 
+_COHERENCE: "weakref.WeakKeyDictionary[ObjectModel, np.ndarray]" = weakref.WeakKeyDictionary()
+
+
+def edge_coherence(model: ObjectModel, neighbours: int = 4) -> np.ndarray:
+    """Per sharp-edge sample of the model, the mean |cos| between its direction and those of its
+    `neighbours` nearest edge samples: ~1 on the long straight edges of a CAD model, lower on
+    the short zig-zag "sharp" edges of a scanned mesh (LM-O's: 0.69-0.91 on average, where
+    procedural models give 0.98-1.0). Computed once per model."""
+    value = _COHERENCE.get(model)
+    if value is None:
+        P, D = model.edge_points, model.edge_dirs
+        if len(P) <= 1:
+            value = np.zeros(len(P))
+        else:
+            from scipy.spatial import cKDTree
+
+            k = min(neighbours + 1, len(P))
+            _, idx = cKDTree(P).query(P, k=k)
+            value = np.abs(np.einsum("nj,nkj->nk", D, D[idx[:, 1:]])).mean(axis=1)
+        _COHERENCE[model] = value
+    return value
+
+
 def model_contour(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, max_points: int,
-                  rng: np.random.Generator, mesh_edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                  rng: np.random.Generator, mesh_edges: bool = True,
+                  min_coherence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Model-frame contour points (N, 3) and unit tangent directions (N, 3) visible from `pose`;
-    `mesh_edges=False` keeps the silhouette only."""
+    `mesh_edges=False` keeps the silhouette only; sharp-edge samples whose edge_coherence is
+    under `min_coherence` (noise of a scanned mesh) are left out."""
     pts, dirs = [], []
     edges = visible_edges(frame, model, pose, cache) if mesh_edges else ()
     if len(edges):
-        pts.append(model.edge_points[edges.index])
-        dirs.append(model.edge_dirs[edges.index])
+        index = edges.index
+        if min_coherence > 0:
+            index = index[edge_coherence(model)[index] >= min_coherence]
+        pts.append(model.edge_points[index])
+        dirs.append(model.edge_dirs[index])
     r = hypothesis_rendering(frame, model, pose, cache)
     uv, n2d = silhouette_points(r)
     if len(uv):

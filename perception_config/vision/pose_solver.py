@@ -3,8 +3,10 @@
 The pose is parametrised as a rotation about the object origin and a translation
 (R = exp([w]x) R0, t = t0 + d). `project_with_jacobian` projects model points with their 3D
 tangents and gives the analytic Jacobian of the pixels with respect to (w, d);
-`levenberg_marquardt` minimises a Huber-robustified sum of squared residuals plus a weak prior
-on one translation direction (the viewing ray, which edges observe weakly).
+`levenberg_marquardt` minimises a robustified sum of squared residuals (Huber, or the
+redescending Geman-McClure / Tukey losses under which a point far from any supporting image
+edge stops pulling: occluded contour, clutter) plus a weak prior on one translation direction
+(the viewing ray, which edges observe weakly) and optionally on the rotation away from the start.
 """
 from __future__ import annotations
 
@@ -12,7 +14,9 @@ import time
 
 import numpy as np
 
-from ..geometry import exp_so3
+from ..geometry import exp_so3, log_so3
+
+LOSSES = ("huber", "geman_mcclure", "tukey")
 
 
 def project_with_jacobian(R: np.ndarray, t: np.ndarray, P: np.ndarray, D: np.ndarray, K: np.ndarray):
@@ -64,13 +68,44 @@ def huber_cost(r: np.ndarray, delta: float) -> float:
     return float(np.sum(np.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta))))
 
 
+def robust_rho(r: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """Per-residual loss: 'huber' (quadratic within `scale`, then linear), 'geman_mcclure'
+    (0.5 r^2 s^2 / (s^2 + r^2): bounded by s^2 / 2, influence falls off beyond s) or 'tukey'
+    (biweight: constant s^2 / 6 beyond s, no pull at all). All are 0.5 r^2 near 0."""
+    a = np.abs(r)
+    s2 = scale * scale
+    if loss == "huber":
+        return np.where(a <= scale, 0.5 * a * a, scale * (a - 0.5 * scale))
+    if loss == "geman_mcclure":
+        return 0.5 * a * a * s2 / (s2 + a * a)
+    if loss == "tukey":
+        q = np.minimum(a / scale, 1.0) ** 2
+        return s2 / 6.0 * (1.0 - (1.0 - q) ** 3)
+    raise ValueError(f"unknown loss {loss!r}: expected one of {LOSSES}")
+
+
+def robust_weights(r: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """IRLS weights rho'(r) / r of `robust_rho`."""
+    a = np.abs(r)
+    s2 = scale * scale
+    if loss == "huber":
+        return huber_weights(r, scale)
+    if loss == "geman_mcclure":
+        return (s2 / (s2 + a * a)) ** 2
+    if loss == "tukey":
+        return np.where(a < scale, (1.0 - (a / scale) ** 2) ** 2, 0.0)
+    raise ValueError(f"unknown loss {loss!r}: expected one of {LOSSES}")
+
+
 def levenberg_marquardt(
     evaluate, R0: np.ndarray, t0: np.ndarray, prior: np.ndarray, huber: float,
     max_iterations: int, deadline: float, tol: float = 1e-4, anchor: np.ndarray | None = None,
+    loss: str = "huber", rotation_prior: float = 0.0, rotation_anchor: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Minimise sum huber(r_i) + 0.5 (prior . (t - anchor))^2 from (R0, t0); `prior` (3,)
-    weighs a translation direction (the viewing ray) that the residuals observe weakly;
-    `anchor` defaults to t0.
+    """Minimise sum rho(r_i) + 0.5 (prior . (t - anchor))^2 + 0.5 rotation_prior^2 |log(R Ra^T)|^2
+    from (R0, t0); rho is `loss` (see robust_rho) with scale `huber` (px); `prior` (3,) weighs a
+    translation direction (the viewing ray) that the residuals observe weakly; `anchor`
+    and `rotation_anchor` Ra default to t0 and R0; `rotation_prior` (per rad) holds the rotation there.
 
     `evaluate(R, t) -> (r (N,), J (N, 6))`. Steps are accepted when they lower the cost (the
     damping shrinks) and rejected otherwise (the damping grows); the loop ends on a relative
@@ -80,25 +115,32 @@ def levenberg_marquardt(
     ref = t0 if anchor is None else anchor
     P2 = np.outer(prior, prior)
 
-    def total(r: np.ndarray, t: np.ndarray) -> float:
-        return huber_cost(r, huber) + 0.5 * float(prior @ (t - ref)) ** 2
+    rp2 = float(rotation_prior) ** 2
+    Ra = R0 if rotation_anchor is None else rotation_anchor
+
+    def total(r: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
+        cost = float(np.sum(robust_rho(r, loss, huber))) + 0.5 * float(prior @ (t - ref)) ** 2
+        return cost + (0.5 * rp2 * float(np.sum(log_so3(R @ Ra.T) ** 2)) if rp2 > 0 else 0.0)
 
     r, J = evaluate(R, t)
-    cost = total(r, t)
+    cost = total(r, R, t)
     mu, it = 1e-3, 0
     while it < max_iterations and time.perf_counter() < deadline:
         it += 1
-        w = huber_weights(r, huber)
+        w = robust_weights(r, loss, huber)
         A = (J * w[:, None]).T @ J
         g = J.T @ (w * r)
         A[3:, 3:] += P2
         g[3:] += P2 @ (t - ref)
+        if rp2 > 0:  # the left-perturbation Jacobian of log(R R0^T) is ~I for the small angles here
+            A[:3, :3] += rp2 * np.eye(3)
+            g[:3] += rp2 * log_so3(R @ Ra.T)
         improved = False
         while time.perf_counter() < deadline:
             step = np.linalg.solve(A + mu * np.diag(np.diag(A) + 1e-9), -g)
             Rn, tn = update_pose(R, t, step)
             rn, Jn = evaluate(Rn, tn)
-            cn = total(rn, tn)
+            cn = total(rn, Rn, tn)
             if np.isfinite(cn) and cn < cost:
                 rel = (cost - cn) / max(cost, 1e-12)
                 R, t, r, J, cost = Rn, tn, rn, Jn, cn
