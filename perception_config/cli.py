@@ -5,6 +5,7 @@ import argparse
 import os
 import signal
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -373,8 +374,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_data_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """Warnings about the user's data (a repaired annotation) as one line naming the file; other
+    warnings keep Python's format (they are for developers)."""
+    if issubclass(category, UserWarning) and category.__module__.startswith("perception_config"):
+        print(f"warning: {message}", file=sys.stderr if file is None else file)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    warnings.showwarning = _show_data_warning
     try:
         return int(args.func(args) or 0)
     except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:

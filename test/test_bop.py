@@ -365,3 +365,20 @@ def test_lmo_rgb_loads_without_depth(lmo_rgb_root: Path) -> None:
     assert len(ds) == 20
     f = ds.load_frame(*ds.image_keys()[0])
     assert f.depth is None and f.rgb.shape == (480, 640, 3) and len(f.objects) == 8
+
+
+def test_cli_names_a_repaired_annotation_in_one_line(tiny: Path, tmp_path: Path, capsys) -> None:
+    import warnings
+
+    from perception_config.cli import main
+
+    _skew_first_rotation(_scene(tiny), 0.01)
+    saved = warnings.showwarning
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            assert main(["show", "--dataset", str(tiny), "--out", str(tmp_path / "f.png")]) == 0
+    finally:
+        warnings.showwarning = saved
+    err = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert len(err) == 1 and err[0].startswith("warning: ") and "000001/scene_gt.json" in err[0], err
