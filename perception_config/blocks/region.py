@@ -38,6 +38,8 @@ class RegionRefiner(Block):
     params = (
         Param("band", 10, 2, 100, doc="largest width (px) of the colour histograms' inner and outer bands"),
         Param("band_fraction", 0.15, 0.0, 10.0, doc="band width as a share of sqrt(object pixels) (psi_rgb's)"),
+        Param("gap_px", 0.0, 0.0, 50.0,
+              doc="the histograms leave out the pixels within this distance (px) of the outline"),
         Param("bits", 4, 2, 6, doc="bits per colour channel of the histograms"),
         Param("lines", 120, 10, 2000, doc="correspondence lines (outline points) per iteration"),
         Param("line_px", 16, 2, 100, doc="half-length (px) of the lines at the first iteration"),
@@ -52,6 +54,8 @@ class RegionRefiner(Block):
               doc="depth shift (mm) that costs as much as every line one standard deviation"),
         Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
               doc="rotation away from the start (deg) that costs as much as every line one standard deviation"),
+        Param("histogram_update", 0.0, 0.0, 1.0,
+              doc="weight of the histograms re-estimated at the current pose after each update (0: the start's)"),
         Param("lm_iterations", 3, 1, 50, doc="LM iterations per correspondence update"),
         Param("iterations", 10, 1, 100, doc="correspondence updates (re-renders) per call"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
@@ -69,10 +73,12 @@ class RegionRefiner(Block):
         if r0.empty:
             return BlockResult.fail("the hypothesis renders no pixel inside the image")
         cm = colour_model(frame, r0, band_width(r0, c["band_fraction"], int(c["band"])), int(c["bits"]),
-                          int(c["line_px"]) + 40)
+                          int(c["line_px"]) + 40,
+                          float(c["gap_px"]))
         if cm is None:
             return BlockResult.fail("the hypothesis leaves no image pixels outside its outline")
         cost0 = region_cost(frame, r0, cm)
+        fit_cm = cm
         deadline = self.deadline(inp, start)
         K, n_lines = frame.K, int(c["lines"])
         R, t, rend = pose0.R, pose0.t, r0
@@ -84,7 +90,7 @@ class RegionRefiner(Block):
             if len(P) < 6:
                 break
             L = int(round(half))
-            d, sd = line_displacements(cm, uv, nrm, L, c["temperature"])
+            d, sd = line_displacements(fit_cm, uv, nrm, L, c["temperature"])
             sigma = np.maximum(sd, c["min_sigma_px"])
             moved.append(float(np.mean(np.abs(d))))
             target = np.sum(nrm * uv, axis=1) + d  # n . uv the outline should reach
@@ -106,11 +112,16 @@ class RegionRefiner(Block):
             rend = hypothesis_rendering(frame, model, Pose(R, t), None)
             if rend.empty:
                 break
+            if c["histogram_update"] > 0:
+                now = colour_model(frame, rend, cm.band, cm.bits, 0)
+                if now is not None:
+                    fit_cm = fit_cm.blended(now, float(c["histogram_update"]))
             half = max(float(c["min_line_px"]), half * float(c["shrink"]))
         ok_pose = bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t)))
         cost1 = region_cost(frame, rend, cm) if ok_pose else np.inf
         info = {"cost_before": cost0, "cost_candidate": cost1, "iterations": iterations, "updates": updates,
-                "band_px": cm.band, "line_shift_px": moved}
+                "band_px": cm.band, "line_shift_px": moved,
+                "candidate": Pose(R, t) if ok_pose else None}
         if not (ok_pose and cost1 < cost0):
             return BlockResult(ok=True, pose=pose0, scores={"region_cost": cost0}, info={**info, "improved": False})
         return BlockResult(ok=True, pose=Pose(R, t), scores={"region_cost": cost1}, info={**info, "improved": True})

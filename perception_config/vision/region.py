@@ -50,6 +50,13 @@ class ColourModel:
     origin: tuple[int, int]
     band: int
     bits: int
+    codes: np.ndarray  # colour bins of the map's crop
+
+    def blended(self, other: "ColourModel", weight: float) -> "ColourModel":
+        """This model with its posterior moved towards `other`'s by `weight` (same map crop): the
+        histograms re-estimated at a later pose, as RBOT updates them from frame to frame."""
+        posterior = ((1.0 - weight) * self.posterior + weight * other.posterior).astype(np.float32)
+        return ColourModel(posterior, posterior[self.codes], self.origin, self.band, self.bits, self.codes)
 
 
 def band_width(rendering: Rendering, fraction: float, largest: int) -> int:
@@ -58,11 +65,17 @@ def band_width(rendering: Rendering, fraction: float, largest: int) -> int:
     return int(np.clip(round(fraction * math.sqrt(n_obj)), 2, largest)) if fraction > 0 else int(largest)
 
 
-def colour_model(frame: Frame, rendering: Rendering, band: int, bits: int, margin: int) -> ColourModel | None:
-    """The colour model of the hypothesis rendered as `rendering`; the posterior map covers its
-    box grown by `margin` px (clipped to the image). None when a band is empty."""
-    mask, (x0, y0, x1, y1) = padded_mask(frame, rendering, band + 1)
-    inner, outer = outline_bands(mask, band)
+def colour_model(frame: Frame, rendering: Rendering, band: int, bits: int, margin: int,
+                 gap: float = 0.0) -> ColourModel | None:
+    """The colour model of the hypothesis rendered as `rendering`; the histograms come from the
+    bands `gap` to `gap` + `band` px inside and outside the outline (a gap leaves out the pixels
+    that a few px of misalignment puts on the wrong side); the posterior map covers the box
+    grown by `margin` px (clipped to the image). None when a band is empty."""
+    mask, (x0, y0, x1, y1) = padded_mask(frame, rendering, int(math.ceil(gap)) + band + 1)
+    inner, outer = outline_bands(mask, gap + band)
+    if gap > 0:
+        near_in, near_out = outline_bands(mask, gap)
+        inner, outer = inner & ~near_in, outer & ~near_out
     if not inner.any() or not outer.any():
         return None
     codes = colour_codes(frame.rgb[y0:y1, x0:x1], bits)
@@ -70,8 +83,8 @@ def colour_model(frame: Frame, rendering: Rendering, band: int, bits: int, margi
     x, y, w, h = rendering.box
     X0, Y0 = max(0, x - margin), max(0, y - margin)
     X1, Y1 = min(frame.width, x + w + margin), min(frame.height, y + h + margin)
-    pmap = posterior[colour_codes(frame.rgb[Y0:Y1, X0:X1], bits)]
-    return ColourModel(posterior, pmap, (X0, Y0), band, bits)
+    crop = colour_codes(frame.rgb[Y0:Y1, X0:X1], bits)
+    return ColourModel(posterior, posterior[crop], (X0, Y0), band, bits, crop)
 
 
 def region_cost(frame: Frame, rendering: Rendering, cm: ColourModel) -> float:
