@@ -58,6 +58,8 @@ class RegionRefiner(Block):
               doc="weight of the histograms re-estimated at the current pose after each update (0: the start's)"),
         Param("lm_iterations", 3, 1, 50, doc="LM iterations per correspondence update"),
         Param("iterations", 10, 1, 100, doc="correspondence updates (re-renders) per call"),
+        Param("accept_margin", 0.0, 0.0, 0.9,
+              doc="the result is kept only if it lowers region_cost by this fraction (else the start is returned)"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
 
@@ -122,7 +124,7 @@ class RegionRefiner(Block):
         info = {"cost_before": cost0, "cost_candidate": cost1, "iterations": iterations, "updates": updates,
                 "band_px": cm.band, "line_shift_px": moved,
                 "candidate": Pose(R, t) if ok_pose else None}
-        if not (ok_pose and cost1 < cost0):
+        if not (ok_pose and cost1 < cost0 * (1.0 - c["accept_margin"])):
             return BlockResult(ok=True, pose=pose0, scores={"region_cost": cost0}, info={**info, "improved": False})
         return BlockResult(ok=True, pose=Pose(R, t), scores={"region_cost": cost1}, info={**info, "improved": True})
 
