@@ -122,8 +122,7 @@ class RegionRefiner(Block):
         ok_pose = bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t)))
         cost1 = region_cost(frame, rend, cm) if ok_pose else np.inf
         info = {"cost_before": cost0, "cost_candidate": cost1, "iterations": iterations, "updates": updates,
-                "band_px": cm.band, "line_shift_px": moved,
-                "candidate": Pose(R, t) if ok_pose else None}
+                "band_px": cm.band, "line_shift_px": moved}
         if not (ok_pose and cost1 < cost0 * (1.0 - c["accept_margin"])):
             return BlockResult(ok=True, pose=pose0, scores={"region_cost": cost0}, info={**info, "improved": False})
         return BlockResult(ok=True, pose=Pose(R, t), scores={"region_cost": cost1}, info={**info, "improved": True})
