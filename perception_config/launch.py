@@ -503,7 +503,10 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             for s in model_specs:
                 set_param(s, "models_dir", str(models_dir), False)
         if pipeline is not None:
-            path = str(absolute(pipeline, "pipeline"))
+            from .blocks.pipeline import shipped_pipelines
+
+            shipped = not (cwd / Path(pipeline)).exists() and str(pipeline) in shipped_pipelines()
+            path = str(pipeline) if shipped else str(absolute(pipeline, "pipeline"))
             for s in model_specs:
                 set_param(s, "pipeline", path, True)
 

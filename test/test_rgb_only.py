@@ -318,3 +318,24 @@ def test_an_episode_runs_end_to_end_on_real_lmo_rgb(lmo_rgb_root):
     assert traj.names[:2] == ["d2co", "d2co"] and all(traj.oks[:2])
     scores = traj.final_info["scores"]
     assert np.isfinite(scores["psi_c"]) and np.isnan(scores["psi_d"]) and np.isnan(scores["icp_fitness"])
+
+
+def test_the_shipped_rgb_pipeline_by_name(rgb_dataset, tmp_path):
+    """`--pipeline rgb` names the shipped RGB pipeline: no action needs depth, so nothing is
+    masked on an RGB-only dataset; launch passes the name on; an unknown name lists the shipped."""
+    from perception_config.blocks.pipeline import load_pipeline, shipped_pipelines
+    from perception_config.launch import resolve_nodes
+
+    assert {"default", "rgb"} <= set(shipped_pipelines())
+    pipe = load_pipeline(Path("rgb"))
+    assert [a.name for a in pipe.actions] == ["d2co", "region", "regenerate", "pick"]
+    env = PerceptionConfigEnv(rgb_dataset, "rgb", time_mode="cost_table", max_ops=4)
+    _, info = env.reset(seed=0, options=_options(0))
+    assert info["action_mask"].tolist() == [1, 1, 1, 1]
+    _, _, _, _, info = env.step(1)  # region
+    assert info["ok"], info
+    specs = resolve_nodes(nodes=["refinement"], models=rgb_dataset / "models", pipeline="rgb", cwd=tmp_path,
+                          say=lambda _: None)
+    assert "pipeline:=rgb" in " ".join(specs[0].arguments())
+    with pytest.raises(FileNotFoundError, match="shipped pipelines by name: default, rgb"):
+        load_pipeline("nope")

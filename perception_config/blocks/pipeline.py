@@ -22,8 +22,6 @@ import yaml
 
 from .base import Block, Kind, create
 
-DEFAULT_PIPELINE = "default_pipeline.yaml"
-
 
 class PipelineError(ValueError):
     """A pipeline configuration that cannot be used; the message names the file and entry."""
@@ -133,15 +131,26 @@ def pipeline_from_dict(data: Any, source: str = "<pipeline>") -> Pipeline:
     return Pipeline(generator, tuple(actions), scoring, source)
 
 
+def shipped_pipelines() -> list[str]:
+    """Names of the pipelines shipped in the package (`<name>_pipeline.yaml`): 'default', 'rgb'."""
+    return sorted(p.name[: -len("_pipeline.yaml")] for p in resources.files("perception_config.config").iterdir()
+                  if p.name.endswith("_pipeline.yaml"))
+
+
 def load_pipeline(path: str | Path | None = None) -> Pipeline:
-    """Load a pipeline YAML file (None = the shipped default)."""
+    """Load a pipeline YAML file, or a shipped pipeline by name ('default', 'rgb'; None = the
+    default). A file of that name in the working folder wins over the shipped one."""
     if path is None:
-        text = resources.files("perception_config.config").joinpath(DEFAULT_PIPELINE).read_text()
-        source = f"<package>/config/{DEFAULT_PIPELINE}"
+        path = "default"
+    if not Path(path).exists() and str(path) in shipped_pipelines():
+        name = f"{path}_pipeline.yaml"
+        text = resources.files("perception_config.config").joinpath(name).read_text()
+        source = f"<package>/config/{name}"
     else:
         path = Path(path)
         if not path.is_file():
-            raise FileNotFoundError(f"pipeline configuration {path} does not exist")
+            raise FileNotFoundError(f"pipeline configuration {path} does not exist "
+                                    f"(shipped pipelines by name: {', '.join(shipped_pipelines())})")
         text, source = path.read_text(), str(path)
     try:
         data = yaml.safe_load(text)

@@ -2,7 +2,8 @@
 
 Every operator node declares these parameters (and its own):
   models_dir     BOP models folder (models_info.json + obj_XXXXXX.ply); required to serve
-  pipeline       pipeline YAML: its actions are served by name (empty = the built-in default)
+  pipeline       pipeline YAML or a shipped pipeline's name ('rgb'): its actions are served by name
+                 (empty = the built-in default)
   cache_size     camera frames (and ground-truth messages) kept, by stamp (30)
   frame_timeout  seconds a request waits for a frame that has not arrived yet (1.0)
   camera_qos     reliable | sensor_data (best effort), for the camera subscriptions
