@@ -49,6 +49,7 @@ import numpy as np
 from .agents import AGENTS, Agent, EnvRecipe, EnvSpec, make_agent
 from .agents.policy_io import PolicyError, agent_meta, build_agent, check_compatible, read_file, save_agent, write_file
 from .atomic_file import atomic_output, atomic_write
+from .blocks.pipeline import pipeline_reference
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
@@ -205,7 +206,7 @@ def train(
     # The split: train on the train image ids only.
     ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     train_keys, test_keys = split_image_keys(ds.image_keys(), test_fraction, split_seed)
-    recipe = EnvRecipe(str(Path(dataset).resolve()), str(Path(pipeline).resolve()) if pipeline else None,
+    recipe = EnvRecipe(str(Path(dataset).resolve()), pipeline_reference(pipeline),
                        tuple(train_keys), split, settings, use_depth=bool(use_depth))
     env = recipe.make()
     spec = EnvSpec.from_env(env)

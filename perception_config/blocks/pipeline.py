@@ -137,6 +137,16 @@ def shipped_pipelines() -> list[str]:
                   if p.name.endswith("_pipeline.yaml"))
 
 
+def pipeline_reference(path: str | Path | None) -> str | None:
+    """How a run records its pipeline: a shipped pipeline's name as is, a file as its absolute
+    path, None for the default."""
+    if path is None:
+        return None
+    if not Path(path).exists() and str(path) in shipped_pipelines():
+        return str(path)
+    return str(Path(path).resolve())
+
+
 def load_pipeline(path: str | Path | None = None) -> Pipeline:
     """Load a pipeline YAML file, or a shipped pipeline by name ('default', 'rgb'; None = the
     default). A file of that name in the working folder wins over the shipped one."""

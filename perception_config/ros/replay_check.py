@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from ..agents import load_agent, make_agent
 from ..atomic_file import atomic_output, atomic_write
+from ..blocks.pipeline import pipeline_reference
 from ..datasets.bag import RECORDING_EPOCH_NS, write_frames
 from ..datasets.bop import BopDataset
 from ..env import PerceptionConfigEnv
@@ -132,7 +133,7 @@ def replay_check(
 
     common: dict[str, Any] = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": max(30, len(keys) + 5)}
     if settings.pipeline:
-        common["pipeline"] = str(Path(settings.pipeline).resolve())
+        common["pipeline"] = pipeline_reference(settings.pipeline)
     if rgb_only:  # the operators assemble colour + camera_info frames; the configurator masks depth actions
         common["use_depth"] = False
     specs = [NodeSpec(name, params=dict(common))
