@@ -35,11 +35,16 @@ def _cli_train(tmp_path_factory, out: Path, episodes: int = 100000, workers: int
     if pipeline:
         cmd += ["--pipeline", str(pipeline_file(tmp_path_factory))]
 
-    def ignore() -> None:  # as a background job of a script: SIGINT inherited ignored
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    def dispositions() -> None:
+        # The stop signals as a terminal gives them, whatever the test run inherited (under nohup
+        # SIGHUP is ignored, and an ignored signal stays ignored across exec, by design);
+        # ignore_sigint: as a background job of a script, SIGINT inherited ignored.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_DFL)
+        if ignore_sigint:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=ignore if ignore_sigint else None)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=dispositions)
 
 
 def _children(pid: int) -> list[int]:
