@@ -5,6 +5,7 @@ round are written and load, the exit code is 128 + the signal, no worker process
 checkpoint resumes into the uninterrupted run. Seeded cost-table runs repeat bit for bit."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -82,7 +83,14 @@ def _wait_for_training(proc: subprocess.Popen, out: Path, workers: int) -> list[
 
 def _assert_stopped_cleanly(proc: subprocess.Popen, out: Path, children: list[int], signum: int) -> int:
     """Exit code, files and processes after a stop; returns the episodes done."""
-    stdout, stderr = proc.communicate(timeout=60)
+    try:
+        stdout, stderr = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:  # not stopped: leave no 100000-episode training behind
+        for pid in [proc.pid, *_children(proc.pid)]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate()
+        raise AssertionError(f"training did not stop within 60 s of {signal.Signals(signum).name}") from None
     assert proc.returncode == 128 + signum, (proc.returncode, stdout, stderr)
     assert f"stopped by {signal.Signals(signum).name}" in stderr
     deadline = time.monotonic() + 5  # orphans would be running; the resource tracker leaves on EOF
