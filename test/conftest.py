@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -67,6 +68,21 @@ def lmo_frame(lmo_dataset):
 def lmo_rgb_root() -> Path:
     """Twenty real LM-O RGB frames without depth (BOP layout)."""
     return _shared_data(LMO_RGB_ROOT, "real LM-O RGB frames")
+
+
+@pytest.fixture(scope="session")
+def lmo_rgb_frames(lmo_rgb_root: Path) -> list:
+    """Two real LM-O RGB photographs (images 36 and 58, no depth) with their models, loaded once;
+    read-only."""
+    from perception_config.datasets.bop import BopDataset
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the annotations' near-rotations are projected, with a warning
+        ds = BopDataset(lmo_rgb_root, use_depth=False)
+        frames = [ds.load_frame(*ds.image_keys()[i]) for i in (4, 9)]
+    for frame in frames:
+        frame.rgb.flags.writeable = False
+    return frames
 
 
 @pytest.fixture(scope="session")

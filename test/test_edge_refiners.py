@@ -3,8 +3,6 @@ reduces the image-plane error of perturbed hypotheses (synthetic and the real LM
 bad input gives ok=False with a reason."""
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 
@@ -91,20 +89,6 @@ def test_bad_input_gives_a_reason(name):
 
 REFINERS = ("d2co", "chamfer", "chamfer_icp")
 COST = {"d2co": "d2co_cost", "chamfer": "chamfer_cost", "chamfer_icp": "chamfer_cost"}
-
-
-@pytest.fixture(scope="module")
-def lmo_rgb_frames(lmo_rgb_root):
-    """Two real LM-O RGB photographs (no depth); read-only."""
-    from perception_config.datasets.bop import BopDataset
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the annotations' near-rotations are projected, with a warning
-        ds = BopDataset(lmo_rgb_root, use_depth=False)
-        frames = [ds.load_frame(*ds.image_keys()[i]) for i in (4, 9)]
-    for frame in frames:
-        frame.rgb.flags.writeable = False
-    return frames
 
 
 @pytest.fixture(scope="module")

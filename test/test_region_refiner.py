@@ -4,10 +4,7 @@ improve (synthetic and real), a call never returns a pose its own cost judges wo
 input gives ok=False with a reason within the time bound."""
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-import pytest
 
 from frames import box_model, default_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
@@ -46,20 +43,6 @@ def test_region_refiner_reduces_image_error_on_synthetic_frames():
         improved += _px_error(model, frame.K, r.pose, gt) < _px_error(model, frame.K, start, gt)
         assert r.scores["region_cost"] <= r.info["cost_before"] + 1e-12
     assert improved >= 8, f"region improved {improved}/10"
-
-
-@pytest.fixture(scope="module")
-def lmo_rgb_frames(lmo_rgb_root):
-    """Two real LM-O RGB photographs (no depth); read-only."""
-    from perception_config.datasets.bop import BopDataset
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the annotations' near-rotations are projected, with a warning
-        ds = BopDataset(lmo_rgb_root, use_depth=False)
-        frames = [ds.load_frame(*ds.image_keys()[i]) for i in (4, 9)]
-    for frame in frames:
-        frame.rgb.flags.writeable = False
-    return frames
 
 
 def _visible(frame, least: float = 0.5):

@@ -38,24 +38,6 @@ from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacob
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
-def best_shift(dct: np.ndarray, origin: tuple[int, int], cap: float, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-               P: np.ndarray, D: np.ndarray, radius: int, step: int, cost) -> np.ndarray:
-    """The translation, moved parallel to the image plane, whose contour costs least over a grid
-    of image shifts within `radius` px (`cost` maps residuals (S, N) to (S,)); `t` itself when
-    no shift is cheaper."""
-    uv, ang, _ = project_with_jacobian(R, t, P, D, K)
-    g = np.arange(-radius, radius + 1, step, dtype=np.float64)
-    du, dv = (a.ravel() for a in np.meshgrid(g, g))
-    xs = uv[None, :, 0] - origin[0] + du[:, None]
-    ys = uv[None, :, 1] - origin[1] + dv[:, None]
-    values = cost(sample_tensor(dct, xs.ravel(), ys.ravel(), np.tile(ang, len(du)), cap).reshape(len(du), -1))
-    i = int(np.argmin(values))
-    if du[i] == 0 and dv[i] == 0:
-        return t
-    z = float(t[2])
-    return t + np.array([du[i] * z / K[0, 0], dv[i] * z / K[1, 1], 0.0])
-
-
 @register
 class D2CO(Block):
     """Direct directional chamfer optimisation of the pose on image edges (LM over 6 DoF).
@@ -96,11 +78,6 @@ class D2CO(Block):
               doc="the result is kept only if it lowers the cost by this fraction (else the start is returned)"),
         Param("holdout", 0.0, 0.0, 0.8,
               doc="share of the contour points held out of the fit: the result must lower their cost too"),
-        Param("min_support", 0.0, 0.0, 1.0,
-              doc="share of contour points within huber_px of a matching image edge at the start required"),
-        Param("shift_search_px", 0, 0, 40,
-              doc="radius (px) of an exhaustive image-plane shift search before LM (0: none): widens the basin"),
-        Param("shift_step_px", 2, 1, 10, doc="grid step (px) of the shift search"),
         Param("max_iterations", 30, 1, 500, doc="LM iterations per descent stage"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
@@ -135,9 +112,6 @@ class D2CO(Block):
 
         r0, _ = residuals(pose0.R, pose0.t)
         support = float(np.mean(r0 <= scale))
-        if support < c["min_support"]:
-            return BlockResult.fail(f"only {support:.0%} of the contour lies on matching image edges (occluded, "
-                                    "blurred or far off)")
         n_hold = int(round(c["holdout"] * len(P))) if len(P) - int(round(c["holdout"] * len(P))) >= 6 else 0
         order = inp.rng.permutation(len(P))
         fit, hold = order[n_hold:], order[:n_hold]
@@ -150,9 +124,6 @@ class D2CO(Block):
         cost0 = cost(r0)
         deadline = self.deadline(inp, start)
         R, t, iterations = pose0.R, pose0.t, 0
-        if c["shift_search_px"] > 0:
-            t = best_shift(dct, (x0, y0), cap, K, R, t, Pf, Df, int(c["shift_search_px"]), int(c["shift_step_px"]),
-                           lambda r: robust_rho(r, loss, 2.0 * scale).mean(axis=-1))
         fit_cost = lambda R_, t_: cost(residuals(R_, t_, Pf, Df)[0])  # noqa: E731
 
         def descend(R: np.ndarray, t: np.ndarray, first: float, rot_prior: float,
