@@ -27,7 +27,7 @@ from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .geometry import perturb
 from .render import render_box
-from .scene import Frame
+from .scene import Frame, SceneObject
 
 DEFAULT_LAMBDAS = tuple(round(0.1 * i, 1) for i in range(1, 11))
 
@@ -38,15 +38,19 @@ def _stats(ms: list[float]) -> dict[str, float | int]:
             "calls": int(a.size)}
 
 
+def usable_objects(frame: Frame, min_visib: float) -> list[tuple[int, SceneObject]]:
+    """(index in frame.objects, object) of the annotated objects with a model and visib_fract >= min_visib."""
+    return [(i, o) for i, o in enumerate(frame.objects)
+            if o.gt is not None and o.model is not None and (o.visib_fract is None or o.visib_fract >= min_visib)]
+
+
 def _cases(ds: BopDataset, n_frames: int, lam: float, seed: int,
            min_visib: float = 0.3) -> Iterable[tuple[Frame, Any, Any]]:
     """(frame, object, perturbed pose) over the first n_frames images."""
     rng = np.random.default_rng(seed)
     for scene_id, im_id in ds.image_keys()[:n_frames]:
         frame = ds.load_frame(scene_id, im_id)
-        for obj in frame.objects:
-            if obj.gt is None or obj.model is None or (obj.visib_fract is not None and obj.visib_fract < min_visib):
-                continue
+        for _, obj in usable_objects(frame, min_visib):
             yield frame, obj, perturb(obj.gt, lam, obj.model.diameter, rng)
 
 

@@ -39,6 +39,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from .atomic_file import atomic_write
+from .bench import usable_objects
 from .blocks import load_all
 from .blocks.base import GROUND_TRUTH, Block, BlockInput, Kind
 from .blocks.pipeline import Pipeline, load_pipeline
@@ -51,12 +52,6 @@ DEFAULT_LAMBDAS = (0.0, 0.1, 0.3)
 DEFAULT_AUC_LAMBDAS = (0.05, 0.1, 0.2, 0.3, 0.5)
 TOLERANCE = 0.1  # MSSD as a share of the diameter
 _REFINE, _SCORE = 0, 1  # purposes in the seed: refiner starts and scored poses never share a stream
-
-
-def usable_objects(frame: Frame, min_visib: float) -> list[tuple[int, SceneObject]]:
-    """(index in frame.objects, object) of the annotated objects with a model and visib_fract >= min_visib."""
-    return [(i, o) for i, o in enumerate(frame.objects)
-            if o.gt is not None and o.model is not None and (o.visib_fract is None or o.visib_fract >= min_visib)]
 
 
 def select_blocks(pipeline: Pipeline, names: Sequence[str] | None = None) -> tuple[dict[str, Block], dict[str, Block]]:
