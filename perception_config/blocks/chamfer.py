@@ -31,7 +31,7 @@ from ..geometry import Pose, exp_so3
 from ..render import projected_box
 from ..scene import Frame
 from ..vision.edges import bilinear, canny_edges, edge_refinement_problem, model_contour, project_with_directions
-from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, rotation_prior_weight
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -241,7 +241,7 @@ class ChamferIcp(Block):
         cost0 = chamfer_cost(pose0.R, pose0.t)
         ray = pose0.t / np.linalg.norm(pose0.t)
         prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
-        rot_prior = np.sqrt(len(P)) / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
+        rot_prior = rotation_prior_weight(len(P), c["rotation_prior_deg"])
         R, t = pose0.R, pose0.t
         n_it = int(c["iterations"])
         dists = np.geomspace(c["max_match_px"], min(c["min_match_px"], c["max_match_px"]), n_it)

@@ -34,7 +34,7 @@ import numpy as np
 from ..geometry import Pose
 from ..render import projected_box
 from ..vision.edges import TensorCache, edge_refinement_problem, model_contour, sample_tensor
-from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho, rotation_prior_weight
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -120,7 +120,7 @@ class D2CO(Block):
         # (a shift of depth_prior_mm costs as much as every point 1 px further off); likewise rotation.
         ray = pose0.t / np.linalg.norm(pose0.t)
         prior = ray * np.sqrt(len(Pf)) / (c["depth_prior_mm"] * 1e-3)
-        rot_prior = np.sqrt(len(Pf)) / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
+        rot_prior = rotation_prior_weight(len(Pf), c["rotation_prior_deg"])
         cost0 = cost(r0)
         deadline = self.deadline(inp, start)
         R, t, iterations = pose0.R, pose0.t, 0
@@ -148,7 +148,7 @@ class D2CO(Block):
         if c["coarse_factor"] > 1 and time.perf_counter() < deadline:
             wide = c["coarse_rotation_prior_deg"]
             Rc, tc, it = descend(pose0.R, pose0.t, scale * float(c["coarse_factor"]),
-                                 np.sqrt(len(Pf)) / np.radians(wide) if wide < 1000 else 0.0, str(c["coarse_loss"]))
+                                 rotation_prior_weight(len(Pf), wide), str(c["coarse_loss"]))
             iterations += it
             if fit_cost(Rc, tc) < fit_cost(R, t) * (1.0 - c["coarse_margin"]):
                 R, t = Rc, tc

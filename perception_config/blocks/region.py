@@ -17,7 +17,7 @@ import numpy as np
 from ..geometry import Pose
 from ..render import projected_box
 from ..vision.edges import edge_refinement_problem
-from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, rotation_prior_weight
 from ..vision.region import band_width, colour_model, line_displacements, outline_samples, region_cost
 from ..vision.visibility import hypothesis_rendering
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
@@ -105,7 +105,7 @@ class RegionRefiner(Block):
 
             scale_n = np.sqrt(len(P))
             prior = pose0.t / np.linalg.norm(pose0.t) * scale_n / (c["depth_prior_mm"] * 1e-3)
-            rot_prior = scale_n / np.radians(c["rotation_prior_deg"]) if c["rotation_prior_deg"] < 1000 else 0.0
+            rot_prior = rotation_prior_weight(len(P), c["rotation_prior_deg"])
             R, t, it = levenberg_marquardt(residuals, R, t, prior, float(c["loss_scale"]), int(c["lm_iterations"]),
                                            deadline, loss=str(c["loss"]), anchor=pose0.t,
                                            rotation_prior=rot_prior, rotation_anchor=pose0.R)

@@ -97,6 +97,15 @@ def robust_weights(r: np.ndarray, loss: str, scale: float) -> np.ndarray:
     raise ValueError(f"unknown loss {loss!r}: expected one of {LOSSES}")
 
 
+NO_PRIOR_DEG = 1000.0  # a rotation_prior_deg parameter at this value or above means no rotation prior
+
+
+def rotation_prior_weight(n_residuals: int, degrees: float) -> float:
+    """The `rotation_prior` of `levenberg_marquardt` (per rad) that makes a rotation of `degrees`
+    cost as much as all `n_residuals` one unit off; 0 (none) for degrees >= NO_PRIOR_DEG."""
+    return float(np.sqrt(n_residuals) / np.radians(degrees)) if degrees < NO_PRIOR_DEG else 0.0
+
+
 def levenberg_marquardt(
     evaluate, R0: np.ndarray, t0: np.ndarray, prior: np.ndarray, huber: float,
     max_iterations: int, deadline: float, tol: float = 1e-4, anchor: np.ndarray | None = None,
