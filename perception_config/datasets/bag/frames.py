@@ -30,8 +30,9 @@ import numpy as np
 from ...geometry import Pose, matrix_from_quaternion
 from ...scene import Frame, SceneObject
 from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning, BagWarning, ImageFormatError
-from .mcap_reader import McapFile, bag_files, make_decoder, schema_name
+from .mcap_reader import make_decoder, schema_name
 from .messages import header_stamp_ns, image_msg_to_depth, image_msg_to_rgb
+from .storage import BagFile, open_bag
 from .topics import FrameTopics, resolve_topics
 
 
@@ -224,8 +225,7 @@ def read_bag(
     BagTruncatedWarning; with strict=True, BagTruncatedError before any frame.
     Files, topics and truncation (strict) are checked when called; frames are read lazily.
     """
-    files = bag_files(path)
-    mcaps = [McapFile(p) for p in files]
+    mcaps = open_bag(path)
     if strict:
         for f in mcaps:
             if not f.complete:
@@ -257,7 +257,7 @@ def read_bag(
     return _iter_frames(mcaps, roles, asm)
 
 
-def _iter_frames(mcaps: list[McapFile], roles: dict[str, str], asm: _Assembler) -> Iterator[Frame]:
+def _iter_frames(mcaps: list[BagFile], roles: dict[str, str], asm: _Assembler) -> Iterator[Frame]:
     for f in mcaps:
         chans = f.channels()
         ids = {i for i, c in chans.items() if c.topic in roles}

@@ -1,4 +1,5 @@
-"""`bag_info`: a summary of a bag (files, time range, topics and counts, damage)."""
+"""`bag_info`: a summary of a bag (files, storage, compression, time range, topics and counts, the
+frame topics it would read or why it cannot choose them, damage)."""
 from __future__ import annotations
 
 import os
@@ -6,18 +7,24 @@ import time
 from typing import Any
 
 from .errors import BagFormatError
-from .mcap_reader import McapFile, bag_files, schema_name
-from .topics import resolve_topics
+from .mcap_reader import bag_metadata, schema_name
+from .sqlite_reader import Db3File
+from .storage import first_messages, open_bag
+from .topics import driver_layouts, resolve_topics
 
 
 def bag_info(path: str | os.PathLike) -> dict:
-    """Summary of a bag: path, files, size, start/end (s), duration_s, message_count, frames
-    (colour images that have depth and camera_info messages: an upper bound of what read_bag
-    yields), topics [{topic, type, count}], the frame topics, recording metadata, truncated (the
-    file is cut or damaged), corrupt (a complete file with a damaged chunk: CRC or decompression
-    error; every chunk is read and checked, as the replay does) and damage (what and where).
-    Counts of a damaged file are those of the intact records before the damage."""
-    files = bag_files(path)
+    """Summary of a bag: path, files, storage (mcap | sqlite3), size, start/end (s), duration_s,
+    message_count, frames (colour images that have depth and camera_info messages: an upper bound
+    of what read_bag yields), topics [{topic, type, count, compression}], compression {chunk:
+    MCAP chunk compressions, message: message-level compressions (seen in each topic's first
+    message, and metadata.yaml's)}, frame_topics (colour, depth, camera_info, ground truth, and the
+    driver layout recognised) or, when they cannot be chosen, frame_topics_error (why, with the
+    candidates) and camera_layouts (every complete driver layout), recording metadata, truncated
+    (the file is cut or damaged), corrupt (a complete file with a damaged chunk: CRC or
+    decompression error; every chunk is read and checked, as the replay does) and damage (what and
+    where). Counts of a damaged file are those of the intact records before the damage."""
+    files = open_bag(path)
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     t0, t1 = None, None
@@ -26,13 +33,14 @@ def bag_info(path: str | os.PathLike) -> dict:
     recording: dict[str, str] = {}
     profile = library = ""
     size = 0
-    for p in files:
-        f = McapFile(p)
+    chunk_compression: set[str] = set()
+    for f in files:
         if not f.verify():
             corrupt = corrupt or f.corrupt
         chans = f.channels()
         size += f.size
         profile, library = f.header_profile or profile, f.header_library or library
+        chunk_compression |= f.chunk_compression
         for cid, n in f.counts.items():
             if cid in chans:
                 counts[chans[cid].topic] = counts.get(chans[cid].topic, 0) + n
@@ -45,9 +53,16 @@ def bag_info(path: str | os.PathLike) -> dict:
         recording.update(f.metadata.get("perception_config", {}))
         if not f.complete:
             truncated.append(f.truncation_message())
+    firsts = first_messages(path) if not corrupt else {}
+    msg_compression = {t: m.compression for t, m in firsts.items()}
+    meta = bag_metadata(path) if os.path.isdir(path) else {}
+    mode = str(meta.get("compression_mode") or "").lower()
+    message_formats = sorted({c for c in msg_compression.values() if c}
+                             | ({str(meta.get("compression_format"))} if mode == "message" else set()))
     info: dict[str, Any] = {
         "path": str(path),
-        "files": [str(p) for p in files],
+        "files": [str(f.path) for f in files],
+        "storage": "sqlite3" if all(isinstance(f, Db3File) for f in files) else "mcap",
         "size_bytes": size,
         "profile": profile,
         "library": library,
@@ -58,7 +73,10 @@ def bag_info(path: str | os.PathLike) -> dict:
         "duration_s": (t1 - t0) / 1e9 if t0 is not None else 0.0,
         "message_count": sum(counts.values()),
         "frames": 0,
-        "topics": [{"topic": t, "type": types[t], "count": counts[t]} for t in sorted(types)],
+        "topics": [{"topic": t, "type": types[t], "count": counts[t], "compression": msg_compression.get(t) or "none"}
+                   for t in sorted(types)],
+        "compression": {"chunk": sorted(c or "none" for c in chunk_compression) or ["none"],
+                        "message": message_formats or ["none"]},
         "truncated": bool(truncated),
         "corrupt": corrupt,
     }
@@ -67,7 +85,11 @@ def bag_info(path: str | os.PathLike) -> dict:
         info["frames"] = min(counts.get(t, 0) for t in (ft.color, ft.depth, ft.camera_info) if t is not None)
         info["frame_topics"] = {k: v for k, v in ft.__dict__.items() if v}
     except BagFormatError as exc:
-        info["frame_topics"] = f"not an RGB-D bag ({exc})"
+        info["frame_topics_error"] = str(exc)
+        layouts = driver_layouts(types)
+        if layouts:
+            info["camera_layouts"] = [{"driver": d, "color": c, "depth": dp, "camera_info": i}
+                                      for d, c, dp, i in layouts]
     if recording:
         info["recording"] = recording
     if truncated:

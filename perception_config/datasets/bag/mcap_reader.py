@@ -1,24 +1,28 @@
 """Reading MCAP files: bag file discovery, damaged files, channels, raw and decoded messages.
 
-A bag is a .mcap file or a rosbag2 directory (metadata.yaml lists its files; without it, every
-.mcap file in it). A file without a valid end (no footer: the recorder was killed, the copy was
-cut) is read in file order up to the damage (`McapFile.damage`, `damage_offset`).
-`iter_messages` yields the raw CDR messages; `make_decoder` decodes a channel's messages from
-the bag's own schema, or ours for a type we ship.
+A bag is a .mcap or .db3 file or a rosbag2 directory (metadata.yaml lists its files; without it,
+every .mcap, else every .db3 file in it). A file without a valid end (no footer: the recorder was
+killed, the copy was cut) is read in file order up to the damage (`McapFile.damage`,
+`damage_offset`). Chunk compression (zstd, lz4) is undone by the mcap reader, message-level
+compression by `compression.decompress_message`. Type names are given as 'pkg/msg/Name' whether
+the bag wrote 'pkg/msg/Name' or 'pkg/Name'. `make_decoder` decodes a channel's messages from the
+bag's own schema, or a known definition (ours, else the rosbags typestore) for a bag without one.
+(.db3 files: sqlite_reader.py; `iter_messages` and opening either kind: storage.py.)
 """
 from __future__ import annotations
 
 import os
 import struct
-import warnings
 import zlib
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple
 
 import yaml
 
 from ..ros2msg_schemas import SCHEMAS
-from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning
+from .compression import decompress_stream
+from .errors import BagFormatError, BagTruncatedError
+from .type_names import normalize_type_name
 
 _MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -34,9 +38,23 @@ class BagMessage(NamedTuple):
     data: bytes  # CDR, as a ROS 2 publisher would send it
 
 
+def bag_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """The rosbag2_bagfile_information of a bag directory's metadata.yaml ({} for a file or without one)."""
+    meta = Path(path) / "metadata.yaml"
+    if not meta.is_file():
+        return {}
+    try:
+        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+        if not isinstance(info, dict):
+            raise ValueError("rosbag2_bagfile_information is not a mapping")
+        return info
+    except Exception as exc:
+        raise BagFormatError(f"{meta}: not a readable rosbag2 metadata.yaml ({exc})") from None
+
+
 def bag_files(path: str | os.PathLike) -> list[Path]:
-    """The .mcap files of a bag: the file itself, or those of a directory (as its metadata.yaml
-    lists them, else every .mcap file in it)."""
+    """The .mcap / .db3 files of a bag: the file itself, or those of a directory (as its
+    metadata.yaml lists them, else every .mcap file in it, else every .db3 file)."""
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"no such bag: {p}")
@@ -45,24 +63,26 @@ def bag_files(path: str | os.PathLike) -> list[Path]:
     meta = p / "metadata.yaml"
     files: list[Path] = []
     if meta.is_file():
+        info = bag_metadata(p)
+        storage = info.get("storage_identifier", "mcap")
+        if storage not in ("mcap", "sqlite3"):
+            raise BagFormatError(f"{meta}: rosbag2 storage {storage!r} is not supported, only mcap and sqlite3 "
+                                 "(convert with `ros2 bag convert`)")
+        if str(info.get("compression_mode", "")).lower() == "file":
+            raise BagFormatError(f"{meta}: the bag's files are compressed whole (compression_mode FILE, "
+                                 f"{info.get('compression_format')}): decompress them first (e.g. `zstd -d`) "
+                                 "and remove the compression entries from metadata.yaml")
         try:
-            info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
-            storage = info.get("storage_identifier", "mcap")
-            if storage != "mcap":
-                raise BagFormatError(f"{p}: rosbag2 storage {storage!r} is not supported, only mcap "
-                                     "(convert with `ros2 bag convert`)")
             files = [p / Path(f).name for f in info.get("relative_file_paths", [])]
-        except BagFormatError:
-            raise
         except Exception as exc:
             raise BagFormatError(f"{meta}: not a readable rosbag2 metadata.yaml ({exc})") from None
         missing = [str(f) for f in files if not f.is_file()]
         if missing:
             raise BagFormatError(f"{p}: metadata.yaml lists files that are missing: {missing}")
     if not files:
-        files = sorted(p.glob("*.mcap"))
+        files = sorted(p.glob("*.mcap")) or sorted(p.glob("*.db3"))
     if not files:
-        raise BagFormatError(f"{p}: no .mcap file in this directory")
+        raise BagFormatError(f"{p}: no .mcap or .db3 file in this directory")
     return files
 
 
@@ -94,11 +114,12 @@ class McapFile:
         self.counts: dict[int, int] = {}
         self.times: list[int] = []
         self.metadata: dict[str, dict[str, str]] = {}
+        self.chunk_compression: set[str] = set()  # '' = chunks stored uncompressed
         with open(path, "rb") as f:
             head = f.read(len(_SQLITE_MAGIC))
             if head.startswith(_SQLITE_MAGIC):
-                raise BagFormatError(f"{path}: a rosbag2 sqlite3 (.db3) file, not MCAP; convert it with "
-                                     "`ros2 bag convert` to mcap storage")
+                raise BagFormatError(f"{path}: a rosbag2 sqlite3 (.db3) file, not MCAP (open it with "
+                                     "storage.open_bag_file)")
             if not head.startswith(_MAGIC):
                 if len(head) < len(_MAGIC) and _MAGIC.startswith(head):
                     raise BagTruncatedError(f"{path}: truncated before its first MCAP record ({self.size} bytes)")
@@ -120,6 +141,8 @@ class McapFile:
                     if big:
                         raise ValueError(f"a chunk declares {big[0]} uncompressed bytes, more than the "
                                          f"{MAX_RECORD_BYTES}-byte limit")
+                    self.chunk_compression = {c.compression for c in self.summary.chunk_indexes} \
+                        if self.summary else set()
                     h = reader.get_header()
                     self.header_profile, self.header_library = h.profile, h.library
                 except Exception as exc:  # damaged footer/summary
@@ -194,6 +217,8 @@ class McapFile:
                         self.damage = f"damaged MCAP data ({type(exc).__name__}: {exc})"
                     self.damage_offset = good
                     return
+                if isinstance(rec, Chunk):
+                    self.chunk_compression.add(rec.compression)
                 if isinstance(rec, Header):
                     self.header_profile, self.header_library = rec.profile, rec.library
                 yield batch
@@ -248,7 +273,16 @@ class McapFile:
         return out
 
     def messages(self, channel_ids: set[int] | None) -> Iterator[tuple[_ChannelInfo, int, bytes]]:
-        """(channel, log_time_ns, data): log-time order when indexed, else file order."""
+        """(channel, log_time_ns, CDR bytes): log-time order when indexed, else file order;
+        message-compressed payloads decompressed (BagFormatError naming file, topic and time if damaged)."""
+        for ch, log_time, data, _kind in self.stored_messages(channel_ids):
+            yield ch, log_time, data
+
+    def stored_messages(self, channel_ids: set[int] | None) -> Iterator[tuple[_ChannelInfo, int, bytes, str | None]]:
+        """As `messages`, with how each message was stored ('zstd', 'lz4' or None: plain CDR)."""
+        return decompress_stream(self._raw_messages(channel_ids), self.path)
+
+    def _raw_messages(self, channel_ids: set[int] | None) -> Iterator[tuple[_ChannelInfo, int, bytes]]:
         chans = self.channels()
         if self.summary is not None and self.summary.chunk_indexes:
             from mcap.reader import SeekingReader
@@ -295,7 +329,21 @@ def _crc32(f: Any, start: int, end: int, block: int = 8 * 1024 * 1024) -> int:
 
 
 def schema_name(ch: _ChannelInfo) -> str:
-    return ch.schema.name if ch.schema is not None else ""
+    """The channel's type as 'pkg/msg/Name' (also for a bag that wrote 'pkg/Name'); '' without a schema."""
+    return normalize_type_name(ch.schema.name) if ch.schema is not None else ""
+
+
+def known_definition(type_name: str) -> str | None:
+    """The ros2msg definition text (with its nested types) of a type the bag gives no definition
+    for (rosbag2 sqlite3 bags before Iron): ours, else the rosbags typestore's (ROS 2 Kilted)."""
+    if type_name in SCHEMAS:
+        return SCHEMAS[type_name]
+    try:
+        from rosbags.typesys import Stores, get_typestore
+
+        return get_typestore(Stores.ROS2_KILTED).generate_msgdef(type_name, ros_version=2)[0]
+    except Exception:
+        return None
 
 
 def make_decoder(ch: _ChannelInfo, path: Path) -> Callable[[bytes], Any]:
@@ -308,8 +356,8 @@ def make_decoder(ch: _ChannelInfo, path: Path) -> Callable[[bytes], Any]:
     text = None
     if ch.schema is not None and ch.schema.encoding == "ros2msg" and ch.schema.data:
         text = ch.schema.data.decode("utf-8", errors="replace")
-    elif name in SCHEMAS:  # e.g. a ros2idl or empty definition of a standard type
-        text = SCHEMAS[name]
+    else:  # e.g. a ros2idl or empty definition of a standard type
+        text = known_definition(name)
     if text is None:
         enc = ch.schema.encoding if ch.schema is not None else "none"
         raise BagFormatError(f"{path}: topic {ch.topic} ({name or 'no schema'}) has a {enc!r} schema this reader "
@@ -319,21 +367,3 @@ def make_decoder(ch: _ChannelInfo, path: Path) -> Callable[[bytes], Any]:
     except Exception as exc:
         raise BagFormatError(f"{path}: topic {ch.topic}: "
                              f"cannot parse the message definition of {name} ({exc})") from None
-
-
-def iter_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
-    """Raw serialized messages (topic, type, log_time_ns, cdr bytes) of a bag file or directory.
-
-    In log-time order per file (a damaged file: file order, up to the damage, then a
-    BagTruncatedWarning). A replay node can publish `data` as is (rclpy publish of serialized
-    bytes), without decoding.
-    """
-    wanted = None if topics is None else set(topics)
-    for p in bag_files(path):
-        f = McapFile(p)
-        chans = f.channels()
-        ids = None if wanted is None else {i for i, c in chans.items() if c.topic in wanted}
-        for ch, log_time, data in f.messages(ids):
-            yield BagMessage(ch.topic, schema_name(ch), log_time, bytes(data))
-        if not f.complete:
-            warnings.warn(f.truncation_message(), BagTruncatedWarning, stacklevel=2)

@@ -34,6 +34,15 @@ def interface_packages() -> frozenset[str]:
     return frozenset(found)
 
 
+def normalize_type_name(type_name: str) -> str:
+    """'pkg/msg/Name' for both forms a bag may carry: 'pkg/msg/Name' (rosbag2) and 'pkg/Name' (some
+    recorders and ROS 1 tools); anything else is returned unchanged (and fails check_type_name)."""
+    parts = type_name.split("/") if isinstance(type_name, str) else []
+    if len(parts) == 2 and TYPE_NAME_PATTERN.match(type_name):
+        return f"{parts[0]}/msg/{parts[1]}"
+    return type_name
+
+
 def check_type_name(type_name: str) -> tuple[str, str]:
     """(package, message name) of a valid 'pkg/msg/Name' (or 'pkg/Name') of a known interface
     package; BagFormatError otherwise."""
