@@ -1,10 +1,20 @@
-"""bag_replay_node: replays a rosbag2 MCAP bag (what `perception-config bag write` records) on ROS 2
-topics, like `ros2 bag play`, publishing each message's serialized bytes as they are (no decoding).
+"""bag_replay_node: replays a rosbag2 bag (MCAP or sqlite3 .db3; what `perception-config bag write`
+records, or a camera driver's recording) on ROS 2 topics, like `ros2 bag play`, publishing each
+message's serialized bytes without decoding them, after undoing message-level compression (zstd,
+lz4; MCAP chunk compression is undone by the reader).
 
     bag_replay_node --ros-args -p bag:=recording.mcap -p rate:=1.0 -p loop:=true
 
 Topics: each of the bag's topics under its own name with the leading '/' removed, so a node
-namespace and `--ros-args -r` remappings apply. A bag of ours gives camera/color/image_raw,
+namespace and `--ros-args -r` remappings apply. A sensor_msgs/CompressedImage topic (image_transport
+`<image>/compressed` jpeg/png, `<image>/compressedDepth`) is decoded and published as a
+sensor_msgs/Image on `<image>` (rgb8 colour; 16UC1 millimetres or 32FC1 metres depth), the topic
+and type the project's operator nodes (and rviz/Foxglove without image_transport plugins) subscribe
+to; `decompress_images:=false` republishes the CompressedImage as recorded instead. A compressed
+topic whose raw `<image>` topic is in the bag too is not replayed (the frames would arrive twice).
+Before starting, the first message of every replayed topic is deserialised with the installed
+message type (and a compressed image decoded): a topic that does not is an error naming the bag,
+topic and type (exit 2), not a replay of bytes no subscriber can read. A bag of ours gives camera/color/image_raw,
 camera/depth/image_raw (16UC1 mm), camera/camera_info, perception/ground_truth (ObjectPoses) and
 perception/frame_info (std_msgs/String JSON). QoS: reliable, keep-last 10, volatile. Reliable so
 that subscribers with the default QoS match and a consumer that keeps up loses no frame (best-effort
@@ -25,6 +35,7 @@ Parameters (type, default)
                                 within wait_timeout; replaces wait_for_subscribers when set
   start_delay (float, 0.0)      seconds before the first message, after wait_for_subscribers (the
                                 other topics may match a moment after the colour topic)
+  decompress_images (bool, true) CompressedImage topics published decoded as sensor_msgs/Image
 
 Pacing (rate > 0): a message is due at (its log time - the first message's log time) / rate after
 the start, on the monotonic clock; a late message is published at once and the schedule does not
@@ -53,7 +64,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from ..datasets.bag import BagTruncatedWarning, bag_info, iter_messages
+from ..datasets.bag import BagTruncatedWarning, bag_info, first_messages, iter_messages
+from ..datasets.bag.messages import compressed_image_fields
+from ..datasets.bag.topics import COMPRESSED_IMAGE
 from ..datasets.bag.type_names import check_type_name
 from ..ros_environment import configure_ros_environment
 from ..ros_shm import clean_stale_fastdds_shm
@@ -88,6 +101,7 @@ class BagReplayNode(Node):
         self.declare_parameter("wait_timeout", 10.0, number)
         self.declare_parameter("wait_for", Parameter.Type.STRING_ARRAY)  # not set = wait_for_subscribers
         self.declare_parameter("start_delay", 0.0, number)
+        self.declare_parameter("decompress_images", True)
 
         self.bag = self.get_parameter("bag").value
         self.rate = self._number("rate")
@@ -95,6 +109,7 @@ class BagReplayNode(Node):
         self.wait_for = self.get_parameter("wait_for_subscribers").value
         self.wait_timeout = self._number("wait_timeout")
         self.start_delay = self._number("start_delay")
+        self.decompress_images = bool(self.get_parameter("decompress_images").value)
         if not self.bag:
             raise ReplayError("parameter 'bag' is empty: give a bag file or directory (--ros-args -p bag:=FILE.mcap)")
         if self.rate < 0:
@@ -110,7 +125,11 @@ class BagReplayNode(Node):
             self.get_logger().warning(f"{info['damage']}: replaying the complete frames before the damage")
 
         wanted = {t.lstrip("/") for t in self.get_parameter_or("topics").value or []}
-        self._pubs = {}
+        frame_topics = info.get("frame_topics")
+        frame_topics = frame_topics if isinstance(frame_topics, dict) else {}
+        bag_topics = {t["topic"] for t in info["topics"]}
+        self._pubs = {}  # bag topic -> publisher
+        self._decode: dict[str, tuple[type, bool]] = {}  # CompressedImage bag topic -> (Image class, is depth)
         for t in info["topics"]:
             name = t["topic"].lstrip("/")
             if wanted and name not in wanted:
@@ -120,6 +139,16 @@ class BagReplayNode(Node):
             except (ValueError, ImportError, AttributeError):
                 self.get_logger().warning(f"skipping {t['topic']}: message type {t['type']!r} is not installed")
                 continue
+            if t["type"] == COMPRESSED_IMAGE and self.decompress_images:
+                base = t["topic"].removesuffix("/compressedDepth").removesuffix("/compressed")
+                if base != t["topic"] and base in bag_topics:
+                    self.get_logger().info(f"not replaying {t['topic']}: the bag has its raw topic {base}")
+                    continue
+                from sensor_msgs.msg import Image
+
+                depth = t["topic"] == frame_topics.get("depth") or "depth" in t["topic"].lower()
+                self._decode[t["topic"]] = (cls, depth)
+                cls, name = Image, base.lstrip("/")
             self._pubs[t["topic"]] = self.create_publisher(cls, name, QOS)
         missing = wanted - {t["topic"].lstrip("/") for t in info["topics"]}
         if missing:
@@ -127,12 +156,13 @@ class BagReplayNode(Node):
                               f"(it has {[t['topic'] for t in info['topics']]})")
         if not self._pubs:
             raise ReplayError(f"bag {self.bag}: no topic to replay")
-        frame_topics = info.get("frame_topics")
-        self._color = frame_topics.get("color") if isinstance(frame_topics, dict) else None
+        self._check_first_messages(info)
+        self._color = frame_topics.get("color")
         self._wait_counts: dict[str, int] = {}  # bag topic -> minimum subscribers before starting
         for item in self.get_parameter_or("wait_for").value or []:
             name, _, count = str(item).rpartition(":")
-            topic = next((t for t in self._pubs if t.lstrip("/") == name.lstrip("/")), None)
+            topic = next((t for t, p in self._pubs.items()
+                          if name.lstrip("/") in (t.lstrip("/"), p.topic_name.lstrip("/"))), None)
             if topic is None or not count.isdigit():
                 raise ReplayError(f"wait_for entry {item!r} must be 'topic:count' with a replayed topic "
                                   f"(topics: {sorted(self._pubs)})")
@@ -149,6 +179,39 @@ class BagReplayNode(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
         self._thread.start()
+
+    def _check_first_messages(self, info: dict) -> None:
+        """The first message of every replayed topic deserialises with the installed type (and a
+        compressed image decodes); ReplayError naming the bag, topic and type otherwise."""
+        from rclpy.serialization import deserialize_message
+
+        types = {t["topic"]: t["type"] for t in info["topics"]}
+        try:
+            firsts = first_messages(self.bag, list(self._pubs))
+        except (OSError, ValueError) as exc:
+            raise ReplayError(f"cannot replay bag {self.bag}: {exc}") from None
+        for topic, first in firsts.items():
+            cls = self._decode[topic][0] if topic in self._decode else self._pubs[topic].msg_type
+            try:
+                msg = deserialize_message(first.message.data, cls)
+                if topic in self._decode:
+                    compressed_image_fields(msg, self._decode[topic][1])
+            except Exception as exc:
+                raise ReplayError(f"cannot replay bag {self.bag}: the first message of topic {topic} does not "
+                                  f"deserialise as the installed {types[topic]} ({type(exc).__name__}: {exc}); "
+                                  "the bag's type definition differs from the installed one or the data is "
+                                  "damaged") from None
+
+    def _publish(self, topic: str, data: bytes) -> None:
+        decode = self._decode.get(topic)
+        if decode is None:
+            self._pubs[topic].publish(data)
+            return
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import Image
+
+        compressed = deserialize_message(data, decode[0])
+        self._pubs[topic].publish(Image(header=compressed.header, **compressed_image_fields(compressed, decode[1])))
 
     def _number(self, name: str) -> float:
         value = self.get_parameter(name).value
@@ -213,7 +276,7 @@ class BagReplayNode(Node):
                     due = start + (m.log_time_ns - log0) / 1e9 / self.rate
                 if not self._sleep(due - time.monotonic()):
                     return
-                self._pubs[m.topic].publish(m.data)
+                self._publish(m.topic, m.data)
                 first = time.monotonic() if first is None else first
                 messages += 1
                 frames += m.topic == self._color
