@@ -27,7 +27,8 @@ Parameters (type, default)
   loop (bool, false)            start over at the end, one frame interval later. The stamps are the
                                 bag's own and do not change between passes: nodes that cache frames
                                 by stamp see the same frames again.
-  topics (string[], not set)    bag topics to replay (with or without the leading '/'); not set = all
+  topics (string[], not set)    bag topics to replay (with or without the leading '/'; a compressed image
+                                topic also by its raw image topic's name); not set = all
   wait_for_subscribers (int, 0) before starting, wait until `wait_topic` has this many
   wait_timeout (float, 10.0)      subscribers, at most wait_timeout s (then a warning, and start)
   wait_for (string[], not set)  per-topic minimum subscribers, "topic:count" (e.g.
@@ -130,9 +131,12 @@ class BagReplayNode(Node):
         bag_topics = {t["topic"] for t in info["topics"]}
         self._pubs = {}  # bag topic -> publisher
         self._decode: dict[str, tuple[type, bool]] = {}  # CompressedImage bag topic -> (Image class, is depth)
+        def base_of(topic: str) -> str:  # an image_transport compressed topic's raw image topic
+            return topic.removesuffix("/compressedDepth").removesuffix("/compressed")
+
         for t in info["topics"]:
             name = t["topic"].lstrip("/")
-            if wanted and name not in wanted:
+            if wanted and name not in wanted and base_of(t["topic"]).lstrip("/") not in wanted:
                 continue
             try:
                 cls = message_class(t["type"])
@@ -140,7 +144,7 @@ class BagReplayNode(Node):
                 self.get_logger().warning(f"skipping {t['topic']}: message type {t['type']!r} is not installed")
                 continue
             if t["type"] == COMPRESSED_IMAGE and self.decompress_images:
-                base = t["topic"].removesuffix("/compressedDepth").removesuffix("/compressed")
+                base = base_of(t["topic"])
                 if base != t["topic"] and base in bag_topics:
                     self.get_logger().info(f"not replaying {t['topic']}: the bag has its raw topic {base}")
                     continue
@@ -150,7 +154,8 @@ class BagReplayNode(Node):
                 self._decode[t["topic"]] = (cls, depth)
                 cls, name = Image, base.lstrip("/")
             self._pubs[t["topic"]] = self.create_publisher(cls, name, QOS)
-        missing = wanted - {t["topic"].lstrip("/") for t in info["topics"]}
+        names = {n.lstrip("/") for t in info["topics"] for n in (t["topic"], base_of(t["topic"]))}
+        missing = wanted - names
         if missing:
             raise ReplayError(f"topics {sorted(missing)} are not in bag {self.bag} "
                               f"(it has {[t['topic'] for t in info['topics']]})")

@@ -1,14 +1,17 @@
-"""rosbag2 MCAP bags read back as Frames: `read_bag`.
+"""rosbag2 bags read back as Frames: `read_bag`.
 
-`read_bag` reads our bags and rosbag2 MCAP recordings of real RGB-D (or RGB-only) cameras: topics default to
-ours, and when those are absent the colour, depth and camera_info topics are found by message
-type and name (e.g. RealSense `/camera/camera/color/image_raw`,
-`/camera/camera/aligned_depth_to_color/image_raw`, `/camera/camera/color/camera_info`).
-Colour rgb8, bgr8, rgba8, bgra8, mono8, 8UC3 (as BGR); depth 16UC1 / mono16 (millimetres, 0 = missing) or
-32FC1 (metres, NaN/inf/0 = missing). Messages are grouped into frames by header stamp (exactly,
-or the nearest within `sync_tolerance_s` for drivers that stamp colour and depth apart); a
-colour image without its depth/camera_info (or ground truth, when the bag has it) is dropped,
-and one `BagWarning` at the end says how many.
+`read_bag` reads our bags and rosbag2 recordings of real RGB-D (or RGB-only) cameras: MCAP (chunk
+compression zstd/lz4) or sqlite3 .db3 files, message-level compression (zstd, lz4), type names
+'pkg/msg/Name' or 'pkg/Name'. Topics default to ours; when those are absent the colour, depth and
+camera_info topics are those of a known driver layout (RealSense `/camera/camera/color/image_raw`,
+`.../aligned_depth_to_color/image_raw`, `.../color/camera_info`; Azure Kinect, ZED, OAK-D, OpenNI:
+topics.DRIVER_LAYOUTS), else found by message type and name.
+Colour rgb8, bgr8, rgba8, bgra8, mono8, 8UC3 (as BGR) or a CompressedImage (jpeg, png); depth
+16UC1 / mono16 (millimetres, 0 = missing), 32FC1 (metres, NaN/inf/0 = missing) or a
+CompressedImage (compressedDepth png of 16UC1 or 32FC1, or a 16-bit png). Messages are grouped
+into frames by header stamp (exactly, or the nearest within `sync_tolerance_s` for drivers that
+stamp colour and depth apart); a colour image without its depth/camera_info (or ground truth,
+when the bag has it) is dropped, and one `BagWarning` at the end says how many.
 At the boundary depth becomes float32 metres with NaN for missing, like everywhere in the code.
 
 A truncated or damaged file (no footer: the recorder was killed, the copy was cut) is read up
@@ -210,7 +213,7 @@ def read_bag(
     sync_tolerance_s: float = 0.02,
     strict: bool = False,
 ) -> Iterator[Frame]:
-    """Frames of a rosbag2 MCAP bag (a .mcap file or a bag directory), in stamp order.
+    """Frames of a rosbag2 bag (a .mcap or .db3 file or a bag directory), in stamp order.
 
     A frame = a colour image + the depth image + camera_info with the same header stamp (or the
     nearest within `sync_tolerance_s`; 0 = exact only) + the ground truth (ObjectPoses) when the

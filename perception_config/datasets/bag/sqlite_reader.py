@@ -7,6 +7,7 @@ and rosbags write it); older files have none and the decoder falls back to the d
 """
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 from typing import Iterator
 
@@ -22,7 +23,6 @@ class Db3File:
     header_library = "rosbag2 sqlite3"
 
     def __init__(self, path: Path):
-        from rosbags.rosbag2.errors import ReaderError
         from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
         self.path = path
@@ -35,8 +35,9 @@ class Db3File:
         self._reader = Sqlite3Reader(path)
         try:
             self._reader.open()
-        except (ReaderError, Exception) as exc:
+        except Exception as exc:  # rosbags' ReaderError, apsw errors
             raise BagFormatError(f"{path}: not a readable rosbag2 sqlite3 database ({exc})") from None
+        weakref.finalize(self, self._reader.close)  # the database connection closes with this object
         self._conns = {c.id: c for c in self._reader.connections}
         fmt = {1: "ros2msg", 2: "ros2idl"}  # rosbags MessageDefinitionFormat.MSG / IDL
         self._channels = {
