@@ -19,8 +19,8 @@ from .mcap_reader import _ChannelInfo, _Schema
 class Db3File:
     """One rosbag2 sqlite3 file; opening it checks that it is a rosbag2 database."""
 
-    header_profile = "ros2"
-    header_library = "rosbag2 sqlite3"
+    header_profile = ""  # MCAP header fields; a .db3 file has none
+    header_library = ""
 
     def __init__(self, path: Path):
         from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
