@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -72,15 +71,33 @@ def test_replay_publishes_decodable_images(ros_node, tmp_path, case):
     assert f"replayed {4 * spec.n} messages, {spec.n} frames" in out, out
 
 
-def test_a_topic_that_does_not_deserialise_is_refused_before_the_start(tmp_path):
+@pytest.mark.parametrize("case", ["garbage", "other_definition"])
+def test_a_topic_that_does_not_deserialise_is_refused_before_the_start(tmp_path, case):
+    """garbage: bytes that are no Image; other_definition: a valid Image whose bag definition
+    lists width before height, so the installed type would read other values than the bag means."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
     bag = tmp_path / "bad"
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as wr:
-        conn = wr.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=ts)
-        wr.write(conn, 1, b"\x00\x01\x00\x00" + b"\xff" * 40)  # CDR header, then no valid Image
+        if case == "garbage":
+            conn = wr.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=ts)
+            wr.write(conn, 1, b"\x00\x01\x00\x00" + b"\xff" * 40)  # CDR header, then no valid Image
+            expected = "first message of topic /camera/color/image_raw does not deserialise"
+        else:
+            text = ts.generate_msgdef("sensor_msgs/msg/Image", ros_version=2)[0]
+            swapped = text.replace("uint32 height\nuint32 width", "uint32 width\nuint32 height")
+            assert swapped != text
+            conn = wr.add_connection("/camera/color/image_raw", "sensor_msgs/msg/Image", msgdef=swapped,
+                                     rihs01=ts.hash_rihs01("sensor_msgs/msg/Image"))
+            img = T["sensor_msgs/msg/Image"](
+                header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                                frame_id="cam"),
+                height=2, width=3, encoding="mono8", is_bigendian=0, step=3, data=np.zeros(6, np.uint8))
+            wr.write(conn, 1, ts.serialize_cdr(img, "sensor_msgs/msg/Image"))
+            expected = "reads differently with the installed sensor_msgs/msg/Image than with the bag's own definition"
     node = NodeProcess("bag_replay_node", {"bag": str(bag), "rate": 0.0}, tmp_path)
     try:
         node.proc.wait(20)
@@ -89,6 +106,7 @@ def test_a_topic_that_does_not_deserialise_is_refused_before_the_start(tmp_path)
     code = node.stop()
     out = node.output()
     assert code == 2, out
-    assert "[ERROR]" in out and "first message of topic /camera/color/image_raw does not deserialise" in out, out
+    assert "[ERROR]" in out and expected in out, out
     assert str(bag) in out and "Traceback" not in out, out
-    assert Path(bag).is_dir()
+    if case == "other_definition":
+        assert "height: 2 != 3" in out, out

@@ -54,6 +54,7 @@ import sys
 import threading
 import time
 import warnings
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -79,6 +80,33 @@ QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=Reliabil
 
 class ReplayError(Exception):
     """Bad parameters or an unreadable bag (exit code 2)."""
+
+
+def field_difference(msg: Any, other: Any, path: str = "") -> str | None:
+    """The first field where an rclpy message and the same message decoded another way (an object
+    with the same field names as attributes, e.g. from the bag's schema) differ; None if equal."""
+    for name in msg.get_fields_and_field_types():
+        here = f"{path}.{name}" if path else name
+        if not hasattr(other, name):
+            return f"field {here} is not in the bag's definition"
+        a, b = getattr(msg, name), getattr(other, name)
+        if hasattr(a, "get_fields_and_field_types"):
+            diff = field_difference(a, b, here)
+        elif isinstance(a, (str, bool, int, float)):
+            diff = None if a == b or (a != a and b != b) else f"{here}: {a!r} != {b!r}"[:200]
+        else:  # a sequence or array: of messages or of numbers
+            a, b = list(a), list(b)
+            if len(a) != len(b):
+                return f"{here}: {len(a)} != {len(b)} elements"
+            if a and hasattr(a[0], "get_fields_and_field_types"):
+                diff = next((d for i, (x, y) in enumerate(zip(a, b))
+                             if (d := field_difference(x, y, f"{here}[{i}]")) is not None), None)
+            else:
+                bad = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y and not (x != x and y != y)), None)
+                diff = None if bad is None else f"{here}[{bad}]: {a[bad]!r} != {b[bad]!r}"
+        if diff is not None:
+            return diff
+    return None
 
 
 def message_class(type_name: str) -> type:
@@ -186,8 +214,9 @@ class BagReplayNode(Node):
         self._thread.start()
 
     def _check_first_messages(self, info: dict) -> None:
-        """The first message of every replayed topic deserialises with the installed type (and a
-        compressed image decodes); ReplayError naming the bag, topic and type otherwise."""
+        """The first message of every replayed topic deserialises with the installed type into the
+        same field values the bag's own definition of the type gives (and a compressed image
+        decodes); ReplayError naming the bag, topic and type otherwise."""
         from rclpy.serialization import deserialize_message
 
         types = {t["topic"]: t["type"] for t in info["topics"]}
@@ -197,15 +226,23 @@ class BagReplayNode(Node):
             raise ReplayError(f"cannot replay bag {self.bag}: {exc}") from None
         for topic, first in firsts.items():
             cls = self._decode[topic][0] if topic in self._decode else self._pubs[topic].msg_type
+            where = f"cannot replay bag {self.bag}: the first message of topic {topic}"
             try:
                 msg = deserialize_message(first.message.data, cls)
-                if topic in self._decode:
-                    compressed_image_fields(msg, self._decode[topic][1])
             except Exception as exc:
-                raise ReplayError(f"cannot replay bag {self.bag}: the first message of topic {topic} does not "
-                                  f"deserialise as the installed {types[topic]} ({type(exc).__name__}: {exc}); "
-                                  "the bag's type definition differs from the installed one or the data is "
-                                  "damaged") from None
+                raise ReplayError(f"{where} does not deserialise as the installed {types[topic]} "
+                                  f"({type(exc).__name__}: {exc}); the bag's definition of the type differs from "
+                                  "the installed one or the data is damaged") from None
+            if first.decoded is not None:
+                diff = field_difference(msg, first.decoded)
+                if diff is not None:
+                    raise ReplayError(f"{where} reads differently with the installed {types[topic]} than with the "
+                                      f"bag's own definition of it ({diff}): the definitions differ")
+            if topic in self._decode:
+                try:
+                    compressed_image_fields(msg, self._decode[topic][1])
+                except ValueError as exc:
+                    raise ReplayError(f"{where} is a CompressedImage that does not decode: {exc}") from None
 
     def _publish(self, topic: str, data: bytes) -> None:
         decode = self._decode.get(topic)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple
+from typing import Any, Iterable, Iterator, NamedTuple
 
 from .errors import BagTruncatedWarning
-from .mcap_reader import _SQLITE_MAGIC, BagMessage, McapFile, bag_files, schema_name
+from .mcap_reader import _SQLITE_MAGIC, BagMessage, McapFile, bag_files, make_decoder, schema_name
 from .sqlite_reader import Db3File
 
 BagFile = McapFile | Db3File
@@ -47,11 +47,13 @@ def iter_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) 
 class FirstMessage(NamedTuple):
     message: BagMessage  # decompressed
     compression: str | None  # how it was stored: 'zstd', 'lz4' (message-level) or None
+    decoded: Any  # decoded with the bag's own definition of the type (None if it does not decode)
+    decode_error: str | None  # why it does not decode with the bag's definition
 
 
 def first_messages(path: str | os.PathLike, topics: Iterable[str] | None = None) -> dict[str, FirstMessage]:
-    """The first message of each topic that has one (decompressed, and how it was stored), reading
-    no further than needed."""
+    """The first message of each topic that has one (decompressed, how it was stored, and decoded
+    with the bag's own definition of its type), reading no further than needed."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", BagTruncatedWarning)
         out: dict[str, FirstMessage] = {}
@@ -63,7 +65,12 @@ def first_messages(path: str | os.PathLike, topics: Iterable[str] | None = None)
                 continue
             for ch, log_time, data, kind in f.stored_messages(todo):
                 msg = BagMessage(ch.topic, schema_name(ch), log_time, bytes(data))
-                out.setdefault(ch.topic, FirstMessage(msg, kind))
+                decoded, error = None, None
+                try:
+                    decoded = make_decoder(ch, f.path)(msg.data)
+                except Exception as exc:
+                    error = f"{type(exc).__name__}: {exc}"[:300]
+                out.setdefault(ch.topic, FirstMessage(msg, kind, decoded, error))
                 todo.discard(ch.id)
                 if not todo:
                     break
