@@ -13,8 +13,9 @@ and type the project's operator nodes (and rviz/Foxglove without image_transport
 to; `decompress_images:=false` republishes the CompressedImage as recorded instead. A compressed
 topic whose raw `<image>` topic is in the bag too is not replayed (the frames would arrive twice).
 Before starting, the first message of every replayed topic is deserialised with the installed
-message type (and a compressed image decoded): a topic that does not is an error naming the bag,
-topic and type (exit 2), not a replay of bytes no subscriber can read. A bag of ours gives camera/color/image_raw,
+message type and compared field by field with what the bag's own definition of the type gives
+(and a compressed image is decoded): a topic that fails is an error naming the bag, topic and
+type (exit 2), not a replay of bytes no subscriber can read. A bag of ours gives camera/color/image_raw,
 camera/depth/image_raw (16UC1 mm), camera/camera_info, perception/ground_truth (ObjectPoses) and
 perception/frame_info (std_msgs/String JSON). QoS: reliable, keep-last 10, volatile. Reliable so
 that subscribers with the default QoS match and a consumer that keeps up loses no frame (best-effort
