@@ -182,3 +182,26 @@ def test_compressed_depth_formats():
     ok, jpg = cv2.imencode(".jpg", np.zeros((4, 4, 3), np.uint8))
     with pytest.raises(ImageFormatError, match="expected a 16-bit single-channel PNG"):
         image_msg_to_depth(SimpleNamespace(format="jpeg", data=jpg.tobytes()))
+
+
+def test_topic_choice_prefers_raw_images_and_knows_openni():
+    from perception_config.datasets.bag import resolve_topics
+
+    img, comp, info = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
+    both = {"/camera/color/image_raw": img, "/camera/color/image_raw/compressed": comp,
+            "/camera/aligned_depth_to_color/image_raw": img,
+            "/camera/aligned_depth_to_color/image_raw/compressedDepth": comp, "/camera/color/camera_info": info}
+    ft = resolve_topics(both)
+    assert (ft.color, ft.depth, ft.layout) == ("/camera/color/image_raw", "/camera/aligned_depth_to_color/image_raw",
+                                               "RealSense (realsense2_camera)")
+    openni = {"/camera/rgb/image_raw": img, "/camera/depth_registered/image_raw": img, "/camera/depth/image_raw": img,
+              "/camera/rgb/camera_info": info, "/camera/ir/image": img}
+    ft = resolve_topics(openni)
+    assert (ft.color, ft.depth, ft.camera_info) == ("/camera/rgb/image_raw", "/camera/depth_registered/image_raw",
+                                                    "/camera/rgb/camera_info")
+    assert ft.layout.startswith("OpenNI")
+    # No known layout: by name, and a tie is an error listing the candidates.
+    tie = {"/a/color/image_raw": img, "/b/color/image_raw": img, "/a/color/camera_info": info}
+    with pytest.raises(BagFormatError, match=r"cannot tell the colour image topic: candidates \['/a/color/image_raw', "
+                                             r"'/b/color/image_raw'\]"):
+        resolve_topics(tie, "x.mcap")
