@@ -205,3 +205,40 @@ def test_topic_choice_prefers_raw_images_and_knows_openni():
     with pytest.raises(BagFormatError, match=r"cannot tell the colour image topic: candidates \['/a/color/image_raw', "
                                              r"'/b/color/image_raw'\]"):
         resolve_topics(tie, "x.mcap")
+
+
+def test_the_issue_recording_rgb_only_image_raw(tmp_path, capsys):
+    """Issue 15's recording: sensor_msgs/Image on /camera/image_raw, message-level zstd, the type
+    written `sensor_msgs/Image`; bag info named no colour topic and the reader returned the
+    compressed payloads."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from perception_config.cli import main
+    from real_bags import K
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    rgb = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
+    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=0), frame_id="cam")
+    img = T["sensor_msgs/msg/Image"](header=hdr, height=6, width=8, encoding="rgb8", is_bigendian=0, step=24,
+                                     data=rgb.flatten())
+    info = T["sensor_msgs/msg/CameraInfo"](
+        header=hdr, height=6, width=8, distortion_model="plumb_bob", d=np.zeros(5), k=K.flatten(),
+        r=np.eye(3).flatten(), p=np.hstack([K, np.zeros((3, 1))]).flatten(), binning_x=0, binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    wr = Writer(tmp_path / "rec", version=9, storage_plugin=StoragePlugin.MCAP)
+    wr.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with wr:
+        for topic, t, msg in (("/camera/image_raw", "sensor_msgs/msg/Image", img),
+                              ("/camera/camera_info", "sensor_msgs/msg/CameraInfo", info)):
+            conn = wr.add_connection(topic, t.replace("/msg/", "/"), msgdef=ts.generate_msgdef(t, ros_version=2)[0],
+                                     rihs01=ts.hash_rihs01(t))
+            wr.write(conn, 5 * 10**9, ts.serialize_cdr(msg, t))
+    (frame,) = read_bag(tmp_path / "rec")
+    np.testing.assert_array_equal(frame.rgb, rgb)
+    assert frame.depth is None
+    assert main(["bag", "info", str(tmp_path / "rec")]) == 0
+    out = capsys.readouterr().out
+    assert "color         /camera/image_raw" in out and "depth         none (RGB-only)" in out
+    assert "messages zstd" in out and "sensor_msgs/msg/Image" in out
