@@ -113,6 +113,12 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
     """AR_MSSD and AR_MSPD of bop_toolkit per result file: {file name: {"mssd": ar, "mspd": ar,
     "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json."""
     toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
+    if not (toolkit / "scripts" / "eval_bop19_pose.py").is_file():
+        raise FileNotFoundError(f"not bop_toolkit's folder (no scripts/eval_bop19_pose.py): {toolkit}")
+    if not (dataset / "camera.json").is_file():
+        raise FileNotFoundError(f"not a BOP dataset folder (no camera.json): {dataset}")
+    if not results.is_dir():
+        raise FileNotFoundError(f"results folder not found: {results}")
     datasets = eval_path / "datasets"
     os.environ["BOP_PATH"] = str(datasets)  # before bop_toolkit_lib.config reads it
     sys.path.insert(0, str(toolkit))
@@ -191,8 +197,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="targets file (default: the targets_*.json in --results)")
     ap.add_argument("--num-workers", type=int, default=1)
     a = ap.parse_args(argv)
-    out = evaluate(a.toolkit, a.dataset, a.results, a.eval_path,
-                   a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers)
+    try:
+        out = evaluate(a.toolkit, a.dataset, a.results, a.eval_path,
+                       a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers)
+    except (OSError, ValueError, RuntimeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print("bop_toolkit (eval_bop19_pose.py's MSSD and MSPD steps):")
     for f, s in out.items():
         print(f"  {f}: AR_MSSD {s['mssd']:.4f}  AR_MSPD {s['mspd']:.4f}  time/image {s['time']:.3f} s")

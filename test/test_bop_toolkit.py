@@ -96,3 +96,21 @@ def test_bop_toolkit_recall_at_a_tenth_of_the_diameter_is_recall_mssd(evaluation
         scores = json.loads((folder / "error=mssd_ntop=-1" / "scores_th=0.100_min-visib=-1.000.json").read_text())
         assert scores["recall"] == pytest.approx(r["recall_mssd"], abs=1e-12)
         assert scores["targets_count"] == r["episodes"]  # the targets file: exactly the evaluated episodes
+
+
+def test_bad_input_is_named(evaluation, tmp_path):
+    """No result file, or no targets file next to them: an error naming what is missing, exit 2."""
+    script = str(REPO / "perception_config" / "bop_toolkit_eval.py")
+    base = [str(bop_venv()), script, "--toolkit", str(TOOLKIT), "--dataset", str(evaluation["dataset"]),
+            "--eval-path", str(tmp_path / "e")]
+    (tmp_path / "empty").mkdir()
+    run = subprocess.run(base + ["--results", str(tmp_path / "empty")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "no BOP result file (*.csv) in" in run.stderr, run.stderr[-2000:]
+    (tmp_path / "no_targets").mkdir()
+    (tmp_path / "no_targets" / "random-lam1_tiny-test.csv").write_text("scene_id,im_id,obj_id,score,R,t,time\n")
+    run = subprocess.run(base + ["--results", str(tmp_path / "no_targets")], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2 and "expected one targets_*.json" in run.stderr, run.stderr[-2000:]
+    run = subprocess.run(base[:4] + ["--dataset", str(tmp_path), "--eval-path", str(tmp_path / "e"), "--results",
+                                     str(tmp_path / "empty")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "not a BOP dataset folder (no camera.json)" in run.stderr, run.stderr[-2000:]
