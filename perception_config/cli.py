@@ -173,6 +173,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
+    print(f"BOP results for bop_toolkit, with the targets file of the evaluated episodes: {results.parent / 'bop'}")
     return 0
 
 

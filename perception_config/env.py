@@ -39,8 +39,13 @@ info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 Time: measured wall time by default; `time_mode="cost_table"` charges fixed seconds per action
 and per scoring pass (each block's `default_cost`, or the settings' `cost_table`), for
 reproducible runs and tests. In cost-table mode the in-process blocks run without their
-wall-clock bounds (`max_seconds`), to their iteration bounds: the same episode then computes the
-same poses on a loaded machine as on an idle one.
+wall-clock bounds (`max_seconds`), to their iteration bounds, and Open3D runs on one thread
+during reset and step (its ICP sums in a scheduling-dependent order otherwise, ~1e-17 m apart;
+the previous limit is restored after each call): the same seed and actions then give bitwise
+the same observations, rewards and infos, on a loaded machine as on an idle one, which is what
+Gymnasium's `check_env` asks: it passes on
+`gymnasium.make("PerceptionConfig-v0", dataset=..., time_mode="cost_table")`. With measured
+time (the default) rewards are measured seconds, which no checker can find equal twice.
 
 Settings: one `EnvSettings` (settings.py: max_ops, failed_pick_cost, truncation_cost,
 time_mode, cost_table, min_visib_fract, lambda_range); keyword arguments of the same names
@@ -49,8 +54,9 @@ override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import gymnasium as gym
 import numpy as np
@@ -74,6 +80,26 @@ def normalise_score(value: float, score_range: tuple[float, float] | None) -> fl
         low, high = score_range
         return float(np.clip((value - low) / (high - low), 0.0, 1.0))
     return float(0.5 + 0.5 * value / (1.0 + abs(value)))
+
+
+@contextmanager
+def _open3d_single_thread(active: bool) -> Iterator[None]:
+    """Open3D limited to one thread inside the block when `active` (process-wide setting,
+    restored on exit): its parallel ICP reductions are then bitwise reproducible."""
+    util = None
+    if active:
+        import open3d as o3d
+
+        util = o3d.utility if hasattr(o3d.utility, "set_max_threads") else None  # Open3D >= 0.20
+    if util is None:
+        yield
+        return
+    previous = int(util.get_max_threads())
+    util.set_max_threads(1)
+    try:
+        yield
+    finally:
+        util.set_max_threads(previous)
 
 
 class PerceptionConfigEnv(gym.Env):
@@ -116,6 +142,7 @@ class PerceptionConfigEnv(gym.Env):
         # loaded machine would make the episode depend on timing (measured mode keeps them).
         self.ops: Operators = operators if operators is not None else InProcessOperators(
             self.pipeline, time_bounded=self.settings.time_mode == "measured")
+        self._reproducible = self.settings.time_mode == "cost_table"  # see the module docstring: Time
         self._scoring_cost = self.settings.scoring_cost(self.pipeline.scoring)
         self._full_scoring_cost = self._scoring_cost
         self.score_ranges = self.pipeline.score_ranges
@@ -227,7 +254,8 @@ class PerceptionConfigEnv(gym.Env):
             ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31)))
             self.episode = self.source.load(int(index), lam, ep_seed)
         self._frame_changed()
-        outcome = self.ops.start(self.episode)
+        with _open3d_single_thread(self._reproducible):
+            outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
         seconds = self.action_seconds(outcome, self.pipeline.generator)
         self.episode_time = 0.0  # the initial hypothesis is common to all agents: not charged
@@ -245,7 +273,8 @@ class PerceptionConfigEnv(gym.Env):
         name = self.action_names[a]
         block = self.pipeline.actions[a].block
         before = self.last_outcome.pose if self.last_outcome else None
-        outcome = self.ops.apply(name)
+        with _open3d_single_thread(self._reproducible):
+            outcome = self.ops.apply(name)
         seconds = self.action_seconds(outcome, block)
         reward = -seconds
         terminated = False

@@ -24,8 +24,14 @@ Outputs in `out/`:
 - results.json   list of records, one per (agent, lambda) (schema in `summarise`)
 - meta.json      settings: dataset, split, test image ids, pipeline, seeds, definitions
 - episodes.jsonl one line per (agent, lambda, episode): action trace, poses, errors
-- bop/<agent>-lam<x>_<dataset>-test.csv  BOP results (bop_toolkit: one method per file, no
-  underscore in the method name) of the final poses, one file per (agent, lambda)
+- bop/<agent>-lam<x>_<dataset>-<split>.csv  BOP results of the final poses, one file per (agent,
+  lambda), named as bop_toolkit's parser reads `{method}_{dataset}-{split}.csv`: no '.' and no
+  '_' in the method (lambda 0.5 is written lam0p5), the dataset folder's name without '_', '-'
+  or '.'; each (image, object) evaluated once (a plan cycling over the test episodes keeps its
+  first pass in the CSV)
+- bop/targets_<dataset>-<split>.json  bop_toolkit's test_targets_bop19.json format (im_id,
+  inst_count, obj_id, scene_id) for exactly the episodes of the CSVs: pass its absolute path
+  as eval_calc_errors/eval_calc_scores' --targets_filename (bop_toolkit_eval.py does)
 - fig5.png, lambda_grid.png, episode_*.png   plots (see plots.py)
 """
 from __future__ import annotations
@@ -48,7 +54,7 @@ from .env import PerceptionConfigEnv, normalise_score
 from .episode_loop import acting_seed, play_episode
 from .episodes import EpisodeSource, split_image_keys
 from .geometry import LAMBDA_MAX, Pose, check_noise_lambda
-from .metrics import average_recall_mspd, average_recall_mssd, pose_errors
+from .metrics import average_recall_mspd, average_recall_mssd, pose_errors, recall
 from .policy_settings import is_policy_file, policy_settings
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
@@ -58,7 +64,7 @@ DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
     ("icp_coarse", "pick"),
     ("d2co", "icp_fine", "pick"),
 )
-RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, as the simulated pick
+RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, the simulated pick's tolerance
 MM = 1000.0
 
 DEFINITIONS = {
@@ -69,7 +75,12 @@ DEFINITIONS = {
     "episode_cost": "minus the return: episode_time plus the truncation penalty of failed episodes",
     "success": "share of episodes with a successful pick within max_ops",
     "first_pick_success": "share of all episodes whose first attempted pick succeeded",
-    "recall_mssd": f"share of final poses with MSSD <= {RECALL_MSSD_THRESHOLD} x diameter (no pose: miss)",
+    "recall_mssd": f"share of final poses with MSSD < {RECALL_MSSD_THRESHOLD} x diameter, strictly as every "
+                   "recall here and in bop_toolkit (no pose: miss)",
+    "ar_mssd": "BOP AR_MSSD: recall (error < threshold) averaged over 0.05..0.5 x diameter; "
+               "bop_toolkit's figure on bop/*.csv",
+    "ar_mspd": "BOP AR_MSPD: recall (error < threshold) averaged over 5..50 px x width / 640; "
+               "bop_toolkit's figure on bop/*.csv",
     "errors": "BOP errors of the final poses, episodes with a pose: mm, degrees, px",
 }
 
@@ -146,8 +157,16 @@ def _confidence(scores: dict[str, float], pipeline: Pipeline) -> float:
 
 
 def _slug(name: str) -> str:
-    """A file-name-safe method name without underscores (bop_toolkit splits on '_')."""
-    return _re.sub(r"[^A-Za-z0-9.+-]+", "-", name).strip("-") or "agent"
+    """A bop_toolkit method name: letters, digits, '+' and '-' only (its parser cuts the file
+    name at the first '.' and splits it at '_')."""
+    return _re.sub(r"[^A-Za-z0-9+-]+", "-", name).strip("-") or "agent"
+
+
+def bop_dataset_name(name: str) -> str:
+    """The dataset part of a bop_toolkit file name: the dataset folder's name without '_', '-'
+    and '.' (bop_toolkit reads `{method}_{dataset}-{split}` and finds the dataset at
+    BOP_PATH/<dataset>: a folder whose name has those characters must be linked under this one)."""
+    return _re.sub(r"[^A-Za-z0-9]+", "", name) or "dataset"
 
 
 # --------------------------------------------------------------------------- agents
@@ -278,7 +297,7 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
     (seconds), episode_time and episode_cost (time + truncation penalty: minus the return)
     {mean, q1, median, q3} over all episodes, first_pick_success
     (share), and BOP errors of the final poses {mean, median}: mssd_mm, mspd_px, add_mm, adi_mm,
-    re_deg, te_mm (episodes without a pose are left out), recall_mssd (share with MSSD <= 0.1
+    re_deg, te_mm (episodes without a pose are left out), recall_mssd (share with MSSD < 0.1
     diameter; no pose = miss), ar_mssd / ar_mspd (BOP average recalls), initial_recall_mssd.
     """
     n = len(episodes)
@@ -304,8 +323,8 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
         diam = np.array([e["diameter_mm"] for e in with_err])
         final_mssd = np.array([err(e, "final_errors", "mssd_mm") for e in with_err])
         init_mssd = np.array([err(e, "initial_errors", "mssd_mm") for e in with_err])
-        rec["recall_mssd"] = float(np.mean(final_mssd <= RECALL_MSSD_THRESHOLD * diam))
-        rec["initial_recall_mssd"] = float(np.mean(init_mssd <= RECALL_MSSD_THRESHOLD * diam))
+        rec["recall_mssd"] = float(recall(final_mssd / diam, [RECALL_MSSD_THRESHOLD])[0])
+        rec["initial_recall_mssd"] = float(recall(init_mssd / diam, [RECALL_MSSD_THRESHOLD])[0])
         rec["ar_mssd"] = average_recall_mssd(final_mssd, diam)
         # BOP scales the MSPD thresholds with the image width (all frames of a dataset share it)
         width = int(with_err[0].get("image_width", 640))
@@ -331,8 +350,37 @@ def bop_results(episodes: Sequence[dict[str, Any]]) -> list[BopResult]:
 
 
 def bop_csv_name(agent: str, lam: float, dataset_name: str, split: str = "test") -> str:
-    """`<method>_<dataset>-<split>.csv` with method = agent-lam<x> (no underscores)."""
-    return f"{_slug(agent)}-lam{lam:g}_{_slug(dataset_name).replace('_', '-')}-{split}.csv"
+    """`<method>_<dataset>-<split>.csv` with method = <agent>-lam<lambda, '.' written 'p'>
+    (e.g. `oracle-lam0p5_default-test.csv`), as bop_toolkit's inout.parse_result_filename reads it."""
+    return f"{_slug(agent)}-lam{format(lam, 'g').replace('.', 'p')}_{bop_dataset_name(dataset_name)}-{_slug(split)}.csv"
+
+
+def bop_targets_name(dataset_name: str, split: str = "test") -> str:
+    """The targets file of the BOP CSVs: `targets_<dataset>-<split>.json`."""
+    return f"targets_{bop_dataset_name(dataset_name)}-{_slug(split)}.json"
+
+
+def first_pass(per_episode: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The episodes of each (agent, lambda) with the first occurrence of every (scene, image,
+    object instance) only: what a BOP results file can hold (one estimate per target)."""
+    seen: set[tuple[Any, ...]] = set()
+    out = []
+    for e in per_episode:
+        key = (e["agent"], e["lambda"], e["scene_id"], e["im_id"], e["obj_id"], e["instance"])
+        if key not in seen:
+            seen.add(key)
+            out.append(e)
+    return out
+
+
+def bop_targets(episodes: Sequence[dict[str, Any]]) -> list[dict[str, int]]:
+    """bop_toolkit's test_targets_bop19.json entries for the evaluated episodes of one (agent,
+    lambda): one per (scene, image, object), inst_count = its distinct evaluated instances."""
+    instances: dict[tuple[int, int, int], set[int]] = {}
+    for e in episodes:
+        instances.setdefault((e["scene_id"], e["im_id"], e["obj_id"]), set()).add(e["instance"])
+    return [{"im_id": im, "inst_count": len(inst), "obj_id": obj, "scene_id": sc}
+            for (sc, im, obj), inst in sorted(instances.items())]
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -447,7 +495,7 @@ def evaluate(
         "definitions": DEFINITIONS,
     }
     atomic_write(out / "meta.json", json.dumps(meta, indent=1, allow_nan=False) + "\n")
-    write_bop_csvs(out / "bop", per_episode, Path(ds.root).name)
+    write_bop_csvs(out / "bop", per_episode, Path(ds.root).name, split)
     if plots:
         make_plots(out, records, per_episode, env, lams, plan, n_example_episodes)
     return out / "results.json"
@@ -467,17 +515,27 @@ def _mark_best_fixed(records: list[dict[str, Any]]) -> None:
             r["best_fixed"] = r["agent"] == best
 
 
-def write_bop_csvs(folder: Path, per_episode: Sequence[dict[str, Any]], dataset_name: str) -> list[Path]:
-    """One BOP results CSV per (agent, lambda) of the final poses; returns the paths."""
+def write_bop_csvs(folder: Path, per_episode: Sequence[dict[str, Any]], dataset_name: str,
+                   split: str = "test") -> list[Path]:
+    """One BOP results CSV per (agent, lambda) of the final poses (first pass of each episode),
+    and the targets file of those episodes (the same for every agent and lambda: one plan);
+    returns the CSV paths."""
     groups: dict[tuple[str, float], list[dict[str, Any]]] = {}
-    for e in per_episode:
+    for e in first_pass(per_episode):
         groups.setdefault((e["agent"], e["lambda"]), []).append(e)
     paths = []
+    targets: list[dict[str, int]] | None = None
     for (agent, lam), eps in groups.items():
-        path = folder / bop_csv_name(agent, lam, dataset_name)
+        path = folder / bop_csv_name(agent, lam, dataset_name, split)
         folder.mkdir(parents=True, exist_ok=True)
         write_results_csv(path, bop_results(eps))
         paths.append(path)
+        mine = bop_targets(eps)
+        if targets is not None and mine != targets:
+            raise ValueError(f"{agent} at lambda {lam:g} was evaluated on other episodes than the first agent")
+        targets = mine
+    if targets is not None:
+        atomic_write(folder / bop_targets_name(dataset_name, split), json.dumps(targets, indent=1) + "\n")
     return paths
 
 
@@ -573,6 +631,7 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
 
 __all__ = [
     "evaluate", "format_table", "summarise", "episode_record", "build_agents", "episode_plan",
-    "episode_seed", "bop_results", "bop_csv_name", "write_bop_csvs", "example_episodes", "fixed_sequences",
+    "episode_seed", "bop_results", "bop_csv_name", "bop_dataset_name", "bop_targets", "bop_targets_name",
+    "first_pass", "write_bop_csvs", "example_episodes", "fixed_sequences",
     "pose_from_json", "EvalAgent", "DEFAULT_LAMBDAS", "DEFAULT_FIXED_SEQUENCES",
 ]

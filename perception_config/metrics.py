@@ -361,14 +361,15 @@ def pose_errors(
 
 
 def recall(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Share of errors <= each threshold (one value per threshold). NaN/inf errors (missing or
-    failed estimates) count as wrong; an empty error list gives recall 0."""
+    """Share of errors below each threshold (one value per threshold): strictly, `error <
+    threshold`, as bop_toolkit's pose_matching counts a match. NaN/inf errors (missing or failed
+    estimates) count as wrong; an empty error list gives recall 0."""
     e = np.asarray(errors, dtype=np.float64).ravel()
     th = np.asarray(thresholds, dtype=np.float64).ravel()
     if e.size == 0:
         return np.zeros(th.size)
     with np.errstate(invalid="ignore"):
-        return (e[None, :] <= th[:, None]).mean(axis=1)
+        return (e[None, :] < th[:, None]).mean(axis=1)
 
 
 def average_recall_mssd(errors_m: Sequence[float] | np.ndarray, diameters: float | Sequence[float] | np.ndarray,

@@ -21,11 +21,16 @@ from perception_config.datasets.bop import BopDataset, read_results_csv
 from perception_config.episodes import split_image_keys
 from perception_config.evaluation import (
     DEFAULT_FIXED_SEQUENCES,
+    bop_csv_name,
+    bop_targets,
+    bop_targets_name,
     episode_plan,
     evaluate,
+    first_pass,
     fixed_sequences,
     format_table,
     summarise,
+    write_bop_csvs,
 )
 from perception_config.policy_settings import policy_settings
 from perception_config.settings import EnvSettings
@@ -160,13 +165,26 @@ def test_oracle_is_not_slower_than_random(run):
         assert rec[("oracle", lam)]["success"] >= rec[("random", lam)]["success"]
 
 
+def _bop_toolkit_parse(name: str) -> tuple[str, str, str]:
+    """(method, dataset, split) as bop_toolkit's inout.parse_result_filename reads a file name:
+    cut at the first '.', split at '_', the second part split at '-'."""
+    result_name = name.split(".")[0]
+    info = result_name.split("_")
+    dataset_info = info[1].split("-")
+    return info[0], dataset_info[0], dataset_info[1]
+
+
 def test_bop_csv_per_agent_and_lambda_parses(run, dataset):
     files = sorted((run["out"] / "bop").glob("*.csv"))
     assert len(files) == len(expected_agents()) * len(LAMBDAS)
+    methods = set()
     for f in files:
-        method, rest = f.stem.split("_")  # bop_toolkit: <method>_<dataset>-<split>
-        assert rest == f"{dataset.name}-test"
-    oracle = run["out"] / "bop" / f"oracle-lam{LAMBDAS[0]:g}_{dataset.name}-test.csv"
+        method, ds, split = _bop_toolkit_parse(f.name)
+        assert (ds, split) == (dataset.name, "test") and f.name == f"{method}_{ds}-{split}.csv"
+        methods.add(method)
+    assert len(methods) == len(files)  # every (agent, lambda) its own method for bop_toolkit
+    oracle = run["out"] / "bop" / f"oracle-lam{format(LAMBDAS[0], 'g').replace('.', 'p')}_{dataset.name}-test.csv"
+    assert oracle.name == bop_csv_name("oracle", LAMBDAS[0], dataset.name) == "oracle-lam0p2_tiny-test.csv"
     rows = read_results_csv(oracle)
     eps = [e for e in run["episodes"] if e["agent"] == "oracle" and e["lambda"] == LAMBDAS[0]]
     assert len(rows) == len(eps)
@@ -178,6 +196,54 @@ def test_bop_csv_per_agent_and_lambda_parses(run, dataset):
                                           if (e["scene_id"], e["im_id"]) == (row.scene_id, row.im_id)))
     finals = sorted(tuple(np.round(e["final_pose"]["t"], 6)) for e in eps)
     assert sorted(tuple(np.round(r.pose.t, 6)) for r in rows) == finals
+
+
+def test_bop_names_follow_bop_toolkit_rules():
+    assert (bop_csv_name("fixed:icp_coarse+pick", 0.25, "my_data.v2", "test")
+            == "fixed-icp-coarse+pick-lam0p25_mydatav2-test.csv")
+    assert bop_csv_name("pg:run.1", 1.0, "default") == "pg-run-1-lam1_default-test.csv"
+    assert _bop_toolkit_parse(bop_csv_name("a_b.c", 0.5, "x-y_z")) == ("a-b-c-lam0p5", "xyz", "test")
+    assert bop_targets_name("my_data") == "targets_mydata-test.json"
+
+
+def test_bop_targets_list_exactly_the_evaluated_episodes(run):
+    targets = json.loads((run["out"] / "bop" / "targets_tiny-test.json").read_text())
+    evaluated = {(e["scene_id"], e["im_id"], e["obj_id"]) for e in run["episodes"]}
+    assert {(t["scene_id"], t["im_id"], t["obj_id"]) for t in targets} == evaluated
+    assert all(t["inst_count"] == 1 and set(t) == {"im_id", "inst_count", "obj_id", "scene_id"} for t in targets)
+    assert len(targets) == len(evaluated)
+
+
+def test_bop_files_keep_the_first_pass_of_a_cycled_plan(tmp_path):
+    def ep(agent, lam, im, inst, t):
+        return {"agent": agent, "lambda": lam, "scene_id": 0, "im_id": im, "obj_id": 3, "instance": inst,
+                "time": t, "confidence": 0.5, "final_pose": {"R": np.eye(3).ravel().tolist(), "t": [0, 0, t]}}
+
+    eps = [ep("a", 0.5, 0, 0, 1.0), ep("a", 0.5, 1, 0, 2.0), ep("a", 0.5, 0, 0, 3.0)]  # episode 0 twice
+    assert [e["time"] for e in first_pass(eps)] == [1.0, 2.0]
+    [path] = write_bop_csvs(tmp_path, eps, "d_1")
+    assert path.name == "a-lam0p5_d1-test.csv"
+    assert sorted(r.time for r in read_results_csv(path)) == [1.0, 2.0]
+    assert bop_targets(first_pass(eps)) == [{"im_id": 0, "inst_count": 1, "obj_id": 3, "scene_id": 0},
+                                            {"im_id": 1, "inst_count": 1, "obj_id": 3, "scene_id": 0}]
+    assert json.loads((tmp_path / "targets_d1-test.json").read_text()) == bop_targets(first_pass(eps))
+
+
+def test_recall_mssd_is_strict(run):
+    """recall_mssd counts MSSD < 0.1 diameter (bop_toolkit's rule), from the episode traces."""
+    for r in run["records"]:
+        eps = [e for e in run["episodes"] if (e["agent"], e["lambda"]) == (r["agent"], r["lambda"])]
+        below = [e["final_errors"]["mssd_mm"] is not None and e["final_errors"]["mssd_mm"] < 0.1 * e["diameter_mm"]
+                 for e in eps]
+        assert r["recall_mssd"] == pytest.approx(np.mean(below))
+    one = summarise("x", 0.5, [{"success": False, "ops": 1, "time": 1.0, "cost": 1.0, "first_pick_success": False,
+                                "diameter_mm": 100.0, "image_width": 640,
+                                "final_errors": {"mssd_mm": 10.0, "mspd_px": 5.0, "add_mm": 1.0, "adi_mm": 1.0,
+                                                 "re_deg": 1.0, "te_mm": 1.0},
+                                "initial_errors": {"mssd_mm": 9.999, "mspd_px": 5.0, "add_mm": 1.0, "adi_mm": 1.0,
+                                                   "re_deg": 1.0, "te_mm": 1.0}}])
+    assert (one["recall_mssd"], one["initial_recall_mssd"]) == (0.0, 1.0)  # exactly at 0.1 x diameter: a miss
+    assert one["ar_mspd"] == pytest.approx(0.9)  # 5 px is not below the first threshold, 5 px
 
 
 def test_plots_are_written(run):

@@ -303,8 +303,16 @@ def test_pose_errors_keys(box_scene) -> None:
 
 def test_recall_on_hand_made_arrays() -> None:
     np.testing.assert_allclose(M.recall([0.01, 0.02, np.nan, 0.05, np.inf], [0.005, 0.015, 0.05, 1.0]),
-                               [0.0, 0.2, 0.6, 0.6])
+                               [0.0, 0.2, 0.4, 0.6])
     np.testing.assert_allclose(M.recall([], [0.1, 0.2]), [0.0, 0.0])
+
+
+def test_recall_is_strict_like_bop_toolkit() -> None:
+    """An error equal to a threshold is a miss (bop_toolkit's pose_matching: error < threshold)."""
+    np.testing.assert_array_equal(M.recall([0.1, 0.2], [0.1, 0.2, np.nextafter(0.2, 1.0)]), [0.0, 0.5, 1.0])
+    # at the BOP thresholds themselves: e / d exactly 0.05 and MSPD exactly 5 px miss the first
+    assert M.average_recall_mssd([0.05], 1.0) == pytest.approx(9 / 10)
+    assert M.average_recall_mspd([5.0], 640) == pytest.approx(9 / 10)
 
 
 def test_average_recalls_on_hand_made_arrays() -> None:
@@ -312,12 +320,13 @@ def test_average_recalls_on_hand_made_arrays() -> None:
     assert M.average_recall_mssd([0.003, 0.022, 0.06], 0.1) == pytest.approx((4 * 1 + 6 * 2) / 30)
     # per-estimate diameters: the same errors relative to different objects
     assert M.average_recall_mssd([0.003, 0.044, 0.06], [0.1, 0.2, 0.1]) == pytest.approx(16 / 30)
-    # width 1280 doubles the thresholds to 10..100 px: 3 px passes 10, 27 px 8, 100 px 1
-    assert M.average_recall_mspd([3.0, 27.0, 100.0], 1280) == pytest.approx((10 + 8 + 1) / 30)
+    # width 1280 doubles the thresholds to 10..100 px: 3 px passes 10, 27 px 8, 100 px none (strict)
+    assert M.average_recall_mspd([3.0, 27.0, 100.0], 1280) == pytest.approx((10 + 8 + 0) / 30)
     assert M.average_recall_mspd([3.0, 27.0, 100.0], 640) == pytest.approx((10 + 5 + 0) / 30)
-    # two estimates x two taus: column 0 recall 0.5 everywhere; column 1 0,0,.5,.5,.5,1,1,1,1,1
+    # two estimates x two taus: column 0 recall 0.5 everywhere; column 1 0,0,.5,.5,.5,.5,1,1,1,1
+    # (0.3 is not below the threshold 0.3: strict)
     errors = [[0.02, 0.3], [0.6, 0.12]]
-    assert M.average_recall_vsd(errors) == pytest.approx((0.5 + 0.65) / 2)
+    assert M.average_recall_vsd(errors) == pytest.approx((0.5 + 0.6) / 2)
     assert M.average_recall_vsd([[0.0] * 10, [1.0] * 10]) == pytest.approx(0.5)
 
 

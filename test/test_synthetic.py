@@ -56,6 +56,16 @@ def test_is_a_complete_bop_dataset(synthetic_dataset, bop):
     assert info["generator"] == synthetic.GENERATOR_NAME
 
 
+def test_models_eval_holds_the_models_meshes_for_bop_toolkit(synthetic_dataset):
+    """bop_toolkit's evaluation loads models_eval/obj_*.ply and models_eval/models_info.json:
+    the generator writes the very meshes of models/ there (the project's errors use those)."""
+    models, models_eval = synthetic_dataset / "models", synthetic_dataset / "models_eval"
+    names = sorted(p.name for p in models_eval.iterdir())
+    assert names == sorted([p.name for p in models.glob("obj_*.ply")] + ["models_info.json"])
+    for name in names:
+        assert (models_eval / name).read_bytes() == (models / name).read_bytes(), name
+
+
 def test_frames_load_with_sensible_content(bop):
     for s, i in bop.image_keys():
         f = bop.load_frame(s, i)
@@ -304,6 +314,7 @@ def test_places_models_of_a_bop_models_folder(lmo_root, tmp_path):
     ds = BopDataset(out)
     assert ds.obj_ids() == [1, 5, 6, 8, 9, 10, 11, 12]
     assert (out / "models/models_info.json").read_bytes() == (lmo_root / "models/models_info.json").read_bytes()
+    assert (out / "models_eval/obj_000005.ply").read_bytes() == (out / "models/obj_000005.ply").read_bytes()
     f = ds.load_frame(0, 0)
     assert 3 <= len(f.objects) <= 8
     assert all(e["px_count_all"] > 0 for e in ds.gt_info(0, 0))

@@ -1,9 +1,14 @@
 """The embedded default dataset: synthetic BOP-format RGB-D scenes of industrial parts.
 
-`generate(out, ...)` writes a complete BOP dataset (models/, camera.json, test/<scene>/...
-with scene_camera.json, scene_gt.json, scene_gt_info.json, rgb/ and depth/ PNGs, and
-test_targets_bop19.json) of the procedural parts of `parts.py`, or of the models of a given
-BOP models folder (e.g. the real LM-O models).
+`generate(out, ...)` writes a complete BOP dataset (models/, models_eval/, camera.json,
+test/<scene>/... with scene_camera.json, scene_gt.json, scene_gt_info.json, rgb/ and depth/
+PNGs, and test_targets_bop19.json) of the procedural parts of `parts.py`, or of the models of a
+given BOP models folder (e.g. the real LM-O models).
+
+models_eval/ (what bop_toolkit's evaluation loads: obj_*.ply and models_info.json) holds the
+same meshes as models/, byte for byte: the project's errors are computed on those meshes, so
+bop_toolkit's MSSD / MSPD on models_eval equal the project's (BOP's own datasets resample
+their evaluation meshes evenly instead).
 
 Scenes (one arrangement of objects each; BOP-like: the images of a scene are viewpoints):
 - World frame z up, the floor at z = 0. Per scene, with a seeded generator: a bin (floor
@@ -558,6 +563,13 @@ def _prepare_models(models_out: Path, models_dir: Path | None) -> list[_Obj]:
     return pool
 
 
+def _write_models_eval(models: Path, models_eval: Path) -> None:
+    """models_eval/: copies of the meshes and models_info.json of models/ (see the module docstring)."""
+    models_eval.mkdir(parents=True, exist_ok=True)
+    for src in sorted(models.glob("obj_*.ply")) + [models / "models_info.json"]:
+        shutil.copyfile(src, models_eval / src.name)
+
+
 # --------------------------------------------------------------------------- driver
 
 
@@ -616,6 +628,7 @@ def generate(
     t0 = time.perf_counter()
     try:
         pool = _prepare_models(tmp / "models", Path(models_dir) if models_dir is not None else None)
+        _write_models_eval(tmp / "models", tmp / "models_eval")
         _write_json_atomic(tmp / "camera.json", {
             "cx": float(K[0, 2]), "cy": float(K[1, 2]), "depth_scale": DEPTH_SCALE,
             "fx": float(K[0, 0]), "fy": float(K[1, 1]), "height": int(height), "width": int(width),

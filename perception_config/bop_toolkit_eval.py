@@ -1,0 +1,213 @@
+"""bop_toolkit's BOP19 pose evaluation, MSSD and MSPD, on the BOP results `evaluate` writes.
+
+Run it with a Python that has bop_toolkit's dependencies (numpy < 2, scipy, imageio, pypng),
+not the project's: this file imports nothing from perception_config.
+
+    <bop_toolkit python> perception_config/bop_toolkit_eval.py --toolkit ../shared/tools/bop_toolkit \\
+        --dataset data/default --results outputs/demo/evaluation/bop --eval-path /tmp/bop_eval
+
+What runs: the MSSD and MSPD entries of `p["errors"]` of bop_toolkit's scripts/eval_bop19_pose.py
+(read from that script), each as eval_bop19_pose.py runs it: scripts/eval_calc_errors.py with its
+arguments (all result files in one call), then scripts/eval_calc_scores.py once per correctness
+threshold, and the mean of the recalls (its "Average recall"). The scripts run unmodified, one
+after the other in this process (runpy, as `python script args`; eval_bop19_pose.py starts a
+process for each, which costs seconds of imports each). Not VSD: eval_bop19_pose.py computes VSD first, with an
+OpenGL renderer (vispy / EGL), and the project reports no AR_VSD; so eval_bop19_pose.py itself
+cannot run here and its overall "bop19_average_recall" (the mean of three) is not computed.
+
+bop_toolkit is not modified. Its dataset_params knows the BOP datasets by name; a dataset it does
+not know (the synthetic default) is described to it, in this process, from its
+folder: object ids from models_eval/models_info.json, scene ids from the split's folders, the
+image size from camera.json, the file layout of the classic BOP datasets. The dataset is linked
+into <eval-path>/datasets under the name the result files carry.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import runpy
+import sys
+from pathlib import Path
+from typing import Any
+
+ERROR_TYPES = ("mssd", "mspd")  # the errors the project computes (metrics.py) and reports as AR
+_TEMPLATE_DATASET = "lm"  # a classic-layout BOP dataset whose path templates are reused
+
+
+# --------------------------------------------------------------------------- bop_toolkit's dataset list
+
+
+def describe_dataset(dataset_params: Any, name: str) -> None:
+    """Teach bop_toolkit's dataset_params (the module, in this process) the dataset `name` found
+    under the datasets path, when bop_toolkit does not know it."""
+    orig_split, orig_model = dataset_params.get_split_params, dataset_params.get_model_params
+
+    def get_model_params(datasets_path: str, dataset_name: str, model_type: str | None = None) -> dict:
+        if dataset_name != name:
+            return orig_model(datasets_path, dataset_name, model_type)
+        models = Path(datasets_path) / dataset_name / ("models" + (f"_{model_type}" if model_type else ""))
+        info_path = models / "models_info.json"
+        if not info_path.is_file():
+            raise FileNotFoundError(f"{info_path} not found: bop_toolkit evaluates on the dataset's "
+                                    f"{models.name}/ (perception-config synth writes it; for an older "
+                                    "dataset copy models/ to models_eval/)")
+        info = json.loads(info_path.read_text())
+        return {
+            "obj_ids": sorted(int(k) for k in info),
+            "symmetric_obj_ids": sorted(int(k) for k, v in info.items()
+                                        if v.get("symmetries_discrete") or v.get("symmetries_continuous")),
+            "model_tpath": str(models / "obj_{obj_id:06d}.ply"),
+            "models_info_path": str(info_path),
+        }
+
+    def get_split_params(datasets_path: str, dataset_name: str, split: str, split_type: str | None = None) -> dict:
+        if dataset_name != name:
+            return orig_split(datasets_path, dataset_name, split, split_type)
+        p = orig_split(datasets_path, _TEMPLATE_DATASET, split, split_type)
+        old, new = os.path.join(datasets_path, _TEMPLATE_DATASET), os.path.join(datasets_path, dataset_name)
+        p = {k: (new + v[len(old):] if isinstance(v, str) and v.startswith(old) else v) for k, v in p.items()}
+        cam = json.loads((Path(new) / "camera.json").read_text())
+        split_dir = Path(p["split_path"])
+        p.update(name=dataset_name, im_size=(int(cam["width"]), int(cam["height"])),
+                 scene_ids=sorted(int(d.name) for d in split_dir.iterdir() if d.is_dir() and d.name.isdigit()),
+                 depth_range=None, azimuth_range=None, elev_range=None)
+        return p
+
+    dataset_params.get_model_params = get_model_params
+    dataset_params.get_split_params = get_split_params
+
+
+# --------------------------------------------------------------------------- the evaluation
+
+
+def bop19_errors(toolkit: Path) -> dict[str, Any]:
+    """eval_bop19_pose.py's parameter dict `p`, evaluated from the script's source (its first
+    assignment to `p`), without running the script."""
+    import numpy as np
+    from bop_toolkit_lib import config  # noqa: F401  (used by the evaluated expression)
+
+    src = (toolkit / "scripts" / "eval_bop19_pose.py").read_text()
+    node = next(n for n in ast.parse(src).body if isinstance(n, ast.Assign)
+                and any(isinstance(t, ast.Name) and t.id == "p" for t in n.targets))
+    return eval(compile(ast.Expression(node.value), "eval_bop19_pose.py", "eval"), {"np": np, "config": config})
+
+
+def _run(script: Path, args: list[str]) -> None:
+    """Run one bop_toolkit script as `python script args` would (in this process)."""
+    print("Running: " + " ".join([script.name, *args]), flush=True)
+    argv = sys.argv
+    sys.argv = [str(script), *args]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            raise RuntimeError(f"bop_toolkit's {script.name} failed (exit {e.code})") from None
+    finally:
+        sys.argv = argv
+
+
+def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, result_filenames: list[str] | None = None,
+             targets: Path | None = None, num_workers: int = 1) -> dict[str, dict[str, float]]:
+    """AR_MSSD and AR_MSPD of bop_toolkit per result file: {file name: {"mssd": ar, "mspd": ar,
+    "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json."""
+    toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
+    if not (toolkit / "scripts" / "eval_bop19_pose.py").is_file():
+        raise FileNotFoundError(f"not bop_toolkit's folder (no scripts/eval_bop19_pose.py): {toolkit}")
+    if not (dataset / "camera.json").is_file():
+        raise FileNotFoundError(f"not a BOP dataset folder (no camera.json): {dataset}")
+    if not results.is_dir():
+        raise FileNotFoundError(f"results folder not found: {results}")
+    datasets = eval_path / "datasets"
+    os.environ["BOP_PATH"] = str(datasets)  # before bop_toolkit_lib.config reads it
+    sys.path.insert(0, str(toolkit))
+    import numpy as np
+    from bop_toolkit_lib import dataset_params, inout, misc
+
+    files = result_filenames or sorted(p.name for p in results.glob("*.csv"))
+    if not files:
+        raise FileNotFoundError(f"no BOP result file (*.csv) in {results}")
+    names = {inout.parse_result_filename(f)[2] for f in files}
+    if len(names) != 1:
+        raise ValueError(f"the result files name several datasets {sorted(names)}: evaluate one dataset at a time")
+    name = names.pop()
+    if targets is None:
+        found = sorted(results.glob("targets_*.json"))
+        if len(found) != 1:
+            raise FileNotFoundError(f"expected one targets_*.json next to the result files in {results}, "
+                                    f"found {[p.name for p in found]}: give --targets")
+        targets = found[0]
+    datasets.mkdir(parents=True, exist_ok=True)
+    link = datasets / name
+    if link.is_symlink() or link.exists():
+        if link.resolve() != dataset.resolve():
+            raise ValueError(f"{link} already points at {link.resolve()}, not at {dataset}")
+    else:
+        link.symlink_to(dataset, target_is_directory=True)
+
+    p = bop19_errors(toolkit)
+    errors = [e for e in p["errors"] if e["type"] in ERROR_TYPES]
+    try:
+        dataset_params.get_model_params(str(datasets), name)
+    except KeyError:  # not a BOP dataset bop_toolkit knows
+        describe_dataset(dataset_params, name)
+    scripts = toolkit / "scripts"
+    out: dict[str, dict[str, float]] = {f: {} for f in files}
+    for error in errors:
+        _run(scripts / "eval_calc_errors.py", [f"--n_top={error['n_top']}",
+                     f"--error_type={error['type']}", f"--result_filenames={','.join(files)}",
+                     f"--renderer_type={p['renderer_type']}", f"--results_path={results}",
+                     f"--eval_path={eval_path}", f"--targets_filename={targets}",
+                     f"--max_sym_disc_step={p['max_sym_disc_step']}", "--skip_missing=1",
+                     f"--num_workers={num_workers}", f"--datasets_path={datasets}"])
+        error_sign = misc.get_error_signature(error["type"], error["n_top"])
+        dirs = [os.path.join(inout.parse_result_filename(f)[0], error_sign) for f in files]
+        for correct_th in error["correct_th"]:
+            _run(scripts / "eval_calc_scores.py", [f"--error_dir_paths={','.join(dirs)}",
+                         f"--eval_path={eval_path}", f"--targets_filename={targets}",
+                         f"--visib_gt_min={p['visib_gt_min']}",
+                         f"--correct_th_{error['type']}={','.join(map(str, correct_th))}",
+                         f"--datasets_path={datasets}"])
+        for f, d in zip(files, dirs):
+            signs = [misc.get_score_signature(th, p["visib_gt_min"]) for th in error["correct_th"]]
+            recalls = [inout.load_json(str(eval_path / d / f"scores_{sign}.json"))["recall"] for sign in signs]
+            out[f][error["type"]] = float(np.mean(recalls))
+    for f in files:
+        ests = inout.load_bop_results(str(results / f), version="bop19")
+        ok, msg, times, available = inout.check_consistent_timings(ests, "im_id")
+        if not ok:
+            raise ValueError(f"{f}: {msg}")
+        out[f]["time"] = float(np.mean(list(times.values()))) if available else -1.0
+        scores = {f"bop19_average_recall_{k}": out[f][k] for k in ERROR_TYPES}
+        scores["bop19_average_time_per_image"] = out[f]["time"]
+        inout.save_json(str(eval_path / inout.parse_result_filename(f)[0] / "scores_bop19_mssd_mspd.json"), scores)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--toolkit", type=Path, required=True,
+                    help="bop_toolkit's folder (its scripts/ and bop_toolkit_lib/)")
+    ap.add_argument("--dataset", type=Path, required=True, help="the evaluated BOP dataset's folder")
+    ap.add_argument("--results", type=Path, required=True, help="folder of the result CSVs (evaluate's bop/)")
+    ap.add_argument("--eval-path", type=Path, required=True, help="bop_toolkit's output folder (errors, scores)")
+    ap.add_argument("--result-filenames", default=None, help="comma-separated CSV names (default: all in --results)")
+    ap.add_argument("--targets", type=Path, default=None,
+                    help="targets file (default: the targets_*.json in --results)")
+    ap.add_argument("--num-workers", type=int, default=1)
+    a = ap.parse_args(argv)
+    try:
+        out = evaluate(a.toolkit, a.dataset, a.results, a.eval_path,
+                       a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers)
+    except (OSError, ValueError, RuntimeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print("bop_toolkit (eval_bop19_pose.py's MSSD and MSPD steps):")
+    for f, s in out.items():
+        print(f"  {f}: AR_MSSD {s['mssd']:.4f}  AR_MSPD {s['mspd']:.4f}  time/image {s['time']:.3f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
