@@ -92,7 +92,7 @@ def draw_hypothesis(rgb: np.ndarray, K: np.ndarray, model: ObjectModel, pose: Po
     img, K_img = fit_width(rgb, K, max_width)
     h, w = img.shape[:2]
     contours = outline(model, pose, K_img, w, h)
-    thickness = max(1, int(round(w / 320)))
+    thickness = max(2, int(round(w / 320)))
     cv2.drawContours(img, contours, -1, PICKED_RGB if picked else NOT_PICKED_RGB, thickness, cv2.LINE_AA)
     draw_text_band(img, lines)
     return img
