@@ -136,14 +136,20 @@ def test_the_configurator_shows_each_estimate_and_a_bag_of_the_view_decodes(ros_
     nodes["configurator_node"] = NodeProcess("configurator_node", {**common, "fixed_sequence": "[pick]",
                                                                    "debug_image_max_width": 320}, logs)
     got: dict[str, list[bytes]] = {"image": [], "markers": []}
-    subs = [ros_node.create_subscription(Image, "perception/debug_image", got["image"].append, 10, raw=True),
-            ros_node.create_subscription(MarkerArray, "perception/markers", got["markers"].append, 10, raw=True)]
+    subs = [ros_node.create_subscription(MarkerArray, "perception/markers", got["markers"].append, 10, raw=True)]
     pubs = [ros_node.create_publisher(t, n, 10) for t, n in (
         (ObjectPoses, "perception/ground_truth"), (CameraInfo, "camera/camera_info"), (Image, "camera/depth/image_raw"),
         (Image, "camera/color/image_raw"))]
     try:
         est = ros_node.create_client(EstimatePose, "estimate_pose")
-        wait_for_service(ros_node, est, process=nodes["configurator_node"])
+        wait_for_service(ros_node, est, timeout=90.0, process=nodes["configurator_node"])
+        # Nobody watches the debug image yet: only the two operator nodes take the colour images.
+        deadline = time.monotonic() + 20
+        while pubs[3].get_subscription_count() < 2 and time.monotonic() < deadline:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+        time.sleep(1.2)  # > the view's 1 s check
+        assert pubs[3].get_subscription_count() == 2
+        subs.append(ros_node.create_subscription(Image, "perception/debug_image", got["image"].append, 10, raw=True))
         color, depth, info = frame_to_msgs(frame, stamp)
         gt = ObjectPoses(header=color.header, object_ids=[str(o.obj_id) for o in frame.objects],
                          poses=[pose_to_msg(o.gt) for o in frame.objects])
