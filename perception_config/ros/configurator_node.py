@@ -6,7 +6,9 @@ backend (ros_operators.RosOperators) whose operator calls are service requests t
 generation_node, refinement_node, scoring_node and pick_node. The answer holds the final
 hypothesis with its scores, whether the pick succeeded, the operator trace and the time.
 Each estimate is also published: the pose as geometry_msgs/PoseStamped on `perception/pose`
-(when there is one) and the trace as OperatorTrace on `perception/trace`.
+(when there is one) and the trace as OperatorTrace on `perception/trace`; for a person
+watching, the live view (debug_view.py) shows it on `perception/debug_image` and
+`perception/markers`.
 
 With `auto` set it estimates every new camera frame (seen on `camera/camera_info`): the
 objects in `auto_objects`, or, when that is empty, every object of the frame's replayed ground
@@ -209,8 +211,7 @@ class ConfiguratorNode(Node):
         response.elapsed = time.perf_counter() - start
         self._publish(response, object_id, oks)
         if self.debug_view is not None and response.success:
-            self.debug_view.show(response.hypothesis, self.models.model(object_id), list(response.operations),
-                                 bool(response.picked), response.elapsed)
+            self._show(response, object_id)
         self.get_logger().debug(f"object {object_id} at {stamp_text(stamp_ns)}: {response.message} after "
                                 f"{', '.join(response.operations) or 'no operation'} ({response.elapsed:.3f} s)")
         return response
@@ -265,6 +266,16 @@ class ConfiguratorNode(Node):
         trace.ok = oks
         trace.picked = bool(response.picked)
         self.trace_pub.publish(trace)
+
+    def _show(self, response: EstimatePose.Response, object_id: str) -> None:
+        """The estimate on the live view (debug_view.py); never fails the estimate."""
+        try:
+            model = self.models.model(object_id)
+        except Exception as exc:
+            self.get_logger().warning(f"debug view: object {object_id}: {exc}")
+            return
+        self.debug_view.show(response.hypothesis, model, list(response.operations), bool(response.picked),
+                             response.elapsed)
 
     def on_exit(self) -> None:
         self.requests.close()
