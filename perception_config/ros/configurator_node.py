@@ -281,6 +281,7 @@ class ConfiguratorNode(Node):
         self.requests.close()
         print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
         if self.debug_view is not None:
+            self.debug_view.close()
             print(f"[configurator_node] {self.debug_view.timing()}", flush=True)
         if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
             self.operators.close()

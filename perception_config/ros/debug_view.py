@@ -19,13 +19,16 @@ needs (`camera/color/image_raw`, `camera/camera_info`, the configurator's `camer
 only while perception/debug_image has a subscriber (checked every second, as image_transport's
 lazy publishers do), so without a viewer the configurator receives no images. Frames are kept
 as messages (no conversion on arrival) and converted only for the estimate that shows them.
-The markers need no image. Drawing and publishing run in the estimate's worker thread once
-the response is complete, before it is sent; `timing()` reports the ms they add.
+The markers need no image. Drawing and publishing run on the view's own thread: an estimate
+only hands its result over (microseconds) and its answer never waits for the view; the first
+estimate of an object also prepares its marker mesh there (quadric decimation, up to ~1 s for
+a 45k-triangle LM-O model). `timing()` reports both figures.
 """
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -45,6 +48,7 @@ from .conversions import msg_to_pose, stamp_to_nanoseconds
 from .stamp_cache import StampCache
 
 FRAMES_KEPT = 8  # colour images kept by stamp for the view (an estimate runs on a recent frame)
+QUEUE = 4  # estimates waiting for the view thread; beyond, the oldest is not shown
 PICKED = ColorRGBA(r=0.16, g=0.86, b=0.24, a=0.7)
 NOT_PICKED = ColorRGBA(r=1.0, g=0.59, b=0.0, a=0.7)
 WHITE = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
@@ -94,7 +98,8 @@ def rgb_image_msg(rgb: np.ndarray, header: Header) -> Image:
 
 class DebugView:
     """The debug image and marker publishers of a node, with the lazy camera subscriptions the
-    image needs. `show` is called once per finished estimate (from any one thread)."""
+    image needs. `show` hands a finished estimate to the view's own thread, which draws and
+    publishes it: the estimate's answer never waits for the view."""
 
     def __init__(self, node: Node, qos: str = "reliable", max_width: int = 640, max_triangles: int = 500) -> None:
         if int(max_width) < 0:
@@ -111,8 +116,14 @@ class DebugView:
         self.infos: StampCache[CameraInfo] = StampCache(FRAMES_KEPT)
         self._subs: list[Any] = []
         self._meshes: dict[int, list[Point]] = {}
-        self._lock = threading.Lock()
-        self.seconds: list[float] = []  # per shown estimate: time spent drawing and publishing
+        # estimates waiting to be shown; a view that falls behind drops the oldest
+        self._jobs: deque[tuple] = deque(maxlen=QUEUE)
+        self._wake = threading.Condition()
+        self._closed = False
+        self.added: deque[float] = deque(maxlen=1000)  # s added to each estimate (handing it over)
+        self.seconds: deque[float] = deque(maxlen=1000)  # s the view thread spent per estimate shown
+        self._thread = threading.Thread(target=self._loop, name="debug_view", daemon=True)
+        self._thread.start()
         self._timer = node.create_timer(1.0, self._follow_viewers)
         self._follow_viewers()
 
@@ -129,10 +140,6 @@ class DebugView:
                 self.node.destroy_subscription(sub)
             self._subs = []
 
-    @property
-    def following_camera(self) -> bool:
-        return bool(self._subs)
-
     def _on_image(self, msg: Image) -> None:
         self.images.put(stamp_to_nanoseconds(msg.header.stamp), msg)
 
@@ -140,13 +147,62 @@ class DebugView:
         self.infos.put(stamp_to_nanoseconds(msg.header.stamp), msg)
 
     # -- one estimate --------------------------------------------------------------------------
+    def show(self, hypothesis: Any, model: ObjectModel, operations: list[str], picked: bool,
+             seconds: float | None = None) -> None:
+        """Hand a finished estimate's final hypothesis (a perception_config_interfaces/Hypothesis)
+        to the view thread; nothing when no one subscribes to either topic."""
+        start = time.perf_counter()
+        want_image = self.image_pub.get_subscription_count() > 0
+        want_markers = self.marker_pub.get_subscription_count() > 0
+        if want_image or want_markers:
+            with self._wake:
+                self._jobs.append((hypothesis, model, list(operations), bool(picked), seconds, want_image,
+                                   want_markers))
+                self._wake.notify()
+        self.added.append(time.perf_counter() - start)
+
+    def _loop(self) -> None:
+        while True:
+            with self._wake:
+                while not self._jobs and not self._closed:
+                    self._wake.wait()
+                if self._closed:
+                    return
+                job = self._jobs.popleft()
+            start = time.perf_counter()
+            if self._draw(*job):
+                self.seconds.append(time.perf_counter() - start)
+
+    def _draw(self, hypothesis: Any, model: ObjectModel, operations: list[str], picked: bool,
+              seconds: float | None, want_image: bool, want_markers: bool) -> bool:
+        """Publish the estimate's image and markers; False (logged) when it could not be shown."""
+        object_id = hypothesis.object_id
+        try:
+            pose = msg_to_pose(hypothesis.pose)
+            scores = dict(zip(hypothesis.score_names, (float(s) for s in hypothesis.scores)))
+            if want_image:
+                lines = info_lines(object_id, scores, operations, picked, seconds)
+                msg = self._image(hypothesis.header, model, pose, lines, picked)
+                if msg is not None:
+                    self.image_pub.publish(msg)
+            if want_markers:
+                label = f"{object_id} {'picked' if picked else 'not picked'} " + " ".join(
+                    f"{k} {v:.2f}" for k, v in scores.items())
+                self.marker_pub.publish(hypothesis_markers(hypothesis.header, object_id, hypothesis.pose,
+                                                           self._mesh_points(model), label, picked,
+                                                           0.6 * model.diameter))
+        except Exception as exc:  # an unusable frame or pose, a node shutting down: say so, keep going
+            if not self._closed:
+                self.node.get_logger().warning(f"debug view: object {object_id}: {exc}")
+            return False
+        return True
+
     def _mesh_points(self, model: ObjectModel) -> list[Point]:
-        with self._lock:
-            points = self._meshes.get(model.obj_id)
-            if points is None:
-                points = triangle_points(*decimated_mesh(model, self.max_triangles))
-                self._meshes[model.obj_id] = points
-            return points
+        points = self._meshes.get(model.obj_id)  # only the view thread fills it
+        if points is None:
+            points = triangle_points(*decimated_mesh(model, self.max_triangles))
+            self._meshes[model.obj_id] = points
+        return points
 
     def _image(self, header: Header, model: ObjectModel, pose: Pose, lines: list[str], picked: bool) -> Image | None:
         stamp = stamp_to_nanoseconds(header.stamp)
@@ -161,43 +217,17 @@ class DebugView:
         img = draw_hypothesis(image_msg_to_rgb(color), K, model, pose, lines, picked, self.max_width)
         return rgb_image_msg(img, header)
 
-    def show(self, hypothesis: Any, model: ObjectModel, operations: list[str], picked: bool,
-             seconds: float | None = None) -> None:
-        """Publish the image and markers of a finished estimate's final hypothesis (a
-        perception_config_interfaces/Hypothesis); only to topics someone subscribes to."""
-        want_image = self.image_pub.get_subscription_count() > 0
-        want_markers = self.marker_pub.get_subscription_count() > 0
-        if not (want_image or want_markers):
-            return
-        start = time.perf_counter()
-        scores = dict(zip(hypothesis.score_names, (float(s) for s in hypothesis.scores)))
-        object_id = hypothesis.object_id
-        try:
-            pose = msg_to_pose(hypothesis.pose)
-        except ValueError as exc:
-            self.node.get_logger().warning(f"debug view: object {object_id}: unusable pose: {exc}")
-            return
-        try:
-            if want_image:
-                lines = info_lines(object_id, scores, operations, picked, seconds)
-                msg = self._image(hypothesis.header, model, pose, lines, picked)
-                if msg is not None:
-                    self.image_pub.publish(msg)
-            if want_markers:
-                label = f"{object_id} {'picked' if picked else 'not picked'} " + " ".join(
-                    f"{k} {v:.2f}" for k, v in scores.items())
-                self.marker_pub.publish(hypothesis_markers(hypothesis.header, object_id, hypothesis.pose,
-                                                           self._mesh_points(model), label, picked,
-                                                           0.6 * model.diameter))
-        except Exception as exc:  # an unusable camera frame, ...: say so; the view never fails an estimate
-            self.node.get_logger().warning(f"debug view: object {object_id}: {exc}")
-            return
-        self.seconds.append(time.perf_counter() - start)
-        del self.seconds[:-1000]
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the view thread (before the node is destroyed)."""
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+        self._thread.join(timeout)
 
     def timing(self) -> str:
-        """Median ms added per shown estimate (for the node's exit summary)."""
+        """What the view cost (for the node's exit summary)."""
         if not self.seconds:
             return "debug view: nothing shown"
-        return (f"debug view: {len(self.seconds)} estimates shown, median {np.median(self.seconds) * 1000:.2f} ms, "
-                f"max {max(self.seconds) * 1000:.2f} ms each")
+        return (f"debug view: {len(self.seconds)} estimates shown, median {np.median(self.added) * 1000:.3f} ms "
+                f"added to an estimate; drawing and publishing on the view thread median "
+                f"{np.median(self.seconds) * 1000:.2f} ms, max {max(self.seconds) * 1000:.1f} ms")
