@@ -16,13 +16,13 @@ a viewer whose display frame is the camera frame needs no TF at all.
 
 Cost: nothing is built for a topic nobody subscribes to. The camera subscriptions this view
 needs (`camera/color/image_raw`, `camera/camera_info`, the configurator's `camera_qos`) exist
-only while perception/debug_image has a subscriber (checked every second, as image_transport's
-lazy publishers do), so without a viewer the configurator receives no images. Frames are kept
-as messages (no conversion on arrival) and converted only for the estimate that shows them.
+only while perception/debug_image has a subscriber (checked every second), so without a
+viewer the configurator receives no images. Frames are kept as messages (no conversion on
+arrival) and converted only for the estimate that shows them.
 The markers need no image. Drawing and publishing run on the view's own thread: an estimate
 only hands its result over (microseconds) and its answer never waits for the view; the first
-estimate of an object also prepares its marker mesh there (quadric decimation, up to ~1 s for
-a 45k-triangle LM-O model). `timing()` reports both figures.
+estimate of an object also prepares its marker mesh there (quadric decimation, up to ~1.3 s for
+a 46k-triangle LM-O model). `timing()` reports both figures.
 """
 from __future__ import annotations
 
