@@ -6,7 +6,9 @@ backend (ros_operators.RosOperators) whose operator calls are service requests t
 generation_node, refinement_node, scoring_node and pick_node. The answer holds the final
 hypothesis with its scores, whether the pick succeeded, the operator trace and the time.
 Each estimate is also published: the pose as geometry_msgs/PoseStamped on `perception/pose`
-(when there is one) and the trace as OperatorTrace on `perception/trace`.
+(when there is one) and the trace as OperatorTrace on `perception/trace`; for a person
+watching, the live view (debug_view.py) shows it on `perception/debug_image` and
+`perception/markers`.
 
 With `auto` set it estimates every new camera frame (seen on `camera/camera_info`): the
 objects in `auto_objects`, or, when that is empty, every object of the frame's replayed ground
@@ -34,6 +36,12 @@ Parameters:
   use_depth         true (default): the camera gives depth; false: an RGB-only camera (the
                     operator nodes' use_depth false): the actions that need depth are masked
                     (info["action_mask"]), the agent never chooses them
+  publish_debug     true (default): the live view (debug_view.py): `perception/debug_image`
+                    (the frame with the final hypothesis's outline, object id, scores and the
+                    operator trace) and `perception/markers` (the model's mesh at the pose),
+                    each built only while it has a subscriber
+  debug_image_max_width   the debug image is scaled down to this width (640; 0 = full size)
+  marker_max_triangles    the marker mesh is decimated to at most this many triangles (500)
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 
 Deadline: an estimate that reaches `estimate_timeout` between two operators answers
@@ -74,6 +82,7 @@ from ..geometry import check_noise_lambda
 from ..operators import Episode
 from ..policy_settings import policy_settings
 from .camera_frames import camera_qos, stamp_text
+from .debug_view import DebugView
 from .operator_node import make_hypothesis, spin
 from .request_fields import parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
@@ -102,6 +111,9 @@ class ConfiguratorNode(Node):
         self.declare_parameter("auto_every_frame", False)
         self.declare_parameter("camera_qos", "reliable")
         self.declare_parameter("use_depth", True)
+        self.declare_parameter("publish_debug", True)
+        self.declare_parameter("debug_image_max_width", 640)
+        self.declare_parameter("marker_max_triangles", 500)
         self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
@@ -141,6 +153,10 @@ class ConfiguratorNode(Node):
 
         self.pose_pub = self.create_publisher(PoseStamped, "perception/pose", 10)
         self.trace_pub = self.create_publisher(OperatorTrace, "perception/trace", 10)
+        self.debug_view = None
+        if self.get_parameter("publish_debug").value:
+            self.debug_view = DebugView(self, p["camera_qos"], int(self.get_parameter("debug_image_max_width").value),
+                                        int(self.get_parameter("marker_max_triangles").value))
         self.requests = RequestQueue(self, p["request_queue"], self.get_name())
         self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
                             qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
@@ -194,6 +210,8 @@ class ConfiguratorNode(Node):
             response.success, response.message = False, f"internal error: {exc!r}"
         response.elapsed = time.perf_counter() - start
         self._publish(response, object_id, oks)
+        if self.debug_view is not None and response.success:
+            self._show(response, object_id)
         self.get_logger().debug(f"object {object_id} at {stamp_text(stamp_ns)}: {response.message} after "
                                 f"{', '.join(response.operations) or 'no operation'} ({response.elapsed:.3f} s)")
         return response
@@ -249,9 +267,22 @@ class ConfiguratorNode(Node):
         trace.picked = bool(response.picked)
         self.trace_pub.publish(trace)
 
+    def _show(self, response: EstimatePose.Response, object_id: str) -> None:
+        """The estimate on the live view (debug_view.py); never fails the estimate."""
+        try:
+            model = self.models.model(object_id)
+        except Exception as exc:
+            self.get_logger().warning(f"debug view: object {object_id}: {exc}")
+            return
+        self.debug_view.show(response.hypothesis, model, list(response.operations), bool(response.picked),
+                             response.elapsed)
+
     def on_exit(self) -> None:
         self.requests.close()
         print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
+        if self.debug_view is not None:
+            self.debug_view.close()
+            print(f"[configurator_node] {self.debug_view.timing()}", flush=True)
         if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
             self.operators.close()
             self._busy.release()
