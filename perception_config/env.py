@@ -54,9 +54,8 @@ override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -67,6 +66,7 @@ from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
 from .geometry import check_noise_lambda, rotation_angle
+from .open3d_threads import open3d_single_thread
 from .operators import Episode, InProcessOperators, Operators, StepOutcome
 from .settings import EnvSettings
 
@@ -80,26 +80,6 @@ def normalise_score(value: float, score_range: tuple[float, float] | None) -> fl
         low, high = score_range
         return float(np.clip((value - low) / (high - low), 0.0, 1.0))
     return float(0.5 + 0.5 * value / (1.0 + abs(value)))
-
-
-@contextmanager
-def _open3d_single_thread(active: bool) -> Iterator[None]:
-    """Open3D limited to one thread inside the block when `active` (process-wide setting,
-    restored on exit): its parallel ICP reductions are then bitwise reproducible."""
-    util = None
-    if active:
-        import open3d as o3d
-
-        util = o3d.utility if hasattr(o3d.utility, "set_max_threads") else None  # Open3D >= 0.20
-    if util is None:
-        yield
-        return
-    previous = int(util.get_max_threads())
-    util.set_max_threads(1)
-    try:
-        yield
-    finally:
-        util.set_max_threads(previous)
 
 
 class PerceptionConfigEnv(gym.Env):
@@ -254,7 +234,7 @@ class PerceptionConfigEnv(gym.Env):
             ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31)))
             self.episode = self.source.load(int(index), lam, ep_seed)
         self._frame_changed()
-        with _open3d_single_thread(self._reproducible):
+        with open3d_single_thread(self._reproducible):
             outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
         seconds = self.action_seconds(outcome, self.pipeline.generator)
@@ -273,7 +253,7 @@ class PerceptionConfigEnv(gym.Env):
         name = self.action_names[a]
         block = self.pipeline.actions[a].block
         before = self.last_outcome.pose if self.last_outcome else None
-        with _open3d_single_thread(self._reproducible):
+        with open3d_single_thread(self._reproducible):
             outcome = self.ops.apply(name)
         seconds = self.action_seconds(outcome, block)
         reward = -seconds

@@ -35,14 +35,13 @@ Rounds are whole: the episode count may overshoot `episodes` by less than one ro
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, ContextManager
 
 import numpy as np
 
@@ -53,9 +52,10 @@ from .blocks.pipeline import pipeline_reference
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
+from .open3d_threads import open3d_single_thread
 from .settings import EnvSettings, settings_from_policy_meta
 from .stop_signals import Interrupted, StopRequested, StopSignals, signal_name
-from .training_workers import WorkerPool, limit_open3d_threads, snapshot
+from .training_workers import WorkerPool, snapshot
 
 POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
@@ -365,16 +365,7 @@ def _stop_workers(pool: WorkerPool | None, now: bool) -> None:
         pool.close(timeout=WORKER_STOP_TIMEOUT, now=now)
 
 
-@contextlib.contextmanager
-def _reproducible_threads(settings: EnvSettings) -> Iterator[None]:
-    """Cost-table mode: Open3D on one thread in this process while training (see
-    training_workers.limit_open3d_threads), so in-process ICP is bitwise reproducible."""
-    if settings.time_mode != "cost_table":
-        yield
-        return
-    previous = limit_open3d_threads(1)
-    try:
-        yield
-    finally:
-        if previous:
-            limit_open3d_threads(previous)
+def _reproducible_threads(settings: EnvSettings) -> ContextManager[None]:
+    """Cost-table mode: Open3D on one thread in this process while training (open3d_threads),
+    so in-process ICP is bitwise reproducible."""
+    return open3d_single_thread(settings.time_mode == "cost_table")

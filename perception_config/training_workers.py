@@ -28,25 +28,10 @@ from typing import Any
 
 from .agents import AGENTS, Agent, EnvRecipe, EnvSpec
 from .episode_loop import Trajectory, play_episode
+from .open3d_threads import limit_open3d_threads
 
 Task = tuple[tuple, list[tuple[dict[str, Any], int]]]  # (policy snapshot, [(options, act_seed), ...])
 _PR_SET_PDEATHSIG = 1
-
-
-def limit_open3d_threads(n: int) -> int:
-    """Set Open3D's CPU thread limit (process-wide); returns the previous one (0: not settable).
-
-    Open3D's ICP sums its normal equations in parallel (oneTBB) in an order that depends on
-    thread scheduling: the same call gives poses that differ in the 16th-17th digit, which later
-    operators and a sampled action can amplify. One thread makes it bitwise reproducible."""
-    import open3d as o3d
-
-    util = o3d.utility
-    if not hasattr(util, "set_max_threads"):  # Open3D < 0.20: not reproducible, see the README
-        return 0
-    previous = int(util.get_max_threads())
-    util.set_max_threads(int(n))
-    return previous
 
 
 def snapshot(agent: Agent) -> tuple[str, dict[str, Any], dict[str, Any], dict[str, Any], bool]:

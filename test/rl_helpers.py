@@ -30,8 +30,8 @@ scoring: [psi_d, psi_c, icp_fitness]
 OTHER_PIPELINE = (PIPELINE.replace("  - {name: depth_refine, block: depth_refine, params: {max_seconds: 10.0}}\n", "")
                   .replace("{name: icp_fine,", "{name: icp_finest,"))
 
-# Without ICP: Open3D's ICP is not bitwise reproducible (run to run, its poses differ by ~1e-17 m,
-# which Gymnasium's check_env sees in the info's float64 scores); everything else is.
+# Without ICP: bitwise reproducible in every time mode (Open3D's ICP is only with one thread,
+# which the cost-table env sets itself: open3d_threads).
 BITWISE_PIPELINE = """\
 generator: {block: simulated_init, params: {noise_lambda: 0.5}}
 actions:
