@@ -21,6 +21,7 @@ from __future__ import annotations
 import collections
 import fnmatch
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -81,6 +82,7 @@ class NodeSpec:
     params: dict[str, object] = field(default_factory=dict)
     params_file: str | os.PathLike | None = None
     may_finish: bool | None = None  # exit 0 on its own is "finished", not "died" (default: bag_replay_node)
+    remaps: dict[str, str] = field(default_factory=dict)  # topic remappings, `-r from:=to`
 
     def __post_init__(self) -> None:
         if self.executable is None:
@@ -89,12 +91,14 @@ class NodeSpec:
             self.may_finish = Path(str(self.executable)).name in FINITE_EXECUTABLES
 
     def arguments(self) -> list[str]:
-        """The ROS arguments: `--ros-args [--params-file FILE] [-p name:=value ...]`."""
+        """The ROS arguments: `--ros-args [--params-file FILE] [-p name:=value ...] [-r from:=to ...]`."""
         args = ["--ros-args"]
         if self.params_file is not None:
             args += ["--params-file", str(self.params_file)]
         for key, value in self.params.items():
             args += ["-p", f"{key}:={param_value(value)}"]
+        for source, target in self.remaps.items():
+            args += ["-r", f"{source}:={target}"]
         return args
 
     def command(self, executable: str | None = None) -> list[str]:
@@ -473,9 +477,10 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
     are passed only where `params_file` does not set that parameter."""
     cwd = Path(cwd or Path.cwd()).resolve()
 
-    def absolute(p: str | os.PathLike, what: str, is_dir: bool = False) -> Path:
+    def absolute(p: str | os.PathLike, what: str, is_dir: bool | None = False) -> Path:
+        """`p` made absolute; it must be a folder (is_dir), a file (not is_dir) or either (None)."""
         path = (cwd / Path(p).expanduser()).resolve()
-        if not (path.is_dir() if is_dir else path.is_file()):
+        if not (path.exists() if is_dir is None else path.is_dir() if is_dir else path.is_file()):
             raise FileNotFoundError(f"{what} {p} does not exist" + (" (or is not a folder)" if is_dir else ""))
         return path
 
@@ -527,14 +532,22 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
     if "bag_replay" in names:
         replay = specs[names.index("bag_replay")]
         if bag is not None:
-            set_param(replay, "bag", str(absolute(bag, "bag")), True)
+            set_param(replay, "bag", str(absolute(bag, "bag", is_dir=None)), True)  # a file or a rosbag2 folder
         if rate is not None:
             if not rate > 0:
                 raise ValueError(f"--rate must be positive, got {rate}")
             set_param(replay, "rate", float(rate), True)
         info = readable_bag_info(replay.params.get("bag"))
+        remaps = camera_remaps(info)
+        if remaps:
+            layout = info["frame_topics"].get("layout") or "chosen by name"
+            say(f"the bag's camera topics ({layout}): the nodes subscribe to "
+                + ", ".join(f"{target} as {source}" for source, target in remaps.items()))
+            for n, s in zip(names, specs):
+                if n in MODEL_NODES:
+                    s.remaps.update(remaps)
         user_waits = params_file_sets(pfile, replay.name) & {"wait_for", "wait_for_subscribers", "topics"}
-        waits = replay_waits(names, info)
+        waits = replay_waits(names, info, remaps)
         if waits and not user_waits:
             replay.params["wait_for"] = waits
             set_param(replay, "wait_timeout", REPLAY_WAIT_TIMEOUT, False)
@@ -559,14 +572,38 @@ def readable_bag_info(bag: str | None) -> dict | None:
         return None
 
 
-def replay_waits(names: list[str], info: dict | None) -> list[str]:
-    """bag_replay_node's default `wait_for`: "topic:count" for each topic of the bag (its
-    `bag_info`) that launched nodes subscribe to, count = how many of them do. Empty without a
-    readable bag."""
+def replayed_topic(topic: str) -> str:
+    """The topic bag_replay_node publishes a bag topic on: a compressed image
+    (`<image>/compressed`, `<image>/compressedDepth`) decoded under its raw name."""
+    return re.sub(r"/(compressed|compressedDepth)$", "", topic)
+
+
+def camera_remaps(info: dict | None) -> dict[str, str]:
+    """Remappings of the nodes' camera subscriptions (CAMERA_TOPICS) to the topics the replay
+    publishes for the bag's colour, depth and camera_info (a driver layout such as RealSense's
+    `/camera/camera/color/image_raw`): empty when the bag uses the nodes' names or its camera
+    topics cannot be chosen."""
+    chosen = info.get("frame_topics") if info else None
+    if not isinstance(chosen, dict):
+        return {}
+    remaps = {}
+    for ours, role in zip(CAMERA_TOPICS, ("color", "depth", "camera_info")):
+        topic = chosen.get(role)
+        if isinstance(topic, str) and topic and replayed_topic(topic).lstrip("/") != ours:
+            remaps[ours] = replayed_topic(topic)
+    return remaps
+
+
+def replay_waits(names: list[str], info: dict | None, remaps: dict[str, str] | None = None) -> list[str]:
+    """bag_replay_node's default `wait_for`: "topic:count" for each topic the replay publishes
+    for the bag (its `bag_info`) that launched nodes subscribe to (through `remaps`), count =
+    how many of them do. Empty without a readable bag."""
     if info is None:
         return []
-    in_bag = {t["topic"].lstrip("/") for t in info["topics"]}
-    counts = collections.Counter(t for n in names for t in NODE_SUBSCRIPTIONS.get(n, ()) if t in in_bag)
+    remaps = remaps or {}
+    in_bag = {replayed_topic(t["topic"]).lstrip("/") for t in info["topics"]}
+    subscribed = (remaps.get(t, t).lstrip("/") for n in names for t in NODE_SUBSCRIPTIONS.get(n, ()))
+    counts = collections.Counter(t for t in subscribed if t in in_bag)
     return [f"{topic}:{count}" for topic, count in counts.items()]
 
 

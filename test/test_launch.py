@@ -357,6 +357,32 @@ def test_bag_replay_waits_for_every_subscribing_node_unless_the_params_file_says
     assert "wait_for" not in _p(own) and "wait_timeout" not in _p(own)
 
 
+def test_a_driver_bag_remaps_the_nodes_to_its_camera_topics(parts_models, tmp_path):
+    """A RealSense recording (rosbags' writer; jpeg colour under /compressed, compressedDepth):
+    the nodes subscribe to the topics the replay publishes them on, decoded under the raw names,
+    and the replay waits for those."""
+    from real_bags import Spec, write_camera_bag
+
+    bag = tmp_path / "realsense"
+    write_camera_bag(bag, Spec(layout="realsense", color="jpeg", depth="compressedDepth-16UC1"))
+    said: list[str] = []
+    specs = resolve_nodes(bag=bag, models=parts_models, policy="none", cwd=tmp_path, say=said.append)
+    expected = {"camera/color/image_raw": "/camera/camera/color/image_raw",
+                "camera/depth/image_raw": "/camera/camera/aligned_depth_to_color/image_raw",
+                "camera/camera_info": "/camera/camera/color/camera_info"}
+    by_name = {s.name: s for s in specs}
+    for node in ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node"):
+        assert by_name[node].remaps == expected, node
+        args = by_name[node].arguments()
+        assert "camera/color/image_raw:=/camera/camera/color/image_raw" in args
+    assert by_name["bag_replay_node"].remaps == {}
+    waits = _p(by_name["bag_replay_node"])["wait_for"]
+    assert waits == ("['camera/camera/color/image_raw:4', 'camera/camera/aligned_depth_to_color/image_raw:4', "
+                     "'camera/camera/color/camera_info:4']")
+    assert any("RealSense" in line and "/camera/camera/color/image_raw as camera/color/image_raw" in line
+               for line in said)
+
+
 def test_an_rgb_only_bag_runs_the_nodes_rgb_only_unless_the_params_file_says(synthetic_dataset, tmp_path):
     from perception_config.datasets.bag.writer import write_frames
     from perception_config.datasets.bop import BopDataset
