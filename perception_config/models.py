@@ -128,8 +128,9 @@ def _record_count(data: Any) -> int:
 
 def _element_columns(data: Any) -> dict[str, np.ndarray]:
     """{property: array} of one element of trimesh's raw PLY structure (list properties: the lists)."""
-    if isinstance(data, dict):
-        return dict(data)
+    if isinstance(data, dict):  # ascii: scalar properties come as (n, 1) columns
+        return {k: v[:, 0] if isinstance(v, np.ndarray) and v.ndim == 2 and v.shape[1] == 1 else v
+                for k, v in data.items()}
     out = {}
     for name in data.dtype.names or ():
         col = data[name]
