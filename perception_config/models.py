@@ -97,6 +97,10 @@ def _load_ply_kwargs(path: Path) -> dict[str, Any]:
         raise PlyError(str(exc)) from None
     if not data.startswith(b"ply") or b"end_header" not in data:
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+    fmt = next((ln.split()[1:2] for ln in data[:data.find(b"end_header")].split(b"\n") if ln.startswith(b"format")), [])
+    if not fmt or fmt[0] not in (b"ascii", b"binary_little_endian", b"binary_big_endian"):
+        # trimesh would read any other format as binary and report a size mismatch
+        raise PlyError(f"{path}: unknown PLY format {fmt[0].decode(errors='replace') if fmt else '(none)'!r}")
     from trimesh.exchange.ply import load_ply  # lazy: trimesh is only needed when a file is read
 
     try:

@@ -82,6 +82,21 @@ def test_garbage_ply_names_the_file(tmp_path: Path) -> None:
         load_model(tmp_path / "obj_000003.ply", 3)
 
 
+@pytest.mark.parametrize("fmt, vtype, body, message", [
+    ("binary_middle_endian", "float", "", "unknown PLY format 'binary_middle_endian'"),
+    ("ascii", "float128", "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "bad PLY header.*float128"),
+    ("ascii", "float", "0 0 0\n1 x 0\n0 1 0\n3 0 1 2\n", "malformed PLY"),
+    ("ascii", "float", "0 0 0\n", "truncated: element 'vertex' has 1 of 3 records"),
+])
+def test_malformed_ply_names_the_file_and_the_problem(tmp_path: Path, fmt: str, vtype: str, body: str,
+                                                       message: str) -> None:
+    p = tmp_path / "obj_000004.ply"
+    p.write_text(f"ply\nformat {fmt} 1.0\nelement vertex 3\nproperty {vtype} x\nproperty float y\n"
+                 "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n" + body)
+    with pytest.raises(PlyError, match=f"obj_000004.ply: {message}"):
+        read_ply_mesh(p)
+
+
 def test_ply_bad_face_index(tmp_path: Path) -> None:
     p = tmp_path / "bad.ply"
     p.write_text(
