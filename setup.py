@@ -8,9 +8,11 @@ interpreter (the PyPI ROS wheels install a whole ROS prefix into the venv root) 
   - its share/ (the .msg/.srv files and the ament index entry) into <prefix>/share.
 A failed interface build stops the install with CMake's output: pip then installs nothing.
 
-In a colcon workspace on a ROS distro, msg_defs/ is its own ament_cmake package; build it
-there and set PERCEPTION_CONFIG_SKIP_INTERFACES=1 (colcon's ament_python build needs nothing
-more from this file).
+In a colcon workspace msg_defs/ is its own ament_cmake package (README: "colcon workspace"). When
+another prefix on AMENT_PREFIX_PATH already provides perception_config_interfaces (colcon's
+install/perception_config_interfaces, or a ROS installation), the interfaces are not compiled
+again and not bundled: the package then depends on that prefix, as package.xml says.
+PERCEPTION_CONFIG_SKIP_INTERFACES=1 always skips them, =0 always builds them.
 """
 from __future__ import annotations
 
@@ -53,11 +55,28 @@ def _run(cmd: list[str], env: dict[str, str], log: Path) -> None:
         raise SystemExit(f"perception_config: interface build step failed: {' '.join(cmd)} (log: {log})")
 
 
+def interfaces_provider() -> Path | None:
+    """A prefix on AMENT_PREFIX_PATH, other than this interpreter's own (which the install may be
+    replacing), whose ament index registers perception_config_interfaces; None when there is none."""
+    own = Path(sys.prefix).resolve()
+    for entry in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        if not entry or Path(entry).resolve() == own:
+            continue
+        if (Path(entry) / "share" / "ament_index" / "resource_index" / "packages" / INTERFACES).is_file():
+            return Path(entry)
+    return None
+
+
 class BuildPyWithInterfaces(build_py):
-    """build_py that first compiles msg_defs/ with rosidl and stages the results."""
+    """build_py that first compiles msg_defs/ with rosidl and stages the results, unless another
+    prefix provides the interfaces already (see the module docstring)."""
 
     def run(self) -> None:
-        if os.environ.get("PERCEPTION_CONFIG_SKIP_INTERFACES") != "1":
+        skip = os.environ.get("PERCEPTION_CONFIG_SKIP_INTERFACES", "")
+        provider = interfaces_provider() if skip == "" else None
+        if provider is not None:
+            self.announce(f"{INTERFACES} provided by {provider}: not compiled again or bundled", level=2)
+        elif skip != "1":
             self._build_interfaces()
         super().run()
 
@@ -121,8 +140,14 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
     ],
     python_requires=">=3.10",
-    install_requires=["numpy", "scipy", "open3d-cpu", "opencv-python-headless", "pyyaml", "tqdm", "matplotlib", "mcap",
-                      "mcap-ros2-support"],
+    # Every third-party import of perception_config (test/test_packaging.py checks). The ROS 2
+    # packages (rclpy, the message packages) come from the ROS prefix and are declared in package.xml;
+    # requirements.lock pins the exact versions set-up installs, ROS wheels included.
+    install_requires=[
+        "numpy>=1.26", "scipy>=1.11", "open3d-cpu==0.20.0", "opencv-python-headless>=4.8", "pyyaml>=6",
+        "tqdm>=4.60", "matplotlib>=3.7", "mcap>=1.1", "mcap-ros2-support>=0.5", "rosbags>=0.10",
+        "trimesh>=4.0", "zstandard>=0.22", "lz4>=4.3", "gymnasium>=1.0", "torch==2.13.0", "safetensors>=0.4",
+    ],
     zip_safe=False,
     maintainer="perception_config developers",
     maintainer_email="dev@perception-config.invalid",

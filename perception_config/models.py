@@ -4,15 +4,17 @@ Everything every block needs about an object is computed here once per model fil
 so refinement and scoring never touch a mesh file in their hot loop. Units are metres inside
 the code; BOP PLY files are millimetres and are converted when read.
 
-The PLY reader is a small numpy parser (ascii and binary, any property order, optional normals
-and colours) rather than open3d: it gives error messages that name the file and the problem,
-and it keeps this module free of the 1 s open3d import.
+PLY files are read and written with trimesh (ascii and binary, any property order, optional
+normals and colours); its failures become PlyError naming the file. trimesh is imported only
+when a file is read or written.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -81,278 +83,107 @@ class ObjectModel:
         return self.bbox_min + idx * self.bbox_size
 
 
-# --------------------------------------------------------------------------- PLY reading
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
+# --------------------------------------------------------------------------- PLY reading and writing
 
 
-@dataclass
-class _PlyProperty:
-    name: str
-    dtype: str
-    count_dtype: str | None = None  # set for list properties
-
-
-@dataclass
-class _PlyElement:
-    name: str
-    count: int
-    properties: list[_PlyProperty] = field(default_factory=list)
-
-
-def read_ply(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
-    """Read a PLY file into {element: {property: array}}; list properties become lists of arrays
-    or, when every record has the same length, a 2D array.
-
-    Raises PlyError naming the file for anything malformed (bad header, truncated body, bad token).
-    """
-    path = Path(path)
+def _load_ply_kwargs(path: Path) -> dict[str, Any]:
+    """trimesh's PLY loader on the file's bytes (size-limited read first), with its failures turned
+    into PlyError naming the file; checks that every element has the record count its header says."""
     try:  # a regular file (not a directory, FIFO or device) of at most MAX_PLY_BYTES
         data = read_limited(path, MAX_PLY_BYTES, "PLY file")
     except FileNotFoundError:
         raise FileNotFoundError(f"PLY file not found: {path}") from None
     except JsonLimitError as exc:
         raise PlyError(str(exc)) from None
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
+    if not data.startswith(b"ply") or b"end_header" not in data:
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
-    nl = data.find(b"\n", end)
-    if nl < 0:
-        raise PlyError(f"{path}: truncated right after the header")
-    header = data[:end].decode("ascii", errors="replace").splitlines()
-    body = memoryview(data)[nl + 1:]
-    fmt, elements = _parse_ply_header(path, header)
-    if fmt == "ascii":
-        return _read_ply_ascii(path, bytes(body), elements)
-    return _read_ply_binary(path, body, elements, "<" if fmt == "binary_little_endian" else ">")
+    fmt = next((ln.split()[1:2] for ln in data[:data.find(b"end_header")].split(b"\n") if ln.startswith(b"format")), [])
+    if not fmt or fmt[0] not in (b"ascii", b"binary_little_endian", b"binary_big_endian"):
+        # trimesh would read any other format as binary and report a size mismatch
+        raise PlyError(f"{path}: unknown PLY format {fmt[0].decode(errors='replace') if fmt else '(none)'!r}")
+    from trimesh.exchange.ply import load_ply  # lazy: trimesh is only needed when a file is read
+
+    try:
+        with warnings.catch_warnings():  # numpy warns on partial ascii rows; the count check reports them
+            warnings.simplefilter("ignore")
+            kwargs = load_ply(io.BytesIO(data), fix_texture=False, skip_materials=True)
+    except Exception as exc:  # trimesh raises ValueError, KeyError, IndexError, ... on malformed files
+        text = str(exc)
+        if "unexpected length" in text:
+            raise PlyError(f"{path}: truncated (or with extra bytes): the binary body's size is not what the "
+                           "header describes") from None
+        if isinstance(exc, KeyError):
+            raise PlyError(f"{path}: bad PLY header: unknown type or element {text}") from None
+        raise PlyError(f"{path}: malformed PLY ({type(exc).__name__}: {text})") from None
+    for name, el in kwargs["metadata"]["_ply_raw"].items():
+        got = _record_count(el.get("data"))
+        if el.get("length", 0) and got != el["length"]:
+            raise PlyError(f"{path}: truncated: element '{name}' has {got} of {el['length']} records")
+    return kwargs
 
 
-def _parse_ply_header(path: Path, lines: list[str]) -> tuple[str, list[_PlyElement]]:
-    fmt = ""
-    elements: list[_PlyElement] = []
-    for line in lines[1:]:
-        tok = line.split()
-        if not tok or tok[0] in ("comment", "obj_info"):
-            continue
-        try:
-            if tok[0] == "format":
-                fmt = tok[1]
-                if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                    raise PlyError(f"{path}: unknown PLY format {fmt!r}")
-            elif tok[0] == "element":
-                elements.append(_PlyElement(tok[1], int(tok[2])))
-            elif tok[0] == "property":
-                if not elements:
-                    raise PlyError(f"{path}: property before any element in the header")
-                if tok[1] == "list":
-                    prop = _PlyProperty(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]])
-                else:
-                    prop = _PlyProperty(tok[2], _PLY_TYPES[tok[1]])
-                elements[-1].properties.append(prop)
-            else:
-                raise PlyError(f"{path}: unexpected header line {line!r}")
-        except (IndexError, KeyError, ValueError) as e:
-            if isinstance(e, PlyError):
-                raise
-            raise PlyError(f"{path}: bad PLY header line {line!r}") from None
-    if not fmt:
-        raise PlyError(f"{path}: PLY header has no format line")
-    return fmt, elements
+def _record_count(data: Any) -> int:
+    if data is None:
+        return 0
+    if isinstance(data, dict):
+        return min((len(v) for v in data.values()), default=0)
+    return len(data)
 
 
-def _read_ply_binary(
-    path: Path, body: memoryview, elements: list[_PlyElement], endian: str
-) -> dict[str, dict[str, np.ndarray]]:
-    out: dict[str, dict[str, np.ndarray]] = {}
-    pos = 0
-    for el in elements:
-        lists = [p for p in el.properties if p.count_dtype]
-        if not lists:
-            dt = np.dtype([(p.name, endian + p.dtype) for p in el.properties])
-            need = dt.itemsize * el.count
-            if len(body) - pos < need:
-                raise PlyError(
-                    f"{path}: truncated: element '{el.name}' needs {need} bytes, {len(body) - pos} left"
-                )
-            rec = np.frombuffer(body, dtype=dt, count=el.count, offset=pos)
-            pos += need
-            out[el.name] = {p.name: rec[p.name] for p in el.properties}
-            continue
-        # Fast path: every list in this element has the length of the first record's list
-        # (all triangles, the BOP case). Verified below; falls back to a record-by-record read.
-        fields, p2 = [], pos
-        try:
-            for p in el.properties:
-                if p.count_dtype:
-                    cdt = np.dtype(endian + p.count_dtype)
-                    if el.count == 0:
-                        n = 0
-                    else:
-                        if len(body) - p2 < cdt.itemsize:
-                            raise PlyError(f"{path}: truncated in element '{el.name}'")
-                        n = int(np.frombuffer(body, cdt, 1, p2)[0])
-                    fields += [(p.name + "#n", cdt), (p.name, endian + p.dtype, (n,))]
-                    p2 += cdt.itemsize + n * np.dtype(p.dtype).itemsize
-                else:
-                    fields.append((p.name, endian + p.dtype))
-                    p2 += np.dtype(p.dtype).itemsize
-            dt = np.dtype(fields)
-        except ValueError as e:
-            if isinstance(e, PlyError):
-                raise
-            raise PlyError(f"{path}: bad list in element '{el.name}': {e}") from None
-        need = dt.itemsize * el.count
-        rec = None
-        if len(body) - pos >= need:
-            rec = np.frombuffer(body, dtype=dt, count=el.count, offset=pos)
-            if not all(np.all(rec[p.name + "#n"] == dt[p.name].shape[0]) for p in lists):
-                rec = None
-        if rec is not None:
-            out[el.name] = {p.name: rec[p.name] for p in el.properties}
-            pos += need
-            continue
-        out[el.name], pos = _read_binary_records(path, body, el, endian, pos)
+def _element_columns(data: Any) -> dict[str, np.ndarray]:
+    """{property: array} of one element of trimesh's raw PLY structure (list properties: the lists)."""
+    if isinstance(data, dict):  # ascii: scalar properties come as (n, 1) columns
+        return {k: v[:, 0] if isinstance(v, np.ndarray) and v.ndim == 2 and v.shape[1] == 1 else v
+                for k, v in data.items()}
+    out = {}
+    for name in data.dtype.names or ():
+        col = data[name]
+        out[name] = col["f1"] if col.dtype.names and "f1" in col.dtype.names else col
     return out
 
 
-def _read_binary_records(
-    path: Path, body: memoryview, el: _PlyElement, endian: str, pos: int
-) -> tuple[dict[str, Any], int]:
-    """Record-by-record reader for elements with lists of varying length (e.g. quads)."""
-    cols: dict[str, list] = {p.name: [] for p in el.properties}
-    for _ in range(el.count):
-        for p in el.properties:
-            if p.count_dtype:
-                cdt = np.dtype(endian + p.count_dtype)
-                if pos + cdt.itemsize > len(body):
-                    raise PlyError(f"{path}: truncated in element '{el.name}'")
-                n = int(np.frombuffer(body, cdt, 1, pos)[0])
-                pos += cdt.itemsize
-                idt = np.dtype(endian + p.dtype)
-                if pos + n * idt.itemsize > len(body):
-                    raise PlyError(f"{path}: truncated in element '{el.name}'")
-                cols[p.name].append(np.frombuffer(body, idt, n, pos))
-                pos += n * idt.itemsize
-            else:
-                dt = np.dtype(endian + p.dtype)
-                if pos + dt.itemsize > len(body):
-                    raise PlyError(f"{path}: truncated in element '{el.name}'")
-                cols[p.name].append(np.frombuffer(body, dt, 1, pos)[0])
-                pos += dt.itemsize
-    return {k: (v if any(p.name == k and p.count_dtype for p in el.properties) else np.array(v))
-            for k, v in cols.items()}, pos
+def read_ply(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
+    """Read a PLY file (trimesh) into {element: {property: array}}; a list property is a 2D array
+    (one row per record) or a list of arrays when the lengths differ.
 
-
-def _read_ply_ascii(path: Path, body: bytes, elements: list[_PlyElement]) -> dict[str, dict[str, np.ndarray]]:
-    lines = body.split(b"\n")
-    out: dict[str, dict[str, np.ndarray]] = {}
-    start = 0
-    for el in elements:
-        chunk = lines[start:start + el.count]
-        if len(chunk) < el.count or (el.count and not chunk[-1].strip()):
-            got = sum(1 for c in chunk if c.strip())
-            raise PlyError(f"{path}: truncated: element '{el.name}' has {got} of {el.count} lines")
-        start += el.count
-        try:
-            tokens = np.array(b" ".join(chunk).split(), dtype=np.float64)
-        except ValueError:
-            raise PlyError(f"{path}: non-numeric value in element '{el.name}'") from None
-        ncols = len(el.properties)
-        lists = [p for p in el.properties if p.count_dtype]
-        if not lists:
-            if tokens.size != el.count * ncols:
-                raise PlyError(
-                    f"{path}: element '{el.name}' has {tokens.size} values, expected {el.count * ncols}"
-                )
-            table = tokens.reshape(el.count, ncols)
-            out[el.name] = {p.name: table[:, i].astype(p.dtype) for i, p in enumerate(el.properties)}
-            continue
-        # Uniform rows (all triangles) reshape at once; otherwise parse line by line.
-        width = tokens.size // el.count if el.count else 0
-        table = tokens.reshape(el.count, width) if el.count and tokens.size == el.count * width else None
-        if table is not None:
-            cols, c = {}, 0
-            for p in el.properties:
-                if p.count_dtype:
-                    n = int(table[0, c]) if el.count else 0
-                    if c + 1 + n > width or not np.all(table[:, c] == n):
-                        table = None
-                        break
-                    cols[p.name] = table[:, c + 1:c + 1 + n].astype(p.dtype)
-                    c += 1 + n
-                else:
-                    cols[p.name] = table[:, c].astype(p.dtype)
-                    c += 1
-            if table is not None and c == width:
-                out[el.name] = cols
-                continue
-        out[el.name] = _read_ascii_records(path, chunk, el)
-    return out
-
-
-def _read_ascii_records(path: Path, chunk: list[bytes], el: _PlyElement) -> dict[str, Any]:
-    cols: dict[str, list] = {p.name: [] for p in el.properties}
-    for ln, line in enumerate(chunk):
-        tok = line.split()
-        c = 0
-        try:
-            for p in el.properties:
-                if p.count_dtype:
-                    n = int(tok[c])
-                    cols[p.name].append(np.array(tok[c + 1:c + 1 + n], dtype=np.float64).astype(p.dtype))
-                    if len(cols[p.name][-1]) != n:
-                        raise IndexError
-                    c += 1 + n
-                else:
-                    cols[p.name].append(float(tok[c]))
-                    c += 1
-        except (IndexError, ValueError):
-            raise PlyError(f"{path}: malformed record {ln} of element '{el.name}'") from None
-    return {k: (v if any(p.name == k and p.count_dtype for p in el.properties) else np.array(v))
-            for k, v in cols.items()}
+    Raises PlyError naming the file for anything malformed (bad header, truncated body, bad token).
+    """
+    path = Path(path)
+    raw = _load_ply_kwargs(path)["metadata"]["_ply_raw"]
+    return {name: _element_columns(el.get("data")) if el.get("data") is not None else {} for name, el in raw.items()}
 
 
 def read_ply_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Triangle mesh of a PLY file in file units: vertices (N,3) float64, faces (M,3) int32,
-    vertex normals (N,3) or None, vertex colours (N,3) uint8 or None. Polygons are fan-triangulated.
+    """Triangle mesh of a PLY file (trimesh) in file units: vertices (N,3) float64, faces (M,3) int32,
+    vertex normals (N,3) or None, vertex colours (N,3) uint8 or None. Quads are split in two.
     """
     path = Path(path)
-    ply = read_ply(path)
-    v = ply.get("vertex")
-    if v is None or not all(k in v for k in "xyz"):
+    kwargs = _load_ply_kwargs(path)
+    raw = kwargs["metadata"]["_ply_raw"]
+    vertex = raw.get("vertex")
+    if vertex is None or not all(k in vertex["properties"] for k in "xyz"):
         raise PlyError(f"{path}: no 'vertex' element with x, y, z")
-    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+    vertices = np.asarray(kwargs.get("vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     if len(vertices) == 0 or not np.all(np.isfinite(vertices)):
         raise PlyError(f"{path}: vertices are empty or not finite")
-    normals = None
-    if all(k in v for k in ("nx", "ny", "nz")):
-        normals = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float64)
+    normals = kwargs.get("vertex_normals")
+    normals = None if normals is None else np.asarray(normals, dtype=np.float64)
     colors = None
+    columns = _element_columns(vertex["data"])
     for names in (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(k in v for k in names):
-            c = np.stack([v[k] for k in names], axis=1)
+        if all(k in columns for k in names):
+            c = np.stack([np.asarray(columns[k]) for k in names], axis=1)
             if c.dtype.kind == "f":  # float colours in [0, 1]
                 c = np.clip(c * 255.0 + 0.5, 0, 255)
             colors = c.astype(np.uint8)
             break
-    f = ply.get("face")
-    key = next((k for k in ("vertex_indices", "vertex_index") if f is not None and k in f), None)
-    if key is None:
+    face = raw.get("face")
+    if face is None or not any(k in face["properties"] for k in ("vertex_indices", "vertex_index")):
         raise PlyError(f"{path}: no 'face' element with vertex_indices (a model needs triangles)")
-    idx = f[key]
-    if isinstance(idx, np.ndarray) and idx.ndim == 2 and idx.shape[1] == 3:
-        faces = idx.astype(np.int64)
-    else:
-        polys = [np.asarray(p, dtype=np.int64) for p in idx]
-        tris = [np.stack([np.full(len(p) - 2, p[0]), p[1:-1], p[2:]], axis=1) for p in polys if len(p) >= 3]
-        faces = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
-    if len(faces) == 0:
+    faces = kwargs.get("faces")
+    if faces is None or len(faces) == 0:
         raise PlyError(f"{path}: mesh has no faces")
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise PlyError(f"{path}: face index out of range [0, {len(vertices)})")
     return vertices, faces.astype(np.int32), normals, colors
@@ -366,37 +197,22 @@ def write_ply(
     colors: np.ndarray | None = None,
     binary: bool = True,
 ) -> None:
-    """Write a triangle mesh as PLY in the caller's units (BOP model files are mm), with
-    optional vertex normals and uint8 colours; atomic (atomic_file.py)."""
-    path = Path(path)
-    v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
-    cols: list[tuple[str, str, np.ndarray]] = [(n, "float", v[:, i]) for i, n in enumerate("xyz")]
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
-        cols += [(n, "float", nrm[:, i]) for i, n in enumerate(("nx", "ny", "nz"))]
-    if colors is not None:
-        c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
-        cols += [(n, "uchar", c[:, i]) for i, n in enumerate(("red", "green", "blue"))]
-    fmt = "binary_little_endian" if binary else "ascii"
-    header = ["ply", f"format {fmt} 1.0", "comment perception_config", f"element vertex {len(v)}"]
-    header += [f"property {t} {n}" for n, t, _ in cols]
-    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    head = ("\n".join(header) + "\n").encode("ascii")
-    if binary:
-        vdt = np.dtype([(n, "<f4" if t == "float" else "u1") for n, t, _ in cols])
-        vrec = np.empty(len(v), dtype=vdt)
-        for n, _, a in cols:
-            vrec[n] = a
-        frec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
-        frec["n"], frec["idx"] = 3, f
-        body = vrec.tobytes() + frec.tobytes()
-    else:
-        vlines = [" ".join(repr(float(a[i])) if t == "float" else str(int(a[i])) for _, t, a in cols)
-                  for i in range(len(v))]
-        flines = [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
-        body = ("\n".join(vlines + flines) + "\n").encode("ascii")
-    atomic_write(path, head + body)
+    """Write a triangle mesh as PLY (trimesh's exporter) in the caller's units (BOP model files are
+    mm), with optional vertex normals and uint8 colours (written as red, green, blue, alpha=255);
+    atomic (atomic_file.py)."""
+    import trimesh
+    from trimesh.exchange.ply import export_ply
+
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    mesh = trimesh.Trimesh(
+        vertices=v, faces=f, process=False, validate=False,
+        vertex_normals=None if normals is None else np.asarray(normals, dtype=np.float64).reshape(-1, 3),
+        vertex_colors=None if colors is None else np.asarray(colors, dtype=np.uint8).reshape(-1, 3),
+    )
+    data = export_ply(mesh, encoding="binary" if binary else "ascii", vertex_normal=normals is not None,
+                      include_attributes=False)
+    atomic_write(Path(path), data)
 
 
 # --------------------------------------------------------------------------- mesh helpers

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up everything perception_config needs, idempotently (a second run takes seconds):
 #   1. system packages (apt) the stack needs, installed when missing;
-#   2. a virtual environment in .venv with the pinned requirements;
+#   2. a virtual environment in .venv with exactly the packages of requirements.lock (hash-checked;
+#      ./scripts/lock.sh refreshes the lock from requirements.txt);
 #   3. the package itself, with msg_defs/ compiled into perception_config_interfaces.
 # Sourced by scripts/demo.sh and scripts/test.sh; can also be run on its own.
 set -euo pipefail
@@ -70,14 +71,17 @@ if [ ! -x "$PY" ] || ! "$PY" -c 'import sys' >/dev/null 2>&1; then
   say "creating virtual environment $VENV"
   rm -rf "$VENV"
   "$PYTHON_BIN" -m venv "$VENV"
-  quiet_pip install -q --upgrade pip >/dev/null
 fi
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 
 hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -d' ' -f1; }
-req_hash="$(hash_of "$ROOT/requirements.txt")"
+req_hash="$(hash_of "$ROOT/requirements.lock" "$ROOT/requirements.txt")"
 if [ "$(cat "$VENV/.requirements.sha256" 2>/dev/null)" != "$req_hash" ]; then
-  say "installing requirements (first run: about a minute)"
+  say "installing requirements.lock (first run: a few minutes)"
+  # Exact versions, every file's sha256 checked; torch==2.13.0+cpu comes from pip's find-links folder.
+  quiet_pip install -q --require-hashes -r "$ROOT/requirements.lock" || die "pip install -r requirements.lock failed"
+  # A line added to requirements.txt without ./scripts/lock.sh still gets installed (unhashed);
+  # test/test_packaging.py fails until the lock is refreshed. A no-op when the lock covers everything.
   quiet_pip install -q -r "$ROOT/requirements.txt" || die "pip install -r requirements.txt failed"
   echo "$req_hash" > "$VENV/.requirements.sha256"
 fi

@@ -50,7 +50,13 @@ def test_ply_polygons_are_triangulated(tmp_path: Path) -> None:
         "0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n4 0 1 2 3\n3 0 1 4\n"
     )
     v, f, n, c = read_ply_mesh(p)
-    assert f.tolist() == [[0, 1, 2], [0, 2, 3], [0, 1, 4]]
+
+    def same_winding(tri: list[int]) -> tuple[int, ...]:  # rotated to start at its smallest index
+        i = tri.index(min(tri))
+        return tuple(tri[i:] + tri[:i])
+
+    # the quad becomes two triangles covering it with its winding (trimesh orders them its own way)
+    assert sorted(same_winding(t) for t in f.tolist()) == [(0, 1, 2), (0, 1, 4), (0, 2, 3)]
     assert n is None and c is None
 
 
@@ -74,6 +80,21 @@ def test_garbage_ply_names_the_file(tmp_path: Path) -> None:
         load_model(p, 2)
     with pytest.raises(FileNotFoundError, match="obj_000003.ply"):
         load_model(tmp_path / "obj_000003.ply", 3)
+
+
+@pytest.mark.parametrize("fmt, vtype, body, message", [
+    ("binary_middle_endian", "float", "", "unknown PLY format 'binary_middle_endian'"),
+    ("ascii", "float128", "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "bad PLY header.*float128"),
+    ("ascii", "float", "0 0 0\n1 x 0\n0 1 0\n3 0 1 2\n", "malformed PLY"),
+    ("ascii", "float", "0 0 0\n", "truncated: element 'vertex' has 1 of 3 records"),
+])
+def test_malformed_ply_names_the_file_and_the_problem(tmp_path: Path, fmt: str, vtype: str, body: str,
+                                                       message: str) -> None:
+    p = tmp_path / "obj_000004.ply"
+    p.write_text(f"ply\nformat {fmt} 1.0\nelement vertex 3\nproperty {vtype} x\nproperty float y\n"
+                 "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n" + body)
+    with pytest.raises(PlyError, match=f"obj_000004.ply: {message}"):
+        read_ply_mesh(p)
 
 
 def test_ply_bad_face_index(tmp_path: Path) -> None:
