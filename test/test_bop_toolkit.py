@@ -1,6 +1,6 @@
 """bop_toolkit (upstream, unmodified, ../shared/tools/bop_toolkit) on a small evaluation's output:
 its AR_MSSD and AR_MSPD (eval_bop19_pose.py's MSSD and MSPD steps, through
-perception_config/bop_toolkit_eval.py) equal the project's, and its recall at 0.1 x diameter equals
+scripts/bop_toolkit_eval.py) equal the project's, and its recall at 0.1 x diameter equals
 recall_mssd.
 
 bop_toolkit needs numpy < 2 (the project has numpy 2): it runs in a venv of its own, built once
@@ -66,7 +66,7 @@ def evaluation(tmp_path_factory) -> dict:
                        pipeline=pipeline_file(tmp_path_factory), test_fraction=0.5, time_mode="cost_table",
                        progress=False, plots=False)
     run = subprocess.run(
-        [str(python), str(REPO / "perception_config" / "bop_toolkit_eval.py"), "--toolkit", str(TOOLKIT),
+        [str(python), str(REPO / "scripts" / "bop_toolkit_eval.py"), "--toolkit", str(TOOLKIT),
          "--dataset", str(dataset), "--results", str(out / "evaluation" / "bop"), "--eval-path", str(out / "bop_eval")],
         capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:])
@@ -100,7 +100,7 @@ def test_bop_toolkit_recall_at_a_tenth_of_the_diameter_is_recall_mssd(evaluation
 
 def test_bad_input_is_named(evaluation, tmp_path):
     """No result file, or no targets file next to them: an error naming what is missing, exit 2."""
-    script = str(REPO / "perception_config" / "bop_toolkit_eval.py")
+    script = str(REPO / "scripts" / "bop_toolkit_eval.py")
     base = [str(bop_venv()), script, "--toolkit", str(TOOLKIT), "--dataset", str(evaluation["dataset"]),
             "--eval-path", str(tmp_path / "e")]
     (tmp_path / "empty").mkdir()

@@ -3,7 +3,7 @@
 Run it with a Python that has bop_toolkit's dependencies (numpy < 2, scipy, imageio, pypng),
 not the project's: this file imports nothing from perception_config.
 
-    <bop_toolkit python> perception_config/bop_toolkit_eval.py --toolkit ../shared/tools/bop_toolkit \\
+    <bop_toolkit python> scripts/bop_toolkit_eval.py --toolkit ../shared/tools/bop_toolkit \\
         --dataset data/default --results outputs/demo/evaluation/bop --eval-path /tmp/bop_eval
 
 What runs: the MSSD and MSPD entries of `p["errors"]` of bop_toolkit's scripts/eval_bop19_pose.py
