@@ -27,11 +27,19 @@ import time
 import cv2
 import numpy as np
 
-from ..geometry import Pose, exp_so3
+from ..geometry import Pose, exp_so3, log_so3
 from ..render import projected_box
 from ..scene import Frame
-from ..vision.edges import bilinear, canny_edges, edge_refinement_problem, model_contour, project_with_directions
-from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, rotation_prior_weight
+from ..vision.edges import (
+    TensorCache,
+    bilinear,
+    canny_edges,
+    edge_refinement_problem,
+    model_contour,
+    project_with_directions,
+    sample_tensor,
+)
+from ..vision.pose_solver import LOSSES, project_with_jacobian, robust_rho, robust_weights, update_pose
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
 
@@ -82,6 +90,69 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     return "", edge, P, D
 
 
+def viewing_frame(t: np.ndarray) -> np.ndarray:
+    """Rows (ray, e1, e2): the viewing ray through the object origin and two image-plane directions."""
+    ray = t / np.linalg.norm(t)
+    e1 = np.cross(ray, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([ray, e1, np.cross(ray, e1)])
+
+
+def prior_information(t0: np.ndarray, n: int, in_plane_deg: float, out_of_plane_deg: float,
+                      depth_mm: float) -> np.ndarray:
+    """The 6x6 information matrix (on (w, d) of pose_solver) of a Gaussian prior anchored at the
+    start: rotation about the viewing ray of `in_plane_deg`, out of the image plane of
+    `out_of_plane_deg`, and depth along the ray of `depth_mm` each cost as much as all `n`
+    residuals 1 px off; image-plane translation is free (edges observe it well). >= 1000: none."""
+    B = viewing_frame(t0)
+    weight = lambda x, unit: n / (unit * x) ** 2 if x < 1000 else 0.0  # noqa: E731
+    A = np.zeros((6, 6))
+    A[:3, :3] = B.T @ np.diag([weight(in_plane_deg, np.pi / 180), *[weight(out_of_plane_deg, np.pi / 180)] * 2]) @ B
+    A[3:, 3:] = weight(depth_mm, 1e-3) * np.outer(B[0], B[0])
+    return A
+
+
+def map_levenberg_marquardt(evaluate, R0: np.ndarray, t0: np.ndarray, anchor: Pose, information: np.ndarray,
+                            loss: str, scale: float, max_iterations: int, deadline: float,
+                            tol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Minimise sum rho(r) + 0.5 e^T A e, e = (log(R Ra^T), t - ta) the change from `anchor`
+    and A = `information` (prior_information), from (R0, t0): the robust MAP pose under a
+    Gaussian prior whose directions differ in strength (pose_solver.levenberg_marquardt's
+    priors are isotropic in rotation). `evaluate(R, t) -> (r (N,), J (N, 6))`."""
+    def error(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.concatenate([log_so3(R @ anchor.R.T), t - anchor.t])
+
+    def total(r: np.ndarray, e: np.ndarray) -> float:
+        return float(np.sum(robust_rho(r, loss, scale))) + 0.5 * float(e @ information @ e)
+
+    R, t = R0, t0
+    r, J = evaluate(R, t)
+    e = error(R, t)
+    cost, mu = total(r, e), 1e-3
+    for _ in range(max_iterations):
+        if time.perf_counter() > deadline:
+            break
+        w = robust_weights(r, loss, scale)
+        A = (J * w[:, None]).T @ J + information
+        g = J.T @ (w * r) + information @ e
+        improved, rel = False, 0.0
+        while time.perf_counter() < deadline and mu <= 1e4:
+            step = np.linalg.solve(A + mu * np.diag(np.diag(A) + 1e-9), -g)
+            Rn, tn = update_pose(R, t, step)
+            rn, Jn = evaluate(Rn, tn)
+            en = error(Rn, tn)
+            cn = total(rn, en)
+            if np.isfinite(cn) and cn < cost:
+                rel = (cost - cn) / max(cost, 1e-12)
+                R, t, r, J, e, cost, mu = Rn, tn, rn, Jn, en, cn, max(mu * 0.3, 1e-7)
+                improved = True
+                break
+            mu *= 10.0
+        if not improved or rel < tol:
+            break
+    return R, t
+
+
 _COMMON = (
     Param("canny_low", 15.0, 0.0, 1000.0, doc="Canny low threshold (real photographs' edges are weak)"),
     Param("canny_high", 40.0, 0.0, 1000.0, doc="Canny high threshold"),
@@ -120,6 +191,15 @@ class ChamferMatching(Block):
         Param("wide_max_distance", 20.0, 1.0, 200.0, doc="the wide search's truncation of the chamfer distance (px)"),
         Param("wide_margin", 0.2, 0.0, 0.9,
               doc="the wide search's result replaces the careful one's only if its cost is this fraction lower"),
+        Param("out_of_plane", 0.3, 0.0, 1.0,
+              doc="spread of the sampled out-of-image-plane rotation relative to that about the viewing ray"),
+        Param("out_of_plane_prior_deg", 1000.0, 0.1, 1000.0,
+              doc="out-of-image-plane rotation (deg) that costs as much as every point 1 px further (1000: none)"),
+        Param("directional", True,
+              doc="directional chamfer distance (D2CO's tensor: distance + orientation mismatch), not the plain one"),
+        Param("n_bins", 60, 8, 180, doc="orientation bins of the directional tensor (as d2co's, so a frame shares it)"),
+        Param("penalty", 0.5, 0.0, 10.0, doc="directional tensor cost per bin of orientation difference (px)"),
+        Param("crop_margin", 40, 0, 400, doc="pixels around the hypothesis's box the directional tensor covers"),
         *_COMMON,
         Param("max_seconds", 0.1, 0.001, 10.0, doc="time bound (s)"),
     )
@@ -131,6 +211,16 @@ class ChamferMatching(Block):
         if why:
             return BlockResult.fail(why)
         K = frame.K
+        dct, x0, y0 = None, 0, 0
+        if c["directional"]:
+            box = projected_box(inp.model, pose0, K, frame.width, frame.height)
+            margin = int(c["crop_margin"])
+            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
+                                           max(float(c["max_distance"]), float(c["wide_max_distance"])),
+                                           c["canny_low"], c["canny_high"])
+            if dct is None:
+                return BlockResult.fail("no image edges around the hypothesis")
+            x0, y0 = crop[:2]
 
         def costs(Rs: np.ndarray, ts: np.ndarray, cap: float) -> np.ndarray:
             """Mean chamfer distance truncated at `cap` of the contour under each of C poses (C, 3, 3), (C, 3)."""
@@ -139,42 +229,60 @@ class ChamferMatching(Block):
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (K[0, 0] * pc[..., 0] + K[0, 1] * pc[..., 1]) / z + K[0, 2]
                 v = K[1, 1] * pc[..., 1] / z + K[1, 2]
+                if dct is not None:  # the tangent's image angle: the projection Jacobian applied to R D
+                    dc = np.einsum("cij,nj->cni", Rs, D)
+                    du = K[0, 0] * (dc[..., 0] * z - pc[..., 0] * dc[..., 2]) / z**2
+                    dv = K[1, 1] * (dc[..., 1] * z - pc[..., 1] * dc[..., 2]) / z**2
+                    ang = np.mod(np.arctan2(dv, du), np.pi)
             u[z <= 1e-3] = np.nan
-            return bilinear(np.minimum(edge[0], cap), u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
+            if dct is None:
+                return bilinear(np.minimum(edge[0], cap), u.ravel(), v.ravel(), cap).reshape(u.shape).mean(axis=1)
+            r = sample_tensor(dct, u.ravel() - x0, v.ravel() - y0, ang.ravel(), cap)
+            return np.minimum(r, cap).reshape(u.shape).mean(axis=1)
 
         # the image plane at the object: translations perpendicular to the viewing ray
         ray = pose0.t / np.linalg.norm(pose0.t)
         e1 = np.cross(ray, [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         plane = np.stack([e1, np.cross(ray, e1)])
+        frame3 = np.stack([ray, *plane])
         deadline = self.deadline(inp, start)
 
-        def search(rot_deg: float, trans_mm: float, cap: float, prior_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
+        def rotations(ws: np.ndarray) -> np.ndarray:
+            """exp(w) R0 for rotation vectors (C, 3) about the object origin."""
+            return np.stack([exp_so3(w) @ pose0.R for w in ws])
+
+        def search(rot_deg: float, trans_mm: float, cap: float, prior_deg: float,
+                   out_prior_deg: float) -> tuple[np.ndarray, np.ndarray, int]:
             """The random local search from the start: (R, t, candidates tried); the objective is
-            the chamfer distance truncated at `cap` plus (rotation from the start / prior_deg)^2."""
-            prior = 1.0 / np.radians(prior_deg) ** 2 if prior_deg < 1000 else 0.0
-            best_R, best_t = pose0.R, pose0.t
-            best = float(costs(best_R[None], best_t[None], cap)[0])
+            the chamfer distance truncated at `cap` plus (rotation about the viewing ray / prior_deg)^2
+            plus (rotation out of the image plane / out_prior_deg)^2 (1000: none). Out-of-plane
+            rotation barely changes the outline, so it is sampled `out_of_plane` x narrower."""
+            w_in = 1.0 / np.radians(prior_deg) ** 2 if prior_deg < 1000 else 0.0
+            w_out = 1.0 / np.radians(out_prior_deg) ** 2 if out_prior_deg < 1000 else 0.0
+            best_w, best_t = np.zeros(3), pose0.t
+            best = float(costs(pose0.R[None], best_t[None], cap)[0])
             rot, trans = np.radians(rot_deg), trans_mm * 1e-3
             tried, n_batch = 0, int(c["batch"])
+            shape = np.array([1.0, float(c["out_of_plane"]), float(c["out_of_plane"])])
             for _ in range(int(c["rounds"])):
                 done = 0
                 while done < c["candidates"] and time.perf_counter() < deadline:
                     k = int(min(n_batch, c["candidates"] - done))
-                    ws = inp.rng.normal(0.0, rot / np.sqrt(3), (k, 3))
-                    Rs = np.stack([exp_so3(w) @ best_R for w in ws])
+                    # rotation vectors in the (ray, e1, e2) frame: about the ray, then out of plane
+                    ws = best_w + (inp.rng.normal(0.0, rot, (k, 3)) * shape) @ frame3
                     ts = best_t + inp.rng.normal(0.0, trans / np.sqrt(2), (k, 2)) @ plane
-                    values = costs(Rs, ts, cap)
-                    if prior:
-                        cos = np.clip((np.einsum("cij,ij->c", Rs, pose0.R) - 1.0) / 2.0, -1.0, 1.0)
-                        values = values + prior * np.arccos(cos) ** 2
+                    values = costs(rotations(ws), ts, cap)
+                    if w_in or w_out:
+                        a = ws @ ray
+                        values = values + w_in * a**2 + w_out * np.sum((ws - a[:, None] * ray) ** 2, axis=1)
                     i = int(np.argmin(values))
                     if values[i] < best:
-                        best, best_R, best_t = float(values[i]), Rs[i], ts[i]
+                        best, best_w, best_t = float(values[i]), ws[i], ts[i]
                     done += k
                 tried += done
                 rot, trans = rot / 2, trans / 2
-            return best_R, best_t, tried
+            return exp_so3(best_w) @ pose0.R, best_t, tried
 
         cap = float(c["max_distance"])
         own = lambda R_, t_: float(costs(R_[None], t_[None], cap)[0])  # noqa: E731
@@ -182,9 +290,12 @@ class ChamferMatching(Block):
         # Two searches: a careful one (small radii, short truncation, rotation prior) and a wide
         # one (larger radii, long truncation, no prior) that must beat it by wide_margin on the
         # careful one's cost: it reaches farther but also finds clutter on real photographs.
-        best_R, best_t, tried = search(c["rotation_deg"], c["translation_mm"], cap, c["rotation_prior_deg"])
+        best_R, best_t, tried = search(c["rotation_deg"], c["translation_mm"], cap, c["rotation_prior_deg"],
+                                       c["rotation_prior_deg"] if c["out_of_plane_prior_deg"] >= 1000
+                                       else min(c["rotation_prior_deg"], c["out_of_plane_prior_deg"]))
         if c["wide_rotation_deg"] > 0 and time.perf_counter() < deadline:
-            Rw, tw, n = search(c["wide_rotation_deg"], c["wide_translation_mm"], c["wide_max_distance"], 1000.0)
+            Rw, tw, n = search(c["wide_rotation_deg"], c["wide_translation_mm"], c["wide_max_distance"], 1000.0,
+                            c["out_of_plane_prior_deg"])
             tried += n
             if own(Rw, tw) < own(best_R, best_t) * (1.0 - c["wide_margin"]):
                 best_R, best_t = Rw, tw
@@ -215,7 +326,13 @@ class ChamferIcp(Block):
         Param("min_match_px", 3.0, 0.5, 200.0, doc="last-iteration matching distance (px)"),
         Param("depth_prior_mm", 5.0, 0.1, 1000.0, doc="depth shift (mm) that costs as much as every point 1 px"),
         Param("rotation_prior_deg", 15.0, 0.1, 1000.0,
-              doc="rotation away from the start (deg) that costs as much as every point 1 px (1000: none)"),
+              doc="rotation about the viewing ray (deg) that costs as much as every point 1 px (1000: none)"),
+        Param("out_of_plane_prior_deg", 3.0, 0.1, 1000.0,
+              doc="rotation out of the image plane (deg) that costs as much as every point 1 px (1000: none)"),
+        Param("max_angle_deg", 90.0, 1.0, 90.0,
+              doc="a match's image edge must run within this angle of the contour point's tangent (90: any)"),
+        Param("point_to_line", False,
+              doc="residual along the matched edge's normal only (the contour may slide along the edge)"),
         Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the reprojection error"),
         Param("max_distance", 20.0, 1.0, 200.0, doc="truncation of the chamfer distance of the reported cost (px)"),
         *_COMMON,
@@ -239,9 +356,10 @@ class ChamferIcp(Block):
             return float(np.mean(bilinear(dtc, uv_[:, 0], uv_[:, 1], cap)))
 
         cost0 = chamfer_cost(pose0.R, pose0.t)
-        ray = pose0.t / np.linalg.norm(pose0.t)
-        prior = ray * np.sqrt(len(P)) / (c["depth_prior_mm"] * 1e-3)
-        rot_prior = rotation_prior_weight(len(P), c["rotation_prior_deg"])
+        information = prior_information(pose0.t, len(P), c["rotation_prior_deg"], c["out_of_plane_prior_deg"],
+                                         c["depth_prior_mm"])
+        edge_dir = canny_edges(frame, inp.cache, c["canny_low"], c["canny_high"])[1]
+        max_angle = np.radians(float(c["max_angle_deg"]))
         R, t = pose0.R, pose0.t
         n_it = int(c["iterations"])
         dists = np.geomspace(c["max_match_px"], min(c["min_match_px"], c["max_match_px"]), n_it)
@@ -250,30 +368,38 @@ class ChamferIcp(Block):
         for it in range(n_it):
             if time.perf_counter() > deadline:
                 break
-            uv, _ = project_with_directions(R, t, P, D, K)
+            uv, ang = project_with_directions(R, t, P, D, K)
             with np.errstate(invalid="ignore"):
                 iu, iv = np.rint(uv[:, 0]), np.rint(uv[:, 1])
                 inside = np.isfinite(iu) & (iu >= 0) & (iv >= 0) & (iu < W) & (iv < H)
             idx = np.flatnonzero(inside)
             iu, iv = iu[idx].astype(np.intp), iv[idx].astype(np.intp)
             d = dt[iv, iu]
-            near = d <= dists[it]
+            target = lut[labels[iv, iu]]
+            # the matched edge must run like the contour there (clutter and texture edges mostly do not)
+            diff = np.abs(edge_dir[target[:, 1].astype(np.intp), target[:, 0].astype(np.intp)] - ang[idx])
+            diff = np.minimum(diff, np.pi - diff)
+            near = (d <= dists[it]) & (diff <= max_angle)
             if near.sum() < 6:
                 break
-            idx = idx[near]
-            target = lut[labels[iv[near], iu[near]]]
+            idx, target, d = idx[near], target[near], d[near]
             Pm, Dm = P[idx], D[idx]
-            mean_dist, matched = float(np.mean(d[near])), int(len(idx))
+            mean_dist, matched = float(np.mean(d)), int(len(idx))
+            if c["point_to_line"]:  # the matched edge's normal (edge direction + 90 deg)
+                a = edge_dir[target[:, 1].astype(np.intp), target[:, 0].astype(np.intp)] + np.pi / 2
+                normal = np.stack([np.cos(a), np.sin(a)], axis=1)
 
-            def evaluate(R_: np.ndarray, t_: np.ndarray, *, Pm=Pm, Dm=Dm, target=target):
-                uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
-                return (uv_ - target).ravel(), J.reshape(-1, 6)
+                def evaluate(R_: np.ndarray, t_: np.ndarray, *, Pm=Pm, Dm=Dm, target=target, normal=normal):
+                    uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
+                    return np.einsum("ni,ni->n", uv_ - target, normal), np.einsum("ni,nij->nj", normal, J)
+            else:
+                def evaluate(R_: np.ndarray, t_: np.ndarray, *, Pm=Pm, Dm=Dm, target=target):
+                    uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
+                    return (uv_ - target).ravel(), J.reshape(-1, 6)
 
-            # the priors are anchored at the call's start, not at each iteration's pose
-            R, t, _ = levenberg_marquardt(evaluate, R, t, prior, huber=max(2.0, float(dists[it])),
-                                          max_iterations=int(c["steps"]), deadline=deadline,
-                                          anchor=pose0.t, loss=str(c["loss"]), rotation_prior=rot_prior,
-                                          rotation_anchor=pose0.R)
+            # the prior is anchored at the call's start, not at each iteration's pose
+            R, t = map_levenberg_marquardt(evaluate, R, t, pose0, information, str(c["loss"]),
+                                           max(2.0, float(dists[it])), int(c["steps"]), deadline)
         if not np.isfinite(mean_dist):
             return BlockResult.fail("too few contour points near image edges to match")
         cost = chamfer_cost(R, t)
