@@ -331,6 +331,12 @@ class ChamferIcp(Block):
               doc="rotation out of the image plane (deg) that costs as much as every point 1 px (1000: none)"),
         Param("max_angle_deg", 90.0, 1.0, 90.0,
               doc="a match's image edge must run within this angle of the contour point's tangent (90: any)"),
+        Param("directional", False,
+              doc="match along each contour point's normal to the cheapest directional chamfer cell (d2co's tensor)"),
+        Param("match_cost_px", 3.0, 0.1, 30.0, doc="directional matching: a match must cost at most this (px)"),
+        Param("n_bins", 60, 8, 180, doc="orientation bins of the directional tensor (as d2co's, so a frame shares it)"),
+        Param("penalty", 0.5, 0.0, 10.0, doc="directional tensor cost per bin of orientation difference (px)"),
+        Param("crop_margin", 40, 0, 400, doc="pixels around the hypothesis's box the directional tensor covers"),
         Param("point_to_line", False,
               doc="residual along the matched edge's normal only (the contour may slide along the edge)"),
         Param("loss", "geman_mcclure", choices=LOSSES, doc="robust loss of the reprojection error"),
@@ -359,6 +365,15 @@ class ChamferIcp(Block):
         information = prior_information(pose0.t, len(P), c["rotation_prior_deg"], c["out_of_plane_prior_deg"],
                                          c["depth_prior_mm"])
         edge_dir = canny_edges(frame, inp.cache, c["canny_low"], c["canny_high"])[1]
+        dct, x0, y0, tcap = None, 0, 0, 30.0
+        if c["directional"]:
+            box = projected_box(inp.model, pose0, K, frame.width, frame.height)
+            margin = int(c["crop_margin"])
+            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
+                                           tcap, c["canny_low"], c["canny_high"])
+            if dct is None:
+                return BlockResult.fail("no image edges around the hypothesis")
+            x0, y0 = crop[:2]
         max_angle = np.radians(float(c["max_angle_deg"]))
         R, t = pose0.R, pose0.t
         n_it = int(c["iterations"])
@@ -369,6 +384,33 @@ class ChamferIcp(Block):
             if time.perf_counter() > deadline:
                 break
             uv, ang = project_with_directions(R, t, P, D, K)
+            if dct is not None:  # directional matching along each point's normal on d2co's tensor
+                normal = np.stack([-np.sin(ang), np.cos(ang)], axis=1)
+                L = int(np.ceil(dists[it]))
+                steps = np.arange(-L, L + 1, dtype=np.float64)
+                q = uv[:, None, :] + steps[None, :, None] * normal[:, None, :]
+                vals = sample_tensor(dct, q[..., 0].ravel() - x0, q[..., 1].ravel() - y0,
+                                     np.repeat(ang, len(steps)), tcap).reshape(len(P), len(steps))
+                vals = vals + 1e-3 * np.abs(steps)[None, :]  # ties: the nearer
+                k = np.argmin(vals, axis=1)
+                best = vals[np.arange(len(P)), k]
+                with np.errstate(invalid="ignore"):
+                    near = np.isfinite(best) & (best <= float(c["match_cost_px"]))
+                if near.sum() < 6:
+                    break
+                idx = np.flatnonzero(near)
+                Pm, Dm, nm = P[idx], D[idx], normal[idx]
+                offs = steps[k[idx]]
+                mean_dist, matched = float(np.mean(np.abs(offs))), int(len(idx))
+                target = uv[idx] + offs[:, None] * nm
+
+                def evaluate(R_: np.ndarray, t_: np.ndarray, *, Pm=Pm, Dm=Dm, target=target, nm=nm):
+                    uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
+                    return np.einsum("ni,ni->n", uv_ - target, nm), np.einsum("ni,nij->nj", nm, J)
+
+                R, t = map_levenberg_marquardt(evaluate, R, t, pose0, information, str(c["loss"]),
+                                               max(2.0, float(dists[it])), int(c["steps"]), deadline)
+                continue
             with np.errstate(invalid="ignore"):
                 iu, iv = np.rint(uv[:, 0]), np.rint(uv[:, 1])
                 inside = np.isfinite(iu) & (iu >= 0) & (iv >= 0) & (iu < W) & (iv < H)
