@@ -449,6 +449,7 @@ class ChamferIcp(Block):
         share = (inner_edge_share(frame, inp.model, pose0, inp.cache, c["edge_coherence"], shown)
                  if c["mesh_edges"] else 0.0)
         out_deg = c["out_of_plane_prior_deg"] / max(1.0 - share, 1e-3) if c["out_of_plane_prior_deg"] < 1000 else 1000.0
+        out_deg = min(out_deg, max(c["rotation_prior_deg"], c["out_of_plane_prior_deg"]))  # <= about the ray
         information = prior_information(pose0.t, len(P), c["rotation_prior_deg"], out_deg, c["depth_prior_mm"])
         max_angle = np.radians(float(c["max_angle_deg"]))
         R, t = pose0.R, pose0.t
