@@ -100,11 +100,12 @@ def _visible(frame, least: float = 0.5):
     return [o for o in frame.objects if o.visib_fract is not None and o.visib_fract >= least and o.model is not None]
 
 
-@pytest.mark.parametrize("name, need", [("d2co", 0.9), ("chamfer", 0.7), ("chamfer_icp", 0.9)])
+@pytest.mark.parametrize("name, need", [("d2co", 0.9), ("chamfer", 0.8), ("chamfer_icp", 0.9)])
 def test_ground_truth_is_a_fixed_point_on_a_real_photograph(lmo_rgb_frame, name, need):
-    """Started at the annotated pose, one call stays within the pick tolerance (MSSD <= 0.1 d).
-    Plain chamfer matching (the paper's baseline) keeps less: its undirected distance finds
-    cheaper poses in the clutter (measured over lmo-rgb: d2co and chamfer_icp ~100 %, chamfer ~80 %)."""
+    """Started at the annotated pose, one call stays within the pick tolerance (MSSD <= 0.1 d)
+    (measured over lmo-rgb: d2co ~97 %, chamfer_icp 100 %, chamfer 92 %, 61 % on the holepuncher
+    (object 12), whose inner edges let its wide search turn it; chamfer kept 74 % with the plain,
+    undirected distance and free out-of-plane rotation)."""
     frame, block, cache = lmo_rgb_frame, create(name), {}
     stays = []
     for obj in _visible(frame):
@@ -115,6 +116,47 @@ def test_ground_truth_is_a_fixed_point_on_a_real_photograph(lmo_rgb_frame, name,
             stays.append(pose_mssd(r.pose, obj.gt, obj.model) <= 0.1 * obj.model.diameter)
     assert len(stays) >= 10
     assert np.mean(stays) >= need, f"{name}: {np.mean(stays):.0%} stayed within tolerance"
+
+
+@pytest.mark.parametrize("name", ["chamfer", "chamfer_icp"])
+def test_three_calls_from_the_ground_truth_stay_within_tolerance(lmo_rgb_frame, name):
+    """Repeated calls do not drift off a correct pose: the out-of-image-plane rotation, which the
+    outline barely shows, is held (over lmo-rgb after 3 calls: chamfer_icp 97 %, 90 % with an isotropic
+    15 deg prior; chamfer 89 %, was 70 %; both weakest on the holepuncher, object 12)."""
+    frame, block, cache = lmo_rgb_frame, create(name), {}
+    stays = []
+    for obj in _visible(frame):
+        pose = obj.gt
+        for call in range(3):
+            r = block(BlockInput(frame=frame, model=obj.model, pose=pose, cache=cache,
+                                 rng=np.random.default_rng(call)))
+            assert r.ok, r.reason
+            pose = r.pose
+        stays.append(pose_mssd(pose, obj.gt, obj.model) <= 0.1 * obj.model.diameter)
+    assert len(stays) >= 5
+    assert np.mean(stays) >= 0.8, f"{name}: {np.mean(stays):.0%} within tolerance after 3 calls"
+
+
+def test_chamfer_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
+    """From lambda 0.3 the directional chamfer search lowers the mean MSSD and improves at least
+    45 % of the calls (about 60 % over all 20 lmo-rgb frames; the plain distance: 41 %)."""
+    block, rng = create("chamfer"), np.random.default_rng(0)
+    before, after = [], []
+    for frame in lmo_rgb_frames:
+        cache: dict = {}
+        for obj in _visible(frame):
+            for seed in range(3):
+                start = perturb(obj.gt, 0.3, obj.model.diameter, rng)
+                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
+                                     rng=np.random.default_rng(seed)))
+                assert r.ok, r.reason
+                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
+                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
+    before, after = np.array(before), np.array(after)
+    print(f"chamfer lambda 0.3: mean MSSD/d {np.mean(before):.3f} -> {np.mean(after):.3f}, "
+          f"improved {np.mean(after < before):.0%}")
+    assert len(before) >= 30
+    assert np.mean(after) < np.mean(before) and np.mean(after < before) >= 0.45  # a no-op: 0 %
 
 
 def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
