@@ -117,9 +117,26 @@ def test_ground_truth_is_a_fixed_point_on_a_real_photograph(lmo_rgb_frame, name,
     assert np.mean(stays) >= need, f"{name}: {np.mean(stays):.0%} stayed within tolerance"
 
 
+def test_d2co_started_at_the_ground_truth_stays_within_tolerance_over_three_calls(lmo_rgb_frame):
+    """A correct pose is a fixed point of repeated calls too: each call on the previous one's
+    output (as an episode does), three calls, the pose stays within the pick tolerance (lmo-rgb:
+    98 % after 3 calls; without accept_margin the calls creep, 95 %)."""
+    frame, block, cache = lmo_rgb_frame, create("d2co"), {}
+    stays = []
+    for obj in _visible(frame):
+        pose = obj.gt
+        for call in range(3):
+            r = block(BlockInput(frame=frame, model=obj.model, pose=pose, cache=cache, rng=np.random.default_rng(call)))
+            assert r.ok, r.reason
+            pose = r.pose
+        stays.append(pose_mssd(pose, obj.gt, obj.model) <= 0.1 * obj.model.diameter)
+    assert len(stays) >= 5
+    assert np.mean(stays) >= 0.8, f"{np.mean(stays):.0%} stayed within tolerance after 3 calls"
+
+
 def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
-    """From lambda 0.3 on two real frames the mean MSSD drops and at least 40 % of the calls
-    improve it (56 % over all 20 lmo-rgb frames; on real photographs the edge signal is weak)."""
+    """From lambda 0.3 on two real frames the mean MSSD drops and at least 50 % of the calls
+    improve it (65 % over all 20 lmo-rgb frames with the region term, 57 % with edges alone)."""
     block, rng = create("d2co"), np.random.default_rng(0)
     before, after, moved = [], [], []
     for frame in lmo_rgb_frames:
@@ -139,7 +156,7 @@ def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
           f"improved {np.mean(better):.0%}, "
           f"moved {np.mean(moved):.0%}, improved when moved {np.mean(better[moved]):.0%}")
     assert len(before) >= 30
-    assert np.mean(after) < np.mean(before) and np.mean(better) >= 0.4  # a no-op: 0 %
+    assert np.mean(after) < np.mean(before) and np.mean(better) >= 0.5  # a no-op: 0 %
 
 
 @pytest.mark.parametrize("name", REFINERS)
