@@ -73,7 +73,7 @@ def test_the_region_term_is_satisfied_at_the_true_pose_and_not_at_a_shifted_one(
     block = create("d2co")
 
     def residual_px(pose):
-        P, n, target, w = _region_term(frame, model, pose, None, block.config, 300)
+        (P, n, target, w), _ = _region_term(frame, model, pose, None, block.config, 300)
         assert len(P) >= 6 and np.all(w > 0)
         uv, _, _ = project_with_jacobian(pose.R, pose.t, P, np.zeros_like(P), K_LINEMOD)
         return np.abs(np.sum(n * uv, axis=1) - target)
@@ -81,8 +81,8 @@ def test_the_region_term_is_satisfied_at_the_true_pose_and_not_at_a_shifted_one(
     assert np.median(residual_px(gt)) < 1.0
     shifted = Pose(gt.R, gt.t + np.array([0.004, 0.0, 0.0]))  # ~4 px sideways at 0.7 m
     assert np.median(residual_px(shifted)) > 1.5
-    P, *_ = _region_term(frame, model, gt, None, {**block.config, "region_weight": 0.0}, 300)
-    assert len(P) == 0  # off: the edge term alone
+    (P, *_), cm = _region_term(frame, model, gt, None, {**block.config, "region_weight": 0.0}, 300)
+    assert len(P) == 0 and cm is None  # off: the edge term alone
 
 
 def test_d2co_with_and_without_the_region_term_improves_synthetic_hypotheses():

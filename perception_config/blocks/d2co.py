@@ -44,7 +44,7 @@ from ..geometry import Pose
 from ..render import projected_box
 from ..vision.edges import TensorCache, edge_refinement_problem, model_contour, sample_tensor
 from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho, rotation_prior_weight
-from ..vision.region import band_width, colour_model, line_displacements, outline_samples
+from ..vision.region import ColourModel, band_width, colour_model, line_displacements, outline_samples
 from ..vision.visibility import hypothesis_rendering
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -95,6 +95,9 @@ class D2CO(Block):
               doc="weight of the colour-region term (outline to colour transition) against the edge term (0: none)"),
         Param("region_lines", 120, 10, 2000, doc="correspondence lines of the region term"),
         Param("region_line_px", 12, 2, 100, doc="half-length (px) of the region term's correspondence lines"),
+        Param("region_updates", 2, 1, 10,
+              doc="region correspondences drawn per call: after the first descent, re-drawn at the current pose "
+                  "(lines halved, at least 4 px) for one more LM descent each"),
         Param("max_iterations", 30, 1, 500, doc="LM iterations per descent stage"),
         Param("max_seconds", 0.2, 0.001, 10.0, doc="time bound of the whole call (s)"),
     )
@@ -119,12 +122,13 @@ class D2CO(Block):
         K, cap, (x0, y0) = frame.K, float(c["max_distance"]), crop[:2]
         loss, scale = str(c["loss"]), float(c["huber_px"])
 
-        Pr, nr, target, wr = _region_term(frame, model, pose0, inp.cache, c, len(P))
+        region0, cm = _region_term(frame, model, pose0, inp.cache, c, len(P))
 
-        def residuals(R: np.ndarray, t: np.ndarray, P=P, D=D, jacobian: bool = True):
+        def residuals(R: np.ndarray, t: np.ndarray, P=P, D=D, region=region0):
             uv, ang, Jp = project_with_jacobian(R, t, P, D, K)
             r, gx, gy = sample_tensor(dct, uv[:, 0] - x0, uv[:, 1] - y0, ang, cap, gradient=True)
             J = gx[:, None] * Jp[:, 0, :] + gy[:, None] * Jp[:, 1, :]
+            Pr, nr, target, wr = region
             if len(Pr) == 0:
                 return r, J
             # the colour-region term: the outline's distance along its normal to the colour transition
@@ -145,7 +149,7 @@ class D2CO(Block):
         # Edges barely constrain depth along the viewing ray: a weak prior keeps it where it was
         # (a shift of depth_prior_mm costs as much as every point 1 px further off); likewise rotation.
         ray = pose0.t / np.linalg.norm(pose0.t)
-        n_eff = len(Pf) * (1.0 + (c["region_weight"] if len(Pr) else 0.0))  # the data term's total weight
+        n_eff = len(Pf) * (1.0 + (c["region_weight"] if len(region0[0]) else 0.0))  # the data term's total weight
         prior = ray * np.sqrt(n_eff) / (c["depth_prior_mm"] * 1e-3)
         rot_prior = rotation_prior_weight(int(round(n_eff)), c["rotation_prior_deg"])
         cost0 = cost(r0)
@@ -179,7 +183,21 @@ class D2CO(Block):
             iterations += it
             if fit_cost(Rc, tc) < fit_cost(R, t) * (1.0 - c["coarse_margin"]):
                 R, t = Rc, tc
-        r, _ = residuals(R, t)
+        # Region updates: the colour correspondences re-drawn at the current pose (its outline has
+        # moved, and its contour generator over the surface), shorter lines, the same colour model.
+        half = float(c["region_line_px"])
+        for _ in range(int(c["region_updates"]) - 1):
+            half = max(4.0, half / 2.0)
+            if cm is None or time.perf_counter() > deadline:
+                break
+            region, _ = _region_term(frame, model, Pose(R, t), None, c, len(P), cm, int(round(half)))
+            if len(region[0]) == 0:
+                break
+            R, t, it = levenberg_marquardt(lambda R_, t_, g=region: residuals(R_, t_, Pf, Df, g), R, t, prior, scale,
+                                           int(c["max_iterations"]), deadline, loss=loss, rotation_prior=rot_prior,
+                                           anchor=pose0.t, rotation_anchor=pose0.R)
+            iterations += it
+        r, _ = residuals(R, t)  # judged by the start's correspondences: not the cost just minimised
         cost1 = cost(r)
         info = {"cost_before": cost0, "iterations": iterations, "points": len(P), "tensor_crop": crop,
                 "support": support, "cost_candidate": cost1}
@@ -190,27 +208,30 @@ class D2CO(Block):
         return BlockResult(ok=True, pose=Pose(R, t), scores={"d2co_cost": cost1}, info={**info, "improved": True})
 
 
-def _region_term(frame, model, pose0: Pose, cache: dict | None, c: dict,
-                 n_edge: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _region_term(frame, model, pose0: Pose, cache: dict | None, c: dict, n_edge: int, cm: ColourModel | None = None,
+                 half: int | None = None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                                                   ColourModel | None]:
     """The colour-region term's correspondences, fixed at the call's start (vision.region): model
     points on the start's rendered outline (N, 3), their unit inward normals (N, 2), the value of
     n . pixel at the most likely foreground/background transition along each normal (N,), and the
     residual weights (N,): 1 / the transition's standard deviation (floored at 1 px), times
     sqrt(region_weight x n_edge / lines), so the term weighs region_weight x the `n_edge` edge
-    points'. Empty when region_weight is 0 or the start gives no colour model."""
+    points'; and the colour model (`cm`: computed at pose0 unless given; lines of `half` px,
+    region_line_px unless given). Empty when region_weight is 0 or the start gives no colour model."""
     empty = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0), np.zeros(0)
     if c["region_weight"] <= 0:
-        return empty
+        return empty, None
     rend = hypothesis_rendering(frame, model, pose0, cache)
     if rend.empty:
-        return empty
-    half = int(c["region_line_px"])
-    cm = colour_model(frame, rend, band_width(rend, 0.15, 10), 4, half + 8)
+        return empty, cm
+    half = int(c["region_line_px"]) if half is None else half
     if cm is None:
-        return empty
+        cm = colour_model(frame, rend, band_width(rend, 0.15, 10), 4, int(c["region_line_px"]) + 8)
+        if cm is None:
+            return empty, None
     Pr, uv, nrm = outline_samples(frame, rend, pose0, int(c["region_lines"]))
     if len(Pr) < 6:
-        return empty
+        return empty, cm
     d, sd = line_displacements(cm, uv, nrm, half)
     w = np.sqrt(c["region_weight"] * n_edge / len(Pr)) / np.maximum(sd, 1.0)
-    return Pr, nrm, np.sum(nrm * uv, axis=1) + d, w
+    return (Pr, nrm, np.sum(nrm * uv, axis=1) + d, w), cm
