@@ -16,10 +16,11 @@ For real photographs (blurred outlines, clutter, occlusion; the edge cost's mini
 - a colour-region term (`region_weight`, vision.region: RBOT / SRT3D's correspondence lines
   with the start's colour histograms) pulls the rendered outline to the most likely
   foreground/background colour transition along its normals, weighted by that transition's
-  certainty; the lines are drawn at the start and re-drawn once at the result of the first
-  descents (`region_updates`) for one more descent: edges alone are often pulled to clutter and
-  texture (measured on lmo-rgb: from lambda 0.3, 57 % of the calls improved MSSD with edges
-  alone, 66 % with both);
+  certainty; the lines are drawn at the start (`region_updates` > 1 re-draws them at the result
+  for more descents: on lmo-rgb +1-4 points, but on the synthetic default's convergence from
+  lambda >= 0.5 it loses a third of the successes, so off): edges alone are often pulled to
+  clutter and texture (measured on lmo-rgb: from lambda 0.3, 57 % of the calls improved MSSD
+  with edges alone, 65 % with both);
 - weak priors anchored at the call's start hold depth along the viewing ray (edges observe it
   only through the projected size; measured: freeing it loses half the within-tolerance share)
   and the rotation (`rotation_prior_deg`);
@@ -31,7 +32,7 @@ For real photographs (blurred outlines, clutter, occlusion; the edge cost's mini
   of the contour's edge residuals and of the region residuals of the lines drawn at the start:
   not the cost the last descent minimised) drops by
   `accept_margin`: repeated calls from a correct pose otherwise creep away on drops within the
-  cost's noise (lmo-rgb, started at the ground truth, within tolerance after 3 calls: 94 % with
+  cost's noise (lmo-rgb, started at the ground truth, within tolerance after 3 calls: 95 % with
   margin 0 and the region term, 98 % with 0.02).
 
 The tensor is built on a crop around the hypothesis's projected box (+ `crop_margin`) and kept
@@ -99,7 +100,7 @@ class D2CO(Block):
               doc="weight of the colour-region term (outline to colour transition) against the edge term (0: none)"),
         Param("region_lines", 120, 10, 2000, doc="correspondence lines of the region term"),
         Param("region_line_px", 12, 2, 100, doc="half-length (px) of the region term's correspondence lines"),
-        Param("region_updates", 2, 1, 10,
+        Param("region_updates", 1, 1, 10,
               doc="region correspondences drawn per call: after the first descent, re-drawn at the current pose "
                   "(lines halved, at least 4 px) for one more LM descent each"),
         Param("max_iterations", 30, 1, 500, doc="LM iterations per descent stage"),
