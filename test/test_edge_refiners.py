@@ -118,11 +118,13 @@ def test_ground_truth_is_a_fixed_point_on_a_real_photograph(lmo_rgb_frame, name,
     assert np.mean(stays) >= need, f"{name}: {np.mean(stays):.0%} stayed within tolerance"
 
 
-@pytest.mark.parametrize("name", ["chamfer", "chamfer_icp"])
+@pytest.mark.parametrize("name", ["d2co", "chamfer", "chamfer_icp"])
 def test_three_calls_from_the_ground_truth_stay_within_tolerance(lmo_rgb_frame, name):
-    """Repeated calls do not drift off a correct pose: the out-of-image-plane rotation, which the
-    outline barely shows, is held (over lmo-rgb after 3 calls: chamfer_icp 97 %, 90 % with an isotropic
-    15 deg prior; chamfer 89 %, was 70 %; both weakest on the holepuncher, object 12)."""
+    """A correct pose is a fixed point of repeated calls too: each call on the previous one's
+    output (as an episode does), three calls, the pose stays within the pick tolerance. Over
+    lmo-rgb after 3 calls: d2co 98 % (95 % without its accept_margin, the calls creep);
+    chamfer_icp 97 % (90 % with an isotropic 15 deg prior: the out-of-image-plane rotation the
+    outline barely shows is held); chamfer 89 % (was 70 %); the last two weakest on object 12."""
     frame, block, cache = lmo_rgb_frame, create(name), {}
     stays = []
     for obj in _visible(frame):
@@ -160,8 +162,8 @@ def test_chamfer_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frame
 
 
 def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
-    """From lambda 0.3 on two real frames the mean MSSD drops and at least 40 % of the calls
-    improve it (56 % over all 20 lmo-rgb frames; on real photographs the edge signal is weak)."""
+    """From lambda 0.3 on two real frames the mean MSSD drops and at least 50 % of the calls
+    improve it (65 % over all 20 lmo-rgb frames with the region term, 57 % with edges alone)."""
     block, rng = create("d2co"), np.random.default_rng(0)
     before, after, moved = [], [], []
     for frame in lmo_rgb_frames:
@@ -181,7 +183,7 @@ def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
           f"improved {np.mean(better):.0%}, "
           f"moved {np.mean(moved):.0%}, improved when moved {np.mean(better[moved]):.0%}")
     assert len(before) >= 30
-    assert np.mean(after) < np.mean(before) and np.mean(better) >= 0.4  # a no-op: 0 %
+    assert np.mean(after) < np.mean(before) and np.mean(better) >= 0.5  # a no-op: 0 %
 
 
 @pytest.mark.parametrize("name", REFINERS)
