@@ -108,11 +108,10 @@ def _run(script: Path, args: list[str]) -> None:
         sys.argv = argv
 
 
-def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, result_filenames: list[str] | None = None,
-             targets: Path | None = None, num_workers: int = 1) -> dict[str, dict[str, float]]:
-    """AR_MSSD and AR_MSPD of bop_toolkit per result file: {file name: {"mssd": ar, "mspd": ar,
-    "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json."""
-    toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
+def _prepare(toolkit: Path, dataset: Path, results: Path, eval_path: Path, result_filenames: list[str] | None,
+             targets: Path | None) -> tuple[list[str], str, Path, Path]:
+    """Check the inputs, set BOP_PATH, link the dataset under <eval-path>/datasets by the name the
+    result files carry: (result files, dataset name, targets file, datasets folder)."""
     if not (toolkit / "scripts" / "eval_bop19_pose.py").is_file():
         raise FileNotFoundError(f"not bop_toolkit's folder (no scripts/eval_bop19_pose.py): {toolkit}")
     if not (dataset / "camera.json").is_file():
@@ -122,8 +121,7 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
     datasets = eval_path / "datasets"
     os.environ["BOP_PATH"] = str(datasets)  # before bop_toolkit_lib.config reads it
     sys.path.insert(0, str(toolkit))
-    import numpy as np
-    from bop_toolkit_lib import dataset_params, inout, misc
+    from bop_toolkit_lib import inout
 
     files = result_filenames or sorted(p.name for p in results.glob("*.csv"))
     if not files:
@@ -145,6 +143,18 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
             raise ValueError(f"{link} already points at {link.resolve()}, not at {dataset}")
     else:
         link.symlink_to(dataset, target_is_directory=True)
+
+    return files, name, targets, datasets
+
+
+def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, result_filenames: list[str] | None = None,
+             targets: Path | None = None, num_workers: int = 1) -> dict[str, dict[str, float]]:
+    """AR_MSSD and AR_MSPD of bop_toolkit per result file: {file name: {"mssd": ar, "mspd": ar,
+    "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json."""
+    toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
+    files, name, targets, datasets = _prepare(toolkit, dataset, results, eval_path, result_filenames, targets)
+    import numpy as np
+    from bop_toolkit_lib import dataset_params, inout, misc
 
     p = bop19_errors(toolkit)
     errors = [e for e in p["errors"] if e["type"] in ERROR_TYPES]
@@ -185,6 +195,82 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
     return out
 
 
+# --------------------------------------------------------------------------- eval_bop19_pose.py itself
+
+# Started by Python in every process of eval_bop19_pose.py's run (its eval_calc_errors.py and
+# eval_calc_scores.py are `python script ...` subprocesses): describes the dataset to
+# bop_toolkit's dataset_params there too, when bop_toolkit does not know it.
+_SITECUSTOMIZE = """import os
+if os.environ.get("PERCEPTION_CONFIG_BOP_DATASET"):
+    import bop_toolkit_eval
+    from bop_toolkit_lib import dataset_params
+    bop_toolkit_eval.describe_dataset(dataset_params, os.environ["PERCEPTION_CONFIG_BOP_DATASET"])
+"""
+VSD_DELTA_MM = 15  # bop_toolkit's delta for the classic datasets (and the project's metrics.VSD_DELTA)
+
+
+def headless_gl_env() -> dict[str, str]:
+    """The environment bop_toolkit's vispy renderer needs without a display or GPU: EGL (the
+    renderer sets PYOPENGL_PLATFORM=egl itself and vispy's EGL app) on Mesa's surfaceless
+    platform, i.e. llvmpipe software rendering (apt: libegl1 libegl-mesa0 libgl1-mesa-dri)."""
+    return {"PYOPENGL_PLATFORM": "egl", "EGL_PLATFORM": os.environ.get("EGL_PLATFORM", "surfaceless")}
+
+
+def eval_bop19_pose(toolkit: Path, dataset: Path, results: Path, eval_path: Path,
+                    result_filenames: list[str] | None = None, targets: Path | None = None,
+                    num_workers: int = 1) -> dict[str, dict[str, float]]:
+    """bop_toolkit's scripts/eval_bop19_pose.py itself (VSD with its vispy renderer, MSSD, MSPD,
+    the overall AR): {file name: its scores_bop19.json}. The script's source runs unmodified
+    but for one entry, when bop_toolkit does not know the dataset: its VSD delta ({dataset}: 15
+    mm) added to the hard-coded `vsd_deltas` of its parameters. Its subprocesses run with this
+    Python first on PATH (it calls `python`), bop_toolkit on PYTHONPATH and a sitecustomize that
+    describes the dataset to dataset_params (see `describe_dataset`)."""
+    toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
+    files, name, targets, datasets = _prepare(toolkit, dataset, results, eval_path, result_filenames, targets)
+    from bop_toolkit_lib import dataset_params, inout
+
+    script = toolkit / "scripts" / "eval_bop19_pose.py"
+    tree = ast.parse(script.read_text())
+    known = True
+    try:
+        dataset_params.get_model_params(str(datasets), name)
+    except KeyError:
+        known = False
+    if not known:
+        deltas = [n for n in ast.walk(tree) if isinstance(n, ast.Dict)
+                  and any(isinstance(k, ast.Constant) and k.value == "vsd_deltas" for k in n.keys)]
+        if len(deltas) != 1:
+            raise RuntimeError(f"cannot find the vsd_deltas of {script}'s parameters")
+        d = deltas[0].values[[k.value for k in deltas[0].keys].index("vsd_deltas")]
+        d.keys.append(ast.Constant(name))
+        d.values.append(ast.Constant(VSD_DELTA_MM))
+        ast.fix_missing_locations(tree)
+        hook = eval_path / "_sitecustomize"
+        hook.mkdir(parents=True, exist_ok=True)
+        (hook / "sitecustomize.py").write_text(_SITECUSTOMIZE)
+        os.environ["PERCEPTION_CONFIG_BOP_DATASET"] = name
+        paths = [str(hook), str(Path(__file__).resolve().parent)]
+    else:
+        paths = []
+    os.environ["PYTHONPATH"] = os.pathsep.join([*paths, str(toolkit), *filter(None, [os.environ.get("PYTHONPATH")])])
+    os.environ["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+    os.environ.update(headless_gl_env())
+    args = [f"--result_filenames={','.join(files)}", f"--results_path={results}", f"--eval_path={eval_path}",
+            f"--targets_filename={targets}", f"--num_workers={num_workers}"]
+    print("Running: " + " ".join([script.name, *args]), flush=True)
+    argv = sys.argv
+    sys.argv = [str(script), *args]
+    try:
+        exec(compile(tree, str(script), "exec"), {"__name__": "__main__", "__file__": str(script)})
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            raise RuntimeError(f"bop_toolkit's {script.name} failed (exit {e.code})") from None
+    finally:
+        sys.argv = argv
+    return {f: inout.load_json(str(eval_path / inout.parse_result_filename(f)[0] / "scores_bop19.json"))
+            for f in files}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--toolkit", type=Path, required=True,
@@ -196,7 +282,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", type=Path, default=None,
                     help="targets file (default: the targets_*.json in --results)")
     ap.add_argument("--num-workers", type=int, default=1)
+    ap.add_argument("--eval-bop19-pose", action="store_true",
+                    help="run bop_toolkit's eval_bop19_pose.py itself: VSD (its vispy renderer over EGL; without a "
+                         "GPU Mesa's llvmpipe, apt libegl1 libegl-mesa0 libgl1-mesa-dri; the venv needs vispy "
+                         "and PyOpenGL), MSSD, MSPD and the overall AR")
     a = ap.parse_args(argv)
+    if a.eval_bop19_pose:
+        try:
+            full = eval_bop19_pose(a.toolkit, a.dataset, a.results, a.eval_path,
+                                   a.result_filenames.split(",") if a.result_filenames else None, a.targets,
+                                   a.num_workers)
+        except (OSError, ValueError, RuntimeError, ImportError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print("bop_toolkit (eval_bop19_pose.py):")
+        for f, s in full.items():
+            print(f"  {f}: AR {s['bop19_average_recall']:.4f}  AR_VSD {s['bop19_average_recall_vsd']:.4f}  "
+                  f"AR_MSSD {s['bop19_average_recall_mssd']:.4f}  AR_MSPD {s['bop19_average_recall_mspd']:.4f}  "
+                  f"time/image {s['bop19_average_time_per_image']:.3f} s")
+        return 0
     try:
         out = evaluate(a.toolkit, a.dataset, a.results, a.eval_path,
                        a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers)
