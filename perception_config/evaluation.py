@@ -54,8 +54,15 @@ from .env import PerceptionConfigEnv, normalise_score
 from .episode_loop import acting_seed, play_episode
 from .episodes import EpisodeSource, split_image_keys
 from .geometry import LAMBDA_MAX, Pose, check_noise_lambda
-from .metrics import (VSD_DELTA, VSD_TAUS, average_recall_mspd, average_recall_mssd, average_recall_vsd, pose_errors,
-                      recall)
+from .metrics import (
+    VSD_DELTA,
+    VSD_TAUS,
+    average_recall_mspd,
+    average_recall_mssd,
+    average_recall_vsd,
+    pose_errors,
+    recall,
+)
 from .policy_settings import is_policy_file, policy_settings
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
