@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 ERROR_TYPES = ("mssd", "mspd")  # the errors the project computes (metrics.py) and reports as AR
+VSD_DELTA_MM = 15  # VSD delta for a dataset bop_toolkit does not know: its classic datasets' (metrics.VSD_DELTA)
 _TEMPLATE_DATASET = "lm"  # a classic-layout BOP dataset whose path templates are reused
 
 
@@ -148,16 +149,22 @@ def _prepare(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
 
 
 def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, result_filenames: list[str] | None = None,
-             targets: Path | None = None, num_workers: int = 1) -> dict[str, dict[str, float]]:
+             targets: Path | None = None, num_workers: int = 1, vsd: bool = False) -> dict[str, dict[str, float]]:
     """AR_MSSD and AR_MSPD of bop_toolkit per result file: {file name: {"mssd": ar, "mspd": ar,
-    "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json."""
+    "time": average time per image}}; also written to <eval-path>/<result>/scores_bop19_mssd_mspd.json.
+    With `vsd` also eval_bop19_pose.py's VSD step (its vispy renderer, see `headless_gl_env`):
+    "vsd" and "ar" (bop19_average_recall, the mean of the three), written to
+    scores_bop19_vsd_mssd_mspd.json."""
     toolkit, dataset, results, eval_path = (Path(x).resolve() for x in (toolkit, dataset, results, eval_path))
     files, name, targets, datasets = _prepare(toolkit, dataset, results, eval_path, result_filenames, targets)
     import numpy as np
     from bop_toolkit_lib import dataset_params, inout, misc
 
     p = bop19_errors(toolkit)
-    errors = [e for e in p["errors"] if e["type"] in ERROR_TYPES]
+    types = ("vsd", *ERROR_TYPES) if vsd else ERROR_TYPES
+    errors = [e for e in p["errors"] if e["type"] in types]
+    if vsd:
+        os.environ.update(headless_gl_env())  # before bop_toolkit's renderer imports vispy
     try:
         dataset_params.get_model_params(str(datasets), name)
     except KeyError:  # not a BOP dataset bop_toolkit knows
@@ -165,23 +172,35 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
     scripts = toolkit / "scripts"
     out: dict[str, dict[str, float]] = {f: {} for f in files}
     for error in errors:
+        vsd_args: list[str] = []
+        if error["type"] == "vsd":  # eval_bop19_pose.py's VSD arguments (its delta, or 15 mm for a new dataset)
+            deltas = {**error["vsd_deltas"], name: error["vsd_deltas"].get(name, VSD_DELTA_MM)}
+            delta = deltas[name]
+            vsd_args = [f"--vsd_deltas={','.join(f'{k}:{v}' for k, v in deltas.items())}",
+                        f"--vsd_taus={','.join(map(str, error['vsd_taus']))}",
+                        f"--vsd_normalized_by_diameter={error['vsd_normalized_by_diameter']}"]
         _run(scripts / "eval_calc_errors.py", [f"--n_top={error['n_top']}",
                      f"--error_type={error['type']}", f"--result_filenames={','.join(files)}",
                      f"--renderer_type={p['renderer_type']}", f"--results_path={results}",
                      f"--eval_path={eval_path}", f"--targets_filename={targets}",
                      f"--max_sym_disc_step={p['max_sym_disc_step']}", "--skip_missing=1",
-                     f"--num_workers={num_workers}", f"--datasets_path={datasets}"])
-        error_sign = misc.get_error_signature(error["type"], error["n_top"])
-        dirs = [os.path.join(inout.parse_result_filename(f)[0], error_sign) for f in files]
-        for correct_th in error["correct_th"]:
-            _run(scripts / "eval_calc_scores.py", [f"--error_dir_paths={','.join(dirs)}",
-                         f"--eval_path={eval_path}", f"--targets_filename={targets}",
-                         f"--visib_gt_min={p['visib_gt_min']}",
-                         f"--correct_th_{error['type']}={','.join(map(str, correct_th))}",
-                         f"--datasets_path={datasets}"])
-        for f, d in zip(files, dirs):
-            signs = [misc.get_score_signature(th, p["visib_gt_min"]) for th in error["correct_th"]]
-            recalls = [inout.load_json(str(eval_path / d / f"scores_{sign}.json"))["recall"] for sign in signs]
+                     f"--num_workers={num_workers}", f"--datasets_path={datasets}", *vsd_args])
+        signs = ([misc.get_error_signature("vsd", error["n_top"], vsd_delta=delta, vsd_tau=tau)
+                  for tau in error["vsd_taus"]] if error["type"] == "vsd"
+                 else [misc.get_error_signature(error["type"], error["n_top"])])
+        for sign in signs:  # one error folder per tau for VSD, as eval_bop19_pose.py
+            dirs = [os.path.join(inout.parse_result_filename(f)[0], sign) for f in files]
+            for correct_th in error["correct_th"]:
+                _run(scripts / "eval_calc_scores.py", [f"--error_dir_paths={','.join(dirs)}",
+                             f"--eval_path={eval_path}", f"--targets_filename={targets}",
+                             f"--visib_gt_min={p['visib_gt_min']}",
+                             f"--correct_th_{error['type']}={','.join(map(str, correct_th))}",
+                             f"--datasets_path={datasets}"])
+        for f in files:
+            result_name = inout.parse_result_filename(f)[0]
+            recalls = [inout.load_json(str(eval_path / result_name / sign /
+                                           f"scores_{misc.get_score_signature(th, p['visib_gt_min'])}.json"))["recall"]
+                       for sign in signs for th in error["correct_th"]]
             out[f][error["type"]] = float(np.mean(recalls))
     for f in files:
         ests = inout.load_bop_results(str(results / f), version="bop19")
@@ -189,9 +208,12 @@ def evaluate(toolkit: Path, dataset: Path, results: Path, eval_path: Path, resul
         if not ok:
             raise ValueError(f"{f}: {msg}")
         out[f]["time"] = float(np.mean(list(times.values()))) if available else -1.0
-        scores = {f"bop19_average_recall_{k}": out[f][k] for k in ERROR_TYPES}
+        scores = {f"bop19_average_recall_{k}": out[f][k] for k in types}
+        if vsd:  # eval_bop19_pose.py's final score
+            out[f]["ar"] = scores["bop19_average_recall"] = float(np.mean([out[f][k] for k in types]))
         scores["bop19_average_time_per_image"] = out[f]["time"]
-        inout.save_json(str(eval_path / inout.parse_result_filename(f)[0] / "scores_bop19_mssd_mspd.json"), scores)
+        inout.save_json(str(eval_path / inout.parse_result_filename(f)[0] /
+                            f"scores_bop19_{'_'.join(types)}.json"), scores)
     return out
 
 
@@ -206,7 +228,6 @@ if os.environ.get("PERCEPTION_CONFIG_BOP_DATASET"):
     from bop_toolkit_lib import dataset_params
     bop_toolkit_eval.describe_dataset(dataset_params, os.environ["PERCEPTION_CONFIG_BOP_DATASET"])
 """
-VSD_DELTA_MM = 15  # bop_toolkit's delta for the classic datasets (and the project's metrics.VSD_DELTA)
 
 
 def headless_gl_env() -> dict[str, str]:
@@ -286,6 +307,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="run bop_toolkit's eval_bop19_pose.py itself: VSD (its vispy renderer over EGL; without a "
                          "GPU Mesa's llvmpipe, apt libegl1 libegl-mesa0 libgl1-mesa-dri; the venv needs vispy "
                          "and PyOpenGL), MSSD, MSPD and the overall AR")
+    ap.add_argument("--vsd", action="store_true",
+                    help="also eval_bop19_pose.py's VSD step (as --eval-bop19-pose needs, in this process) and the "
+                         "overall AR")
     a = ap.parse_args(argv)
     if a.eval_bop19_pose:
         try:
@@ -303,13 +327,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         out = evaluate(a.toolkit, a.dataset, a.results, a.eval_path,
-                       a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers)
-    except (OSError, ValueError, RuntimeError) as e:
+                       a.result_filenames.split(",") if a.result_filenames else None, a.targets, a.num_workers,
+                       a.vsd)
+    except (OSError, ValueError, RuntimeError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print("bop_toolkit (eval_bop19_pose.py's MSSD and MSPD steps):")
+    print(f"bop_toolkit (eval_bop19_pose.py's {'VSD, ' if a.vsd else ''}MSSD and MSPD steps):")
     for f, s in out.items():
-        print(f"  {f}: AR_MSSD {s['mssd']:.4f}  AR_MSPD {s['mspd']:.4f}  time/image {s['time']:.3f} s")
+        head = f"AR {s['ar']:.4f}  AR_VSD {s['vsd']:.4f}  " if a.vsd else ""
+        print(f"  {f}: {head}AR_MSSD {s['mssd']:.4f}  AR_MSPD {s['mspd']:.4f}  time/image {s['time']:.3f} s")
     return 0
 
 
