@@ -134,7 +134,7 @@ def _gl_or_skip(python: Path) -> None:
     run = subprocess.run([str(python), "-c", probe, str(TOOLKIT), str(REPO / "scripts")], capture_output=True,
                          text=True, timeout=120)
     if run.returncode != 0:
-        last = (run.stderr.strip().splitlines() or ["?"])[-1]
+        last = " ".join(run.stderr.strip().splitlines()[-2:]) or f"exit {run.returncode}"
         pytest.skip(f"bop_toolkit's vispy renderer cannot start headless (EGL, Mesa llvmpipe): {last} "
                     f"(apt install {GL_APT})")
 
