@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from perception_config.evaluation import bop_csv_name, evaluate
@@ -33,7 +34,13 @@ TOOLKIT = REPO.parent / "shared" / "tools" / "bop_toolkit"
 REQUIREMENTS = ("numpy==1.26.4", "scipy==1.15.2", "imageio==2.37.0", "pypng==0.20220715.0",
                 "vispy==0.14.2", "PyOpenGL==3.1.9")
 GL_APT = "libegl1 libegl-mesa0 libgl1-mesa-dri"  # Debian/Ubuntu packages of EGL + Mesa's software renderer
-VSD_TOL = 0.02  # |project - bop_toolkit| per VSD error and for AR_VSD: two rasterisers (see test below)
+# bop_toolkit's OpenGL renderer samples pixel (i, j) at (i + 0.5, j + 0.5) (pixel corners at integer
+# coordinates), the project's renderer at (i, j) (OpenCV, as the synthetic images were rendered):
+# VSD errors differ by edge pixels (measured up to 0.052 on a 38 mm object, median 0.004; AR_VSD by
+# up to 0.010, the overall AR by up to 0.0033). Rendering at bop_toolkit's pixel centres the
+# project's errors equal bop_toolkit's within 0.0033 (120 estimates of the demo evaluation).
+AR_VSD_TOL, AR_TOL = 0.03, 0.01
+VSD_SAME_CENTRES_TOL = 0.01
 LAMBDAS = (0.3, 1.0)
 
 
@@ -154,20 +161,34 @@ def vsd_evaluation(evaluation, tmp_path_factory) -> dict:
     return {**evaluation, "vsd_eval_path": eval_path, "vsd_stdout": run.stdout, "episodes": episodes}
 
 
-def test_bop_toolkit_vsd_and_overall_ar_match_the_projects(vsd_evaluation):
-    """bop_toolkit's VSD (its OpenGL renderer) against the project's metrics.vsd (its own CPU
-    rasteriser), on the same depth images: each error within VSD_TOL (0.02; measured up to ~0.01:
-    a few edge pixels of objects covering a few hundred pixels), so AR_VSD within VSD_TOL and the
-    overall AR within VSD_TOL / 3; MSSD and MSPD exactly."""
+def test_bop_toolkit_vsd_and_overall_ar_match_the_projects(vsd_evaluation, monkeypatch):
+    """bop_toolkit's VSD (its OpenGL renderer) against the project's (metrics.vsd, its own CPU
+    ray caster) on the same depth images: AR_VSD within AR_VSD_TOL, the overall AR within AR_TOL,
+    MSSD and MSPD exactly; each VSD error, recomputed with the project's renderer sampling
+    bop_toolkit's pixel centres (K's principal point moved by -0.5 px), within VSD_SAME_CENTRES_TOL
+    of bop_toolkit's: the pixel convention is the whole difference."""
+    from perception_config import metrics
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.evaluation import pose_from_json
+
     ev = vsd_evaluation
+    ds = BopDataset(ev["dataset"], split="test")
+    render = metrics.render
+
+    def render_at_bop_centres(models, poses, K, w, h, crop=None, **kw):
+        K = np.array(K, dtype=np.float64)
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        return render(models, poses, K, w, h, crop=crop, **kw)
+
     for r in ev["records"]:
         name = bop_csv_name(r["agent"], r["lambda"], ev["dataset"].name).removesuffix(".csv")
         folder = ev["vsd_eval_path"] / name
         scores = json.loads((folder / "scores_bop19_vsd_mssd_mspd.json").read_text())
         assert scores["bop19_average_recall_mssd"] == pytest.approx(r["ar_mssd"], abs=1e-12)
         assert scores["bop19_average_recall_mspd"] == pytest.approx(r["ar_mspd"], abs=1e-12)
-        assert scores["bop19_average_recall_vsd"] == pytest.approx(r["ar_vsd"], abs=VSD_TOL), r["lambda"]
-        assert scores["bop19_average_recall"] == pytest.approx(r["ar"], abs=VSD_TOL / 3), r["lambda"]
+        assert scores["bop19_average_recall_vsd"] == pytest.approx(r["ar_vsd"], abs=AR_VSD_TOL), r["lambda"]
+        assert scores["bop19_average_recall"] == pytest.approx(r["ar"], abs=AR_TOL), r["lambda"]
         # per estimate and tau
         theirs: dict[tuple[int, int, int], dict[float, float]] = {}
         for d in folder.glob("error=vsd_ntop=-1_delta=15.000_tau=*"):
@@ -176,13 +197,19 @@ def test_bop_toolkit_vsd_and_overall_ar_match_the_projects(vsd_evaluation):
                 for e in json.loads(f.read_text()):
                     (err,) = e["errors"].values()
                     theirs.setdefault((e["scene_id"], e["im_id"], e["obj_id"]), {})[tau] = err[0]
-        ours = {(e["scene_id"], e["im_id"], e["obj_id"]): e["final_errors"]["vsd"] for e in ev["episodes"]
+        ours = {(e["scene_id"], e["im_id"], e["obj_id"]): e for e in ev["episodes"]
                 if e["lambda"] == r["lambda"] and e["final_errors"].get("vsd") is not None}
         assert ours and set(ours) == set(theirs)
-        for key, errs in ours.items():
-            bop = [theirs[key][t] for t in sorted(theirs[key])]
-            assert len(bop) == len(errs) == 10
-            assert max(abs(a - b) for a, b in zip(errs, bop)) <= VSD_TOL, (key, errs, bop)
+        for key, e in ours.items():
+            bop = np.array([theirs[key][t] for t in sorted(theirs[key])])
+            frame, model = ds.load_frame(key[0], key[1]), ds.model(key[2])
+            est, gt = pose_from_json(e["final_pose"]), frame.objects[e["instance"]].gt
+            monkeypatch.setattr(metrics, "render", render_at_bop_centres)
+            same_centres = metrics.vsd(est.R, est.t, gt.R, gt.t, frame.depth, frame.K, metrics.VSD_DELTA,
+                                       metrics.VSD_TAUS, True, model.diameter, model)
+            monkeypatch.setattr(metrics, "render", render)
+            assert len(bop) == len(e["final_errors"]["vsd"]) == 10
+            assert np.abs(same_centres - bop).max() <= VSD_SAME_CENTRES_TOL, (key, same_centres, bop)
     assert any(0.0 < r["ar_vsd"] < 1.0 for r in ev["records"])  # not all right or all wrong
     assert "AR_VSD" in ev["vsd_stdout"]
 
