@@ -1,19 +1,21 @@
-"""bop_toolkit's BOP19 pose evaluation, MSSD and MSPD, on the BOP results `evaluate` writes.
+"""bop_toolkit's BOP19 pose evaluation (eval_bop19_pose.py) on the BOP results `evaluate` writes.
 
-Run it with a Python that has bop_toolkit's dependencies (numpy < 2, scipy, imageio, pypng),
-not the project's: this file imports nothing from perception_config.
+Run it with a Python that has bop_toolkit's dependencies (numpy < 2, scipy, imageio, pypng; for
+VSD vispy and PyOpenGL), not the project's: this file imports nothing from perception_config.
 
     <bop_toolkit python> scripts/bop_toolkit_eval.py --toolkit ../shared/tools/bop_toolkit \\
-        --dataset data/default --results outputs/demo/evaluation/bop --eval-path /tmp/bop_eval
+        --dataset data/default --results outputs/demo/evaluation/bop --eval-path /tmp/bop_eval [--vsd]
 
-What runs: the MSSD and MSPD entries of `p["errors"]` of bop_toolkit's scripts/eval_bop19_pose.py
-(read from that script), each as eval_bop19_pose.py runs it: scripts/eval_calc_errors.py with its
-arguments (all result files in one call), then scripts/eval_calc_scores.py once per correctness
-threshold, and the mean of the recalls (its "Average recall"). The scripts run unmodified, one
-after the other in this process (runpy, as `python script args`; eval_bop19_pose.py starts a
-process for each, which costs seconds of imports each). Not VSD: eval_bop19_pose.py computes VSD first, with an
-OpenGL renderer (vispy / EGL), and the project reports no AR_VSD; so eval_bop19_pose.py itself
-cannot run here and its overall "bop19_average_recall" (the mean of three) is not computed.
+What runs, by default: the MSSD and MSPD entries of `p["errors"]` of bop_toolkit's
+scripts/eval_bop19_pose.py (read from that script), each as eval_bop19_pose.py runs it:
+scripts/eval_calc_errors.py with its arguments (all result files in one call), then
+scripts/eval_calc_scores.py once per correctness threshold (and per tau for VSD), and the mean of
+the recalls (its "Average recall"). The scripts run unmodified, one after the other in this
+process (runpy, as `python script args`; eval_bop19_pose.py starts a process for each, 121 per
+result file with VSD, which costs about a minute). `--vsd` adds the VSD entry (bop_toolkit's vispy
+renderer) and the overall AR, the mean of the three. `--eval-bop19-pose` runs eval_bop19_pose.py
+itself instead. VSD renders with OpenGL through EGL: without a GPU, Mesa's llvmpipe on EGL's
+surfaceless platform (apt: libegl1 libegl-mesa0 libgl1-mesa-dri; `headless_gl_env`).
 
 bop_toolkit is not modified. Its dataset_params knows the BOP datasets by name; a dataset it does
 not know (the synthetic default) is described to it, in this process, from its
@@ -32,7 +34,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-ERROR_TYPES = ("mssd", "mspd")  # the errors the project computes (metrics.py) and reports as AR
+ERROR_TYPES = ("mssd", "mspd")  # eval_bop19_pose.py's errors that need no renderer (VSD: --vsd)
 VSD_DELTA_MM = 15  # VSD delta for a dataset bop_toolkit does not know: its classic datasets' (metrics.VSD_DELTA)
 _TEMPLATE_DATASET = "lm"  # a classic-layout BOP dataset whose path templates are reused
 
@@ -308,8 +310,8 @@ def main(argv: list[str] | None = None) -> int:
                          "GPU Mesa's llvmpipe, apt libegl1 libegl-mesa0 libgl1-mesa-dri; the venv needs vispy "
                          "and PyOpenGL), MSSD, MSPD and the overall AR")
     ap.add_argument("--vsd", action="store_true",
-                    help="also eval_bop19_pose.py's VSD step (as --eval-bop19-pose needs, in this process) and the "
-                         "overall AR")
+                    help="also eval_bop19_pose.py's VSD step (its vispy renderer, headless as for --eval-bop19-pose) "
+                         "and the overall AR")
     a = ap.parse_args(argv)
     if a.eval_bop19_pose:
         try:

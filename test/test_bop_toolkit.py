@@ -1,7 +1,8 @@
 """bop_toolkit (upstream, unmodified, ../shared/tools/bop_toolkit) on a small evaluation's output:
 its AR_MSSD and AR_MSPD (eval_bop19_pose.py's MSSD and MSPD steps, through
 scripts/bop_toolkit_eval.py) equal the project's, and its recall at 0.1 x diameter equals
-recall_mssd.
+recall_mssd; with its VSD step (--vsd, its vispy renderer on Mesa's software OpenGL) its AR_VSD and
+overall AR agree with the project's ar_vsd and ar within the stated tolerances.
 
 bop_toolkit needs numpy < 2 (the project has numpy 2): it runs in a venv of its own, built once
 from PyPI in ~/.cache/perception_config/bop_toolkit_venv (PERCEPTION_CONFIG_BOP_VENV overrides),
