@@ -15,7 +15,7 @@ process (runpy, as `python script args`; eval_bop19_pose.py starts a process for
 result file with VSD, which costs about a minute). `--vsd` adds the VSD entry (bop_toolkit's vispy
 renderer) and the overall AR, the mean of the three. `--eval-bop19-pose` runs eval_bop19_pose.py
 itself instead. VSD renders with OpenGL through EGL: without a GPU, Mesa's llvmpipe on EGL's
-surfaceless platform (apt: libegl1 libegl-mesa0 libgl1-mesa-dri; `headless_gl_env`).
+surfaceless platform (apt: libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0; `headless_gl_env`).
 
 bop_toolkit is not modified. Its dataset_params knows the BOP datasets by name; a dataset it does
 not know (the synthetic default) is described to it, in this process, from its
@@ -235,7 +235,7 @@ if os.environ.get("PERCEPTION_CONFIG_BOP_DATASET"):
 def headless_gl_env() -> dict[str, str]:
     """The environment bop_toolkit's vispy renderer needs without a display or GPU: EGL (the
     renderer sets PYOPENGL_PLATFORM=egl itself and vispy's EGL app) on Mesa's surfaceless
-    platform, i.e. llvmpipe software rendering (apt: libegl1 libegl-mesa0 libgl1-mesa-dri)."""
+    platform, i.e. llvmpipe software rendering (apt: libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0)."""
     return {"PYOPENGL_PLATFORM": "egl", "EGL_PLATFORM": os.environ.get("EGL_PLATFORM", "surfaceless")}
 
 
@@ -307,8 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--num-workers", type=int, default=1)
     ap.add_argument("--eval-bop19-pose", action="store_true",
                     help="run bop_toolkit's eval_bop19_pose.py itself: VSD (its vispy renderer over EGL; without a "
-                         "GPU Mesa's llvmpipe, apt libegl1 libegl-mesa0 libgl1-mesa-dri; the venv needs vispy "
-                         "and PyOpenGL), MSSD, MSPD and the overall AR")
+                         "GPU Mesa's llvmpipe, apt libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0; the venv "
+                         "needs vispy and PyOpenGL), MSSD, MSPD and the overall AR")
     ap.add_argument("--vsd", action="store_true",
                     help="also eval_bop19_pose.py's VSD step (its vispy renderer, headless as for --eval-bop19-pose) "
                          "and the overall AR")

@@ -34,7 +34,7 @@ TOOLKIT = REPO.parent / "shared" / "tools" / "bop_toolkit"
 # vispy and PyOpenGL: bop_toolkit's renderer for VSD (over EGL; here Mesa's software llvmpipe).
 REQUIREMENTS = ("numpy==1.26.4", "scipy==1.15.2", "imageio==2.37.0", "pypng==0.20220715.0",
                 "vispy==0.14.2", "PyOpenGL==3.1.9")
-GL_APT = "libegl1 libegl-mesa0 libgl1-mesa-dri"  # Debian/Ubuntu packages of EGL + Mesa's software renderer
+GL_APT = "libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0"  # EGL + Mesa's software renderer (Debian)
 # bop_toolkit's OpenGL renderer samples pixel (i, j) at (i + 0.5, j + 0.5) (pixel corners at integer
 # coordinates), the project's renderer at (i, j) (OpenCV, as the synthetic images were rendered):
 # VSD errors differ by edge pixels (measured up to 0.052 on a 38 mm object, median 0.004; AR_VSD by
