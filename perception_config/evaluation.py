@@ -54,7 +54,15 @@ from .env import PerceptionConfigEnv, normalise_score
 from .episode_loop import acting_seed, play_episode
 from .episodes import EpisodeSource, split_image_keys
 from .geometry import LAMBDA_MAX, Pose, check_noise_lambda
-from .metrics import average_recall_mspd, average_recall_mssd, pose_errors, recall
+from .metrics import (
+    VSD_DELTA,
+    VSD_TAUS,
+    average_recall_mspd,
+    average_recall_mssd,
+    average_recall_vsd,
+    pose_errors,
+    recall,
+)
 from .policy_settings import is_policy_file, policy_settings
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
@@ -81,6 +89,9 @@ DEFINITIONS = {
                "bop_toolkit's figure on bop/*.csv",
     "ar_mspd": "BOP AR_MSPD: recall (error < threshold) averaged over 5..50 px x width / 640; "
                "bop_toolkit's figure on bop/*.csv",
+    "ar_vsd": f"BOP AR_VSD: recall (error < threshold) averaged over thresholds 0.05..0.5 and taus 0.05..0.5 x "
+              f"diameter, delta {VSD_DELTA * MM:g} mm (frames with depth); bop_toolkit's figure on bop/*.csv",
+    "ar": "BOP's overall AR (bop19_average_recall): the mean of ar_vsd, ar_mssd and ar_mspd (frames with depth)",
     "errors": "BOP errors of the final poses, episodes with a pose: mm, degrees, px",
 }
 
@@ -134,17 +145,23 @@ def pose_from_json(d: dict[str, list[float]] | None) -> Pose | None:
     return Pose(np.asarray(d["R"]).reshape(3, 3), np.asarray(d["t"]))
 
 
-def _errors(pose: Pose | None, gt: Pose, model: Any, K: np.ndarray) -> dict[str, float | None]:
-    """BOP errors of a hypothesis in report units (mm, degrees, px); None for no hypothesis."""
-    keys = ("add_mm", "adi_mm", "mssd_mm", "mspd_px", "re_deg", "te_mm")
+def _errors(pose: Pose | None, gt: Pose, model: Any, K: np.ndarray,
+            depth: np.ndarray | None = None) -> dict[str, Any]:
+    """BOP errors of a hypothesis in report units (mm, degrees, px); None for no hypothesis.
+    With the frame's depth also "vsd": one error per tau of BOP's 0.05..0.5 x diameter, delta
+    15 mm (None for no hypothesis)."""
+    keys = ("add_mm", "adi_mm", "mssd_mm", "mspd_px", "re_deg", "te_mm") + (("vsd",) if depth is not None else ())
     if pose is None or not pose.is_valid():
         return dict.fromkeys(keys)
-    e = pose_errors(pose, gt, model, K)
-    return {
+    e = pose_errors(pose, gt, model, K, depth)
+    out: dict[str, Any] = {
         "add_mm": _finite_or_none(e["add"] * MM), "adi_mm": _finite_or_none(e["adi"] * MM),
         "mssd_mm": _finite_or_none(e["mssd"] * MM), "mspd_px": _finite_or_none(e["mspd"]),
         "re_deg": _finite_or_none(math.degrees(e["re"])), "te_mm": _finite_or_none(e["te"] * MM),
     }
+    if "vsd" in e:
+        out["vsd"] = [float(v) for v in e["vsd"]]
+    return out
 
 
 def _confidence(scores: dict[str, float], pipeline: Pipeline) -> float:
@@ -285,7 +302,7 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
                          "evaluations": int(search.evaluations)}
     if gt is not None:
         rec["initial_errors"] = _errors(initial, gt, model, K)
-        rec["final_errors"] = _errors(final, gt, model, K)
+        rec["final_errors"] = _errors(final, gt, model, K, ep.frame.depth if ep.frame is not None else None)
     return rec
 
 
@@ -298,7 +315,8 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
     {mean, q1, median, q3} over all episodes, first_pick_success
     (share), and BOP errors of the final poses {mean, median}: mssd_mm, mspd_px, add_mm, adi_mm,
     re_deg, te_mm (episodes without a pose are left out), recall_mssd (share with MSSD < 0.1
-    diameter; no pose = miss), ar_mssd / ar_mspd (BOP average recalls), initial_recall_mssd.
+    diameter; no pose = miss), ar_mssd / ar_mspd (BOP average recalls), initial_recall_mssd; with depth
+    also ar_vsd and ar (BOP's overall AR, the mean of the three).
     """
     n = len(episodes)
     ok = [e for e in episodes if e["success"]]
@@ -329,6 +347,10 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
         # BOP scales the MSPD thresholds with the image width (all frames of a dataset share it)
         width = int(with_err[0].get("image_width", 640))
         rec["ar_mspd"] = average_recall_mspd([err(e, "final_errors", "mspd_px") for e in with_err], width)
+        if all("vsd" in e["final_errors"] for e in with_err):  # frames with depth: VSD and BOP's overall AR
+            rows = [e["final_errors"]["vsd"] or [1.0] * len(VSD_TAUS) for e in with_err]  # no pose = miss
+            rec["ar_vsd"] = average_recall_vsd(rows)
+            rec["ar"] = float(np.mean([rec["ar_vsd"], rec["ar_mssd"], rec["ar_mspd"]]))
     return rec
 
 
