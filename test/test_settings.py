@@ -47,6 +47,18 @@ def test_atomic_write_replaces_whole_files(tmp_path):
     assert os.listdir(path.parent) == ["results.json"]  # no temporary left
 
 
+def test_atomic_write_gives_the_mode_a_plain_open_gives(tmp_path):
+    """Not mkstemp's 0600: results and policies are readable by whoever the umask lets read them."""
+    old = os.umask(0o022)
+    try:
+        path = atomic_write(tmp_path / "results.json", "{}")
+        plain = tmp_path / "plain.json"
+        plain.write_text("{}")
+    finally:
+        os.umask(old)
+    assert (path.stat().st_mode & 0o777) == (plain.stat().st_mode & 0o777) == 0o644
+
+
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     path = tmp_path / "plot.png"
     atomic_write(path, b"old")
