@@ -9,9 +9,10 @@ import numpy as np
 from frames import box_model, default_pose, mean_point_distance, perturbed_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.blocks.chamfer import edge_distance, map_levenberg_marquardt, prior_information, viewing_frame
+from perception_config.blocks.chamfer import NO_TRANSLATION_PRIOR, edge_distance, prior_information, viewing_frame
 from perception_config.geometry import Pose, exp_so3, log_so3
 from perception_config.scene import Frame
+from perception_config.vision.pose_solver import levenberg_marquardt
 
 _perturbed, _add = perturbed_pose, mean_point_distance
 
@@ -74,7 +75,8 @@ def test_the_prior_holds_out_of_plane_rotation_more_than_rotation_about_the_ray(
     def evaluate(R, t):
         return np.concatenate([100 * (log_so3(R) - goal), 100 * (t - t0)]), 100 * np.eye(6)
 
-    R, _ = map_levenberg_marquardt(evaluate, anchor.R, t0, anchor, A, "huber", 1e6, 50, float("inf"))
+    R, _, _ = levenberg_marquardt(evaluate, anchor.R, t0, NO_TRANSLATION_PRIOR, 1e6, 50, float("inf"), anchor=anchor.t,
+                                  rotation_anchor=anchor.R, information=A)
     w = log_so3(R)
     assert abs(w @ B[0]) > 0.6 * abs(goal @ B[0])
     assert np.linalg.norm(w - (w @ B[0]) * B[0]) < 0.5 * np.linalg.norm(goal - (goal @ B[0]) * B[0])

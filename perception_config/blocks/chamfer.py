@@ -15,7 +15,7 @@ image's Canny edges, computed once per frame and shared by every object and call
   image edge pixel (the distance transform's labels), then a few damped Gauss-Newton
   (Levenberg-Marquardt) steps minimise the reprojection error of the 3D contour points to
   their matches (Geman-McClure-robust), plus a Gaussian prior anchored at the start
-  (`prior_information`, `map_levenberg_marquardt`); the matching distance shrinks from
+  (`prior_information`, pose_solver.levenberg_marquardt); the matching distance shrinks from
   `max_match_px` to `min_match_px`.
 Out-of-image-plane rotation is what drifts (measured on lmo-rgb: the depth prior holds depth;
 calls that left the ground truth had turned the object 1-2 deg out of the image plane, and at
@@ -39,7 +39,7 @@ import time
 import cv2
 import numpy as np
 
-from ..geometry import Pose, exp_so3, log_so3
+from ..geometry import Pose, exp_so3
 from ..models import ObjectModel
 from ..render import projected_box
 from ..scene import Frame
@@ -54,7 +54,7 @@ from ..vision.edges import (
     sample_tensor,
     silhouette_points,
 )
-from ..vision.pose_solver import LOSSES, project_with_jacobian, robust_rho, robust_weights, update_pose
+from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
 from ..vision.visibility import hypothesis_rendering, visible_edges
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -134,6 +134,9 @@ def viewing_frame(t: np.ndarray) -> np.ndarray:
     return np.stack([ray, e1, np.cross(ray, e1)])
 
 
+NO_TRANSLATION_PRIOR = np.zeros(3)  # levenberg_marquardt's rank-1 depth prior: the information matrix holds depth
+
+
 def prior_information(t0: np.ndarray, n: int, in_plane_deg: float, out_of_plane_deg: float,
                       depth_mm: float) -> np.ndarray:
     """The 6x6 information matrix (on (w, d) of pose_solver) of a Gaussian prior anchored at the
@@ -146,47 +149,6 @@ def prior_information(t0: np.ndarray, n: int, in_plane_deg: float, out_of_plane_
     A[:3, :3] = B.T @ np.diag([weight(in_plane_deg, np.pi / 180), *[weight(out_of_plane_deg, np.pi / 180)] * 2]) @ B
     A[3:, 3:] = weight(depth_mm, 1e-3) * np.outer(B[0], B[0])
     return A
-
-
-def map_levenberg_marquardt(evaluate, R0: np.ndarray, t0: np.ndarray, anchor: Pose, information: np.ndarray,
-                            loss: str, scale: float, max_iterations: int, deadline: float,
-                            tol: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
-    """Minimise sum rho(r) + 0.5 e^T A e, e = (log(R Ra^T), t - ta) the change from `anchor`
-    and A = `information` (prior_information), from (R0, t0): the robust MAP pose under a
-    Gaussian prior whose directions differ in strength (pose_solver.levenberg_marquardt's
-    priors are isotropic in rotation). `evaluate(R, t) -> (r (N,), J (N, 6))`."""
-    def error(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return np.concatenate([log_so3(R @ anchor.R.T), t - anchor.t])
-
-    def total(r: np.ndarray, e: np.ndarray) -> float:
-        return float(np.sum(robust_rho(r, loss, scale))) + 0.5 * float(e @ information @ e)
-
-    R, t = R0, t0
-    r, J = evaluate(R, t)
-    e = error(R, t)
-    cost, mu = total(r, e), 1e-3
-    for _ in range(max_iterations):
-        if time.perf_counter() > deadline:
-            break
-        w = robust_weights(r, loss, scale)
-        A = (J * w[:, None]).T @ J + information
-        g = J.T @ (w * r) + information @ e
-        improved, rel = False, 0.0
-        while time.perf_counter() < deadline and mu <= 1e4:
-            step = np.linalg.solve(A + mu * np.diag(np.diag(A) + 1e-9), -g)
-            Rn, tn = update_pose(R, t, step)
-            rn, Jn = evaluate(Rn, tn)
-            en = error(Rn, tn)
-            cn = total(rn, en)
-            if np.isfinite(cn) and cn < cost:
-                rel = (cost - cn) / max(cost, 1e-12)
-                R, t, r, J, e, cost, mu = Rn, tn, rn, Jn, en, cn, max(mu * 0.3, 1e-7)
-                improved = True
-                break
-            mu *= 10.0
-        if not improved or rel < tol:
-            break
-    return R, t
 
 
 _COMMON = (
@@ -485,8 +447,9 @@ class ChamferIcp(Block):
                     uv_, _, J = project_with_jacobian(R_, t_, Pm, Dm, K)
                     return np.einsum("ni,ni->n", uv_ - target, nm), np.einsum("ni,nij->nj", nm, J)
 
-                R, t = map_levenberg_marquardt(evaluate, R, t, pose0, information, str(c["loss"]),
-                                               max(2.0, float(dists[it])), int(c["steps"]), deadline)
+                R, t, _ = levenberg_marquardt(evaluate, R, t, NO_TRANSLATION_PRIOR, max(2.0, float(dists[it])),
+                                              int(c["steps"]), deadline, anchor=pose0.t, loss=str(c["loss"]),
+                                              rotation_anchor=pose0.R, information=information)
                 continue
             with np.errstate(invalid="ignore"):
                 iu, iv = np.rint(uv[:, 0]), np.rint(uv[:, 1])
@@ -517,8 +480,9 @@ class ChamferIcp(Block):
                     return (uv_ - target).ravel(), J.reshape(-1, 6)
 
             # the prior is anchored at the call's start, not at each iteration's pose
-            R, t = map_levenberg_marquardt(evaluate, R, t, pose0, information, str(c["loss"]),
-                                           max(2.0, float(dists[it])), int(c["steps"]), deadline)
+            R, t, _ = levenberg_marquardt(evaluate, R, t, NO_TRANSLATION_PRIOR, max(2.0, float(dists[it])),
+                                          int(c["steps"]), deadline, anchor=pose0.t, loss=str(c["loss"]),
+                                          rotation_anchor=pose0.R, information=information)
         if not np.isfinite(mean_dist):
             return BlockResult.fail("too few contour points near image edges to match")
         cost = chamfer_cost(R, t)

@@ -110,11 +110,15 @@ def levenberg_marquardt(
     evaluate, R0: np.ndarray, t0: np.ndarray, prior: np.ndarray, huber: float,
     max_iterations: int, deadline: float, tol: float = 1e-4, anchor: np.ndarray | None = None,
     loss: str = "huber", rotation_prior: float = 0.0, rotation_anchor: np.ndarray | None = None,
+    information: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Minimise sum rho(r_i) + 0.5 (prior . (t - anchor))^2 + 0.5 rotation_prior^2 |log(R Ra^T)|^2
     from (R0, t0); rho is `loss` (see robust_rho) with scale `huber` (px); `prior` (3,) weighs a
     translation direction (the viewing ray) that the residuals observe weakly; `anchor`
     and `rotation_anchor` Ra default to t0 and R0; `rotation_prior` (per rad) holds the rotation there.
+    `information` (6, 6), if given, adds a Gaussian prior 0.5 e^T A e on e = (log(R Ra^T), t - anchor),
+    whose directions may differ in strength (e.g. rotation out of the image plane held harder than
+    about the viewing ray).
 
     `evaluate(R, t) -> (r (N,), J (N, 6))`. Steps are accepted when they lower the cost (the
     damping shrinks) and rejected otherwise (the damping grows); the loop ends on a relative
@@ -127,8 +131,14 @@ def levenberg_marquardt(
     rp2 = float(rotation_prior) ** 2
     Ra = R0 if rotation_anchor is None else rotation_anchor
 
+    def change(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.concatenate([log_so3(R @ Ra.T), t - ref])
+
     def total(r: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
         cost = float(np.sum(robust_rho(r, loss, huber))) + 0.5 * float(prior @ (t - ref)) ** 2
+        if information is not None:
+            e = change(R, t)
+            cost += 0.5 * float(e @ information @ e)
         return cost + (0.5 * rp2 * float(np.sum(log_so3(R @ Ra.T) ** 2)) if rp2 > 0 else 0.0)
 
     r, J = evaluate(R, t)
@@ -144,6 +154,9 @@ def levenberg_marquardt(
         if rp2 > 0:  # the left-perturbation Jacobian of log(R R0^T) is ~I for the small angles here
             A[:3, :3] += rp2 * np.eye(3)
             g[:3] += rp2 * log_so3(R @ Ra.T)
+        if information is not None:
+            A += information
+            g += information @ change(R, t)
         improved = False
         while time.perf_counter() < deadline:
             step = np.linalg.solve(A + mu * np.diag(np.diag(A) + 1e-9), -g)
