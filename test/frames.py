@@ -7,7 +7,8 @@ from typing import Iterator
 import numpy as np
 
 from perception_config.blocks.base import Block, BlockInput, BlockResult
-from perception_config.geometry import Pose, exp_so3
+from perception_config.geometry import Pose, exp_so3, perturb
+from perception_config.metrics import pose_mssd
 from perception_config.models import ObjectModel, make_model
 from perception_config.render import render
 from perception_config.scene import Frame, SceneObject
@@ -89,6 +90,26 @@ def refine_perturbed(block: Block, frame: Frame, model: ObjectModel, gt: Pose, r
         r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
         assert r.ok, r.reason
         yield start, r
+
+
+def refine_from_lambda(block: Block, frames: list[Frame], objects, rng: np.random.Generator, seeds: int,
+                       lam: float = 0.3) -> tuple[np.ndarray, np.ndarray, list[BlockResult]]:
+    """One call of `block` from `seeds` starts geometry.perturb(gt, lam) of every object
+    `objects(frame)` lists, frame by frame (one cache per frame, the i-th start's call seeded with
+    i); each call must succeed. Returns MSSD / diameter before and after, and the results."""
+    before, after, results = [], [], []
+    for frame in frames:
+        cache: dict = {}
+        for obj in objects(frame):
+            for seed in range(seeds):
+                start = perturb(obj.gt, lam, obj.model.diameter, rng)
+                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
+                                     rng=np.random.default_rng(seed)))
+                assert r.ok, r.reason
+                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
+                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
+                results.append(r)
+    return np.array(before), np.array(after), results
 
 
 def mean_point_distance(model: ObjectModel, a: Pose, b: Pose) -> float:

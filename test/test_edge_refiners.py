@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frames import box_model, default_pose, refine_perturbed, synthetic_frame
+from frames import box_model, default_pose, refine_from_lambda, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.geometry import Pose, perturb
@@ -143,18 +143,7 @@ def test_chamfer_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frame
     """From lambda 0.3 the directional chamfer search lowers the mean MSSD and improves at least
     45 % of the calls (about 60 % over all 20 lmo-rgb frames; the plain distance: 41 %)."""
     block, rng = create("chamfer"), np.random.default_rng(0)
-    before, after = [], []
-    for frame in lmo_rgb_frames:
-        cache: dict = {}
-        for obj in _visible(frame):
-            for seed in range(3):
-                start = perturb(obj.gt, 0.3, obj.model.diameter, rng)
-                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
-                                     rng=np.random.default_rng(seed)))
-                assert r.ok, r.reason
-                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
-                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
-    before, after = np.array(before), np.array(after)
+    before, after, _ = refine_from_lambda(block, lmo_rgb_frames, _visible, rng, seeds=3)
     print(f"chamfer lambda 0.3: mean MSSD/d {np.mean(before):.3f} -> {np.mean(after):.3f}, "
           f"improved {np.mean(after < before):.0%}")
     assert len(before) >= 30
@@ -165,19 +154,8 @@ def test_d2co_improves_perturbed_hypotheses_on_real_photographs(lmo_rgb_frames):
     """From lambda 0.3 on two real frames the mean MSSD drops and at least 50 % of the calls
     improve it (65 % over all 20 lmo-rgb frames with the region term, 57 % with edges alone)."""
     block, rng = create("d2co"), np.random.default_rng(0)
-    before, after, moved = [], [], []
-    for frame in lmo_rgb_frames:
-        cache: dict = {}
-        for obj in _visible(frame):
-            for seed in range(3):
-                start = perturb(obj.gt, 0.3, obj.model.diameter, rng)
-                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
-                                     rng=np.random.default_rng(seed)))
-                assert r.ok, r.reason
-                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
-                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
-                moved.append(r.info["improved"])
-    before, after, moved = np.array(before), np.array(after), np.array(moved)
+    before, after, results = refine_from_lambda(block, lmo_rgb_frames, _visible, rng, seeds=3)
+    moved = np.array([r.info["improved"] for r in results])
     better = after < before
     print(f"d2co lambda 0.3: mean MSSD/d {np.mean(before):.3f} -> {np.mean(after):.3f}, "
           f"improved {np.mean(better):.0%}, "

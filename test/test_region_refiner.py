@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from frames import box_model, default_pose, refine_perturbed, synthetic_frame
+from frames import box_model, default_pose, refine_from_lambda, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.geometry import Pose, perturb
@@ -64,18 +64,7 @@ def test_region_refiner_improves_perturbed_hypotheses_on_real_photographs(lmo_rg
     """From lambda 0.3 on two real frames the mean MSSD drops and at least half of the calls
     improve it (a no-op: 0 %; ~70 % over lmo-rgb)."""
     block, rng = create("region"), np.random.default_rng(0)
-    before, after = [], []
-    for frame in lmo_rgb_frames:
-        cache: dict = {}
-        for obj in _visible(frame):
-            for seed in range(2):
-                start = perturb(obj.gt, 0.3, obj.model.diameter, rng)
-                r = block(BlockInput(frame=frame, model=obj.model, pose=start, cache=cache,
-                                     rng=np.random.default_rng(seed)))
-                assert r.ok, r.reason
-                before.append(pose_mssd(start, obj.gt, obj.model) / obj.model.diameter)
-                after.append(pose_mssd(r.pose, obj.gt, obj.model) / obj.model.diameter)
-    before, after = np.array(before), np.array(after)
+    before, after, _ = refine_from_lambda(block, lmo_rgb_frames, _visible, rng, seeds=2)
     print(f"region lambda 0.3: mean MSSD/d {before.mean():.3f} -> {after.mean():.3f}, "
           f"improved {np.mean(after < before):.0%}")
     assert len(before) >= 20
