@@ -27,7 +27,7 @@ from perception_config.datasets.bag import (
     write_bag,
     write_frames,
 )
-from perception_config.datasets.ros2msg_schemas import SCHEMAS, TYPE_HASHES
+from perception_config.datasets.bag.definitions import WRITTEN_TYPES, definition, interfaces_msg_dir, type_hash
 from perception_config.geometry import Pose, exp_so3, nearest_rotation
 from perception_config.scene import Frame, SceneObject
 
@@ -92,34 +92,44 @@ def small_bag(tmp_path_factory) -> tuple[Path, list[Frame]]:
 
 # --------------------------------------------------------------------------- schemas
 
-def test_shipped_schemas_equal_the_msg_files():
-    from perception_config.datasets import ros2msg_gen as gen
-
-    try:
-        texts = {t: gen.full_text(t) for t in gen.TYPES}
-    except gen.MsgNotFoundError as exc:
-        pytest.skip(f".msg sources not available: {exc}")
-    for t in gen.TYPES:
-        assert SCHEMAS[t] == texts[t], f"{t}: rerun python -m perception_config.datasets.ros2msg_gen"
-    # The structure rosbag2 writes: root text, then 80 '=' / 'MSG: pkg/Name' per dependency.
-    img = SCHEMAS["sensor_msgs/msg/Image"]
-    assert img.startswith("# This message contains an uncompressed image")
-    assert "\n" + "=" * 80 + "\nMSG: std_msgs/Header\n" in img and "MSG: builtin_interfaces/Time\n" in img
-    poses = SCHEMAS["perception_config_interfaces/msg/ObjectPoses"]
-    for dep in ("geometry_msgs/Pose", "geometry_msgs/Point", "geometry_msgs/Quaternion", "std_msgs/Header"):
-        assert poses.count(f"MSG: {dep}\n") == 1
-    # Hashes: the ROS type descriptions (.json) where installed, and rosbags' RIHS01.
-    pytest.importorskip("rosbags")
-    for t in gen.TYPES:
-        assert TYPE_HASHES[t] == gen.rihs01_with_rosbags(t)
-    assert (REPO / "perception_config/datasets/ros2msg_schemas.py").read_text() == gen.render_module()
+def _ros_share(pkg: str) -> Path | None:
+    """share/<pkg> of this interpreter's ROS prefix (the PyPI wheels), None when not installed."""
+    d = Path(sys.prefix) / "share" / pkg
+    return d if d.is_dir() else None
 
 
-def test_schemas_parse_with_mcap_ros2_and_rosbags():
+def _fields(msg_text: str, type_name: str) -> list[tuple]:
+    """(name, type) of a .msg text's fields as rosbags parses them (comments and constants aside)."""
+    from rosbags.typesys import get_types_from_msg
+
+    return [(n, repr(t)) for n, t in get_types_from_msg(msg_text, type_name)[type_name][1]]
+
+
+@pytest.mark.parametrize("type_name", WRITTEN_TYPES)
+def test_definitions_match_the_installed_ros_types(type_name):
+    """The typestore's definition has the installed .msg's fields and ROS's own RIHS01 hash."""
+    pkg, _, name = type_name.split("/")
+    text = definition(type_name)
+    sep = "=" * 80 + "\n"
+    assert all(part.startswith("MSG: ") for part in text.split(sep)[1:])  # rosbag2's nesting form
+    if pkg == "perception_config_interfaces":
+        msg = interfaces_msg_dir() / f"{name}.msg"
+        assert _fields(text.split(sep)[0], type_name) == _fields(msg.read_text(), type_name)
+    share = _ros_share(pkg)
+    if share is None or not (share / "msg" / f"{name}.json").is_file():
+        pytest.skip(f"{pkg} not installed in {sys.prefix}")
+    if pkg != "perception_config_interfaces":
+        assert _fields(text.split(sep)[0], type_name) == _fields((share / "msg" / f"{name}.msg").read_text(), type_name)
+    described = json.loads((share / "msg" / f"{name}.json").read_text())["type_hashes"]
+    assert type_hash(type_name) == next(h["hash_string"] for h in described if h["type_name"] == type_name)
+
+
+def test_definitions_parse_with_mcap_ros2_and_rosbags():
     from mcap_ros2._dynamic import generate_dynamic
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    for t, text in SCHEMAS.items():
+    for t in WRITTEN_TYPES:
+        text = definition(t)
         assert t in generate_dynamic(t, text)
         store = get_typestore(Stores.EMPTY)
         sep = "=" * 80 + "\n"
@@ -129,7 +139,32 @@ def test_schemas_parse_with_mcap_ros2_and_rosbags():
             pkg, name = head[5:].split("/")
             types.update(get_types_from_msg(body, f"{pkg}/msg/{name}"))
         store.register(types)
-        assert store.hash_rihs01(t) == TYPE_HASHES[t]
+        assert store.hash_rihs01(t) == type_hash(t)
+    with pytest.raises(BagFormatError, match="no message definition for 'nope_msgs/msg/Nothing'"):
+        definition("nope_msgs/msg/Nothing")
+
+
+def test_rclpy_deserialises_every_topic_of_our_bag(small_bag):
+    """What rosbag2 does when it plays a bag: the raw CDR goes to subscribers, which deserialise it
+    with the installed message types (no definition text involved)."""
+    import importlib
+
+    from rclpy.serialization import deserialize_message
+
+    path, frames = small_bag
+    seen: dict[str, object] = {}
+    for topic, type_name, _t, raw in iter_messages(path):
+        if topic not in seen:
+            pkg, _, name = type_name.split("/")
+            seen[topic] = deserialize_message(raw, getattr(importlib.import_module(f"{pkg}.msg"), name))
+    assert len(seen) == 5
+    img = seen["/camera/color/image_raw"]
+    assert (img.height, img.width, img.encoding) == (*frames[0].rgb.shape[:2], "rgb8")
+    assert bytes(img.data) == frames[0].rgb.tobytes()
+    gt = seen["/perception/ground_truth"]
+    assert list(gt.object_ids) == [str(o.obj_id) for o in frames[0].objects]
+    assert gt.poses[0].position.z == pytest.approx(frames[0].objects[0].gt.t[2], abs=1e-12)
+    assert seen["/camera/camera_info"].header.frame_id == "camera_color_optical_frame"
 
 
 # --------------------------------------------------------------------------- round trips
@@ -443,8 +478,8 @@ def _custom_bag(path: Path, color: dict, depth: dict, info: dict | None = None, 
 
     hdr = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "cam"}
     with open(path, "wb") as f, Writer(f) as w:
-        s_img = w.register_msgdef("sensor_msgs/msg/Image", SCHEMAS["sensor_msgs/msg/Image"])
-        s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", SCHEMAS["sensor_msgs/msg/CameraInfo"])
+        s_img = w.register_msgdef("sensor_msgs/msg/Image", definition("sensor_msgs/msg/Image"))
+        s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", definition("sensor_msgs/msg/CameraInfo"))
         w.write_message("/camera/color/image_raw", s_img, {"header": hdr, **color}, log_time=stamp)
         w.write_message("/camera/depth/image_raw", s_img, {"header": hdr, **depth}, log_time=stamp)
         ci = bagmod.camera_info_fields(np.array([[100.0, 0, 4], [0, 100, 3], [0, 0, 1]]), color["width"],

@@ -1,8 +1,8 @@
 """BOP scenes recorded as rosbag2-compatible MCAP bags, and rosbag2 MCAP bags read back as Frames.
 
 This package does not import rclpy: it writes and reads CDR with `mcap` + `mcap-ros2-support`
-from the bag's own schema texts (ours are in `datasets/ros2msg_schemas.py`); rosbag2 sqlite3
-files are read through `rosbags`.
+from the bag's own schema texts (ours come from rosbags' typestore: definitions.py); rosbag2
+sqlite3 files are read through `rosbags`.
 
 - writer.py: `BagWriter`, `write_frames`, `write_bag`; what a bag written here holds (topics,
   units, frame ids, clock, one chunk per frame, Ctrl-C handling) and where metadata.yaml goes.

@@ -19,8 +19,8 @@ from typing import Any, Callable, Iterator, NamedTuple
 
 import yaml
 
-from ..ros2msg_schemas import SCHEMAS
 from .compression import decompress_stream
+from .definitions import definition
 from .errors import BagFormatError, BagTruncatedError
 from .type_names import normalize_type_name
 
@@ -335,14 +335,10 @@ def schema_name(ch: _ChannelInfo) -> str:
 
 def known_definition(type_name: str) -> str | None:
     """The ros2msg definition text (with its nested types) of a type the bag gives no definition
-    for (rosbag2 sqlite3 bags before Iron): ours, else the rosbags typestore's (ROS 2 Kilted)."""
-    if type_name in SCHEMAS:
-        return SCHEMAS[type_name]
+    for (rosbag2 sqlite3 bags before Iron): the rosbags typestore's (ROS 2 Kilted + ours)."""
     try:
-        from rosbags.typesys import Stores, get_typestore
-
-        return get_typestore(Stores.ROS2_KILTED).generate_msgdef(type_name, ros_version=2)[0]
-    except Exception:
+        return definition(type_name)
+    except BagFormatError:
         return None
 
 

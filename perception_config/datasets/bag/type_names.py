@@ -5,7 +5,7 @@ them lets a crafted bag import any installed module (`this/msg/Zen` imports `thi
 `check_type_name` accepts a name only if it matches TYPE_NAME_PATTERN and its package is a
 ROS interface package: listed in the ament index (share/ament_index/resource_index/
 rosidl_interfaces under AMENT_PREFIX_PATH, or under the interpreter's prefix where the PyPI
-ROS wheels put it) or one whose schema ships with us (ros2msg_schemas.py). Everything else is
+ROS wheels put it) or one of the types our bags carry (definitions.WRITTEN_TYPES). Everything else is
 a BagFormatError naming the type; nothing is imported here.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import re
 import sys
 from pathlib import Path
 
-from ..ros2msg_schemas import SCHEMAS
+from .definitions import WRITTEN_TYPES
 from .errors import BagFormatError
 
 TYPE_NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*$")
@@ -24,9 +24,9 @@ TYPE_NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-
 
 @functools.lru_cache(maxsize=None)
 def interface_packages() -> frozenset[str]:
-    """ROS interface packages: those of the ament index (rosidl_interfaces) and of our schemas."""
+    """ROS interface packages: those of the ament index (rosidl_interfaces) and of the types we write."""
     prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p] + [sys.prefix]
-    found = {name.split("/")[0] for name in SCHEMAS}
+    found = {name.split("/")[0] for name in WRITTEN_TYPES}
     for prefix in prefixes:
         index = Path(prefix) / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
         if index.is_dir():

@@ -30,8 +30,8 @@ topic                          type                                           co
 * Why a frame_info topic (not a MCAP metadata record): it is written with each frame, so it
   survives an interrupted recording, a replay node can republish it, and ROS tools see it.
   The recording's parameters go into a MCAP metadata record named `perception_config`.
-* Profile `ros2`, message encoding `cdr`, schemas `ros2msg` (rosbag2's complete message
-  definitions) named `sensor_msgs/msg/Image` etc., channel metadata with `offered_qos_profiles`
+* Profile `ros2`, message encoding `cdr`, schemas `ros2msg` (complete message definitions from
+  rosbags' typestore, definitions.py) named `sensor_msgs/msg/Image` etc., channel metadata with `offered_qos_profiles`
   and `topic_type_hash` (RIHS01) like rosbag2 writes, and the bag's metadata embedded in a
   MCAP metadata record `rosbag2` (so `ros2 bag info file.mcap` works on the file alone).
 * Each frame is one MCAP chunk (zstd by default), flushed to the OS when the frame is complete:
@@ -66,7 +66,7 @@ import yaml
 from ...atomic_file import atomic_write
 from ...geometry import nearest_rotation, quaternion_from_matrix
 from ...scene import Frame
-from ..ros2msg_schemas import SCHEMAS, TYPE_HASHES
+from .definitions import definition, type_hash
 from .errors import BagWriteInterrupted
 from .messages import OPTICAL_FRAME, camera_info_fields, depth_to_image_fields, header_fields, rgb_to_image_fields
 from .topics import (
@@ -213,11 +213,11 @@ class BagWriter:
             schema_ids: dict[str, int] = {}
             for topic, typ in self._topics:
                 if typ not in schema_ids:
-                    schema_ids[typ] = self._writer.register_schema(typ, "ros2msg", SCHEMAS[typ].encode())
-                    self._encoders[typ] = serialize_dynamic(typ, SCHEMAS[typ])[typ]
+                    schema_ids[typ] = self._writer.register_schema(typ, "ros2msg", definition(typ).encode())
+                    self._encoders[typ] = serialize_dynamic(typ, definition(typ))[typ]
                 self._channels[topic] = self._writer.register_channel(
                     topic, "cdr", schema_ids[typ],
-                    metadata={"offered_qos_profiles": "[]", "topic_type_hash": TYPE_HASHES[typ]},
+                    metadata={"offered_qos_profiles": "[]", "topic_type_hash": type_hash(typ)},
                 )
                 self._counts[topic] = 0
             self._writer.add_metadata("perception_config", {
@@ -291,7 +291,7 @@ class BagWriter:
             "message_count": count,
             "topics_with_message_count": [
                 {"topic_metadata": {"name": topic, "type": typ, "serialization_format": "cdr",
-                                    "offered_qos_profiles": [], "type_description_hash": TYPE_HASHES[typ]},
+                                    "offered_qos_profiles": [], "type_description_hash": type_hash(typ)},
                  "message_count": self._counts[topic]}
                 for topic, typ in self._topics
             ],
