@@ -7,6 +7,12 @@ the code; BOP PLY files are millimetres and are converted when read.
 PLY files are read and written with trimesh (ascii and binary, any property order, optional
 normals and colours); its failures become PlyError naming the file. trimesh is imported only
 when a file is read or written.
+
+Surface sampling stays our own: with trimesh's sampler (trimesh.sample.sample_surface, area
+weighted, barycentric normals) feeding the surface distance field, global registration found the
+procedural bracket in 11-12 of 16 sample sets instead of 16 of 16 (measured 2026-12-02 over
+three field seeds). Sharp edges stay our own too: they include boundary and non-manifold edges
+(outlines for the edge refiners), which trimesh's face-adjacency angles do not cover.
 """
 from __future__ import annotations
 
