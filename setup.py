@@ -75,7 +75,7 @@ class BuildPyWithInterfaces(build_py):
         skip = os.environ.get("PERCEPTION_CONFIG_SKIP_INTERFACES", "")
         provider = interfaces_provider() if skip == "" else None
         if provider is not None:
-            self.announce(f"{INTERFACES} provided by {provider}: not compiled again or bundled", level=2)
+            print(f"{INTERFACES} provided by {provider}: not compiled again or bundled", flush=True)
         elif skip != "1":
             self._build_interfaces()
         super().run()

@@ -129,3 +129,25 @@ def test_a_node_started_from_install_joins_the_graph(workspace: Path, ros_node):
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def test_a_plain_colcon_build_finds_the_root_package_and_uses_the_prefix_interfaces(tmp_path: Path):
+    """`colcon build` without base paths: the crawl stops at the repository root (the product card fixes
+    package.xml there), so only perception_config is found; a prefix that provides the interfaces (here
+    the venv's pip install; on a distro a built workspace) is used, nothing is compiled or bundled, and
+    the setup says so. (Without such a prefix it compiles msg_defs/ into its own prefix, as pip does.)"""
+    ws = tmp_path / "ws"
+    shutil.copytree(ROOT, ws / "src" / "perception_config", ignore=NOT_COPIED, symlinks=True)
+    proc = subprocess.run([str(COLCON), "build", "--event-handlers", "console_direct+"], cwd=ws, env=colcon_env(),
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    started = [ln.split()[2] for ln in proc.stdout.splitlines() if ln.startswith("Starting >>> ")]
+    assert started == ["perception_config"], proc.stdout[-3000:]
+    assert f"perception_config_interfaces provided by {sys.prefix}" in proc.stdout + proc.stderr
+    assert not list((ws / "install" / "perception_config").rglob("*perception_config_interfaces*"))
+    code = ("import perception_config, perception_config_interfaces.srv as s; "
+            "print(perception_config.__file__); print(s.EstimatePose.Request())")
+    run = subprocess.run(sourced(ws, f"'{sys.executable}' -c '{code}'"), cwd=ws / "install", env=colcon_env(),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.startswith(str(ws / "install" / "perception_config" / "lib")), run.stdout
