@@ -74,7 +74,7 @@ _SCHEMA = [
 ]
 
 
-class EpisodeStoreError(RuntimeError):
+class EpisodeStoreError(ValueError):
     """A store that cannot be used (not SQLite, foreign, corrupt, newer schema) or a refused
     write (unknown episode or step, duplicated outcome); the message names the file."""
 
@@ -422,7 +422,7 @@ class StoreWriter:
             if self.store is None:
                 self.store = EpisodeStore(self.path, synchronous=self.synchronous, busy_timeout=self.busy_timeout)
             eid = self.store.append(record)
-        except (sqlite3.Error, OSError, EpisodeStoreError, ValueError) as exc:
+        except (sqlite3.Error, OSError, ValueError) as exc:  # EpisodeStoreError is a ValueError
             self.failed += 1
             self._report(exc)
             if isinstance(exc, EpisodeStoreError):
