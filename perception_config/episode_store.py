@@ -415,13 +415,26 @@ class StoreWriter:
         self._repeats = 0
         self.append_seconds = 0.0  # total time spent in append (for the cost report)
 
+    def open(self) -> bool:
+        """Open (or create) the store now, so that a bad path is reported at start-up; False
+        (logged) when it cannot be opened: appends try again."""
+        try:
+            self._ensure_open()
+        except (sqlite3.Error, OSError, ValueError) as exc:
+            self._report(exc)
+            return False
+        return True
+
+    def _ensure_open(self) -> EpisodeStore:
+        if self.store is None:
+            self.store = EpisodeStore(self.path, synchronous=self.synchronous, busy_timeout=self.busy_timeout)
+        return self.store
+
     def append(self, record: EpisodeRecord) -> int | None:
         """The stored episode's id, or None when it could not be stored (logged)."""
         start = time.perf_counter()
         try:
-            if self.store is None:
-                self.store = EpisodeStore(self.path, synchronous=self.synchronous, busy_timeout=self.busy_timeout)
-            eid = self.store.append(record)
+            eid = self._ensure_open().append(record)
         except (sqlite3.Error, OSError, ValueError) as exc:  # EpisodeStoreError is a ValueError
             self.failed += 1
             self._report(exc)
@@ -441,6 +454,11 @@ class StoreWriter:
             times = f" ({self._repeats} times in a row)" if self._repeats > 1 else ""
             self.log(f"episode store {self.path}: episode not stored{times}: {type(exc).__name__}: {msg}")
 
+    def summary(self) -> str:
+        n = self.appended + self.failed
+        mean = f", {1000 * self.append_seconds / n:.2f} ms per append" if n else ""
+        return f"{self.appended} episodes appended to {self.path}, {self.failed} not stored{mean}"
+
     def close(self) -> None:
         if self.store is not None:
             try:
@@ -448,6 +466,22 @@ class StoreWriter:
             except sqlite3.Error:
                 pass
             self.store = None
+
+
+def store_episode(writer: StoreWriter, traj: Trajectory, *, image_ids: bool = True, **context: Any) -> int | None:
+    """Append a played episode through `writer` (context: record_from_trajectory's keywords);
+    never raises: whatever goes wrong is one line of the writer's log. `image_ids=False`: the
+    episode's scene and image ids are placeholders (the configurator knows the frame by its
+    stamp only) and are stored as NULL."""
+    try:
+        record = record_from_trajectory(traj, **context)
+    except Exception as exc:  # noqa: BLE001  (the caller must go on; the episode is reported lost)
+        writer.failed += 1
+        writer._report(exc)
+        return None
+    if not image_ids:
+        record.scene_id = record.im_id = None
+    return writer.append(record)
 
 
 def policy_version(path: str | os.PathLike) -> str:
