@@ -191,6 +191,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
         time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
+        store_episodes=args.store_episodes,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -220,6 +221,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
     ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
     ev.add_argument("--no-plots", action="store_true")
+    ev.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
+                    help="do not append the episodes to OUT/episodes.sqlite")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_evaluate)
 
@@ -236,7 +239,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth,
+        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -271,6 +274,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                     help="write the checkpoint every N episodes (100); a stop signal always writes it")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
+    tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
+                    help="do not append the episodes to OUT/episodes.sqlite")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_cmd_train)
 

@@ -354,6 +354,8 @@ def train(
             _stop_workers(pool, now=bool(stops.received))
             if writer is not None:
                 writer.close()
+                if progress:
+                    _quietly(print, f"episode store: {writer.summary()}", flush=True)
         # Signals that arrive now are recorded only: the files are written whole.
         interrupted = bool(stops.received)
         save_checkpoint()
