@@ -48,8 +48,9 @@ Parameters:
                     off: a node has no run folder of its own, so where the store lives is the
                     launcher's choice (replay-check puts it in its output folder). Written with
                     synchronous=FULL (a robot's pick outlives a power cut). A store that cannot be
-                    written (full disk, locked, corrupt, not a store) is one error log line per
-                    estimate (repeats counted); the estimate is answered as usual
+                    written (full disk, locked by another process for more than 0.5 s, corrupt,
+                    not a store) is one error log line per estimate (repeats counted); the
+                    estimate is answered as usual
   pick_source       who answers the pick_node's picks, recorded with each pick: "simulated" (default)
                     or "robot" (pick_node's robot_service set)
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
@@ -98,6 +99,8 @@ from .operator_node import make_hypothesis, spin
 from .request_fields import parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
+
+STORE_BUSY_TIMEOUT = 0.5  # s an estimate's answer may wait for another process's lock on the episode store
 
 
 class ConfiguratorNode(Node):
@@ -170,7 +173,8 @@ class ConfiguratorNode(Node):
         if self.pick_source not in PICK_SOURCES:
             raise ValueError(f"pick_source must be one of {PICK_SOURCES}, got {self.pick_source!r}")
         store = str(self.get_parameter("episode_store").value or "")
-        self.episode_writer = StoreWriter(store, self.get_logger().error, synchronous="FULL") if store else None
+        self.episode_writer = StoreWriter(store, self.get_logger().error, synchronous="FULL",
+                                        busy_timeout=STORE_BUSY_TIMEOUT) if store else None
         if self.episode_writer is not None and self.episode_writer.open():
             self.get_logger().info(f"appending every episode to the episode store {store}")
 
