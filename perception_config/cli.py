@@ -82,6 +82,27 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_episodes_info(args: argparse.Namespace) -> int:
+    from .episode_report import format_info, store_info
+
+    info = store_info(args.store)
+    if args.json:
+        import json
+
+        print(json.dumps(info, indent=2))
+    else:
+        print(format_info(info))
+    return 0
+
+
+def _cmd_episodes_export(args: argparse.Namespace) -> int:
+    from .episode_report import export_table
+
+    n = export_table(args.store, args.out, args.table)
+    print(f"wrote {n} rows of {args.table} to {args.out}")
+    return 0
+
+
 def _cmd_show(args: argparse.Namespace) -> int:
     from .datasets.show import show_frame
 
@@ -170,6 +191,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
         time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
+        store_episodes=args.store_episodes,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -199,6 +221,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
     ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
     ev.add_argument("--no-plots", action="store_true")
+    ev.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
+                    help="do not append the episodes to OUT/episodes.sqlite")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_evaluate)
 
@@ -215,7 +239,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth,
+        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -250,6 +274,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                     help="write the checkpoint every N episodes (100); a stop signal always writes it")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
+    tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
+                    help="do not append the episodes to OUT/episodes.sqlite")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_cmd_train)
 
@@ -397,6 +423,19 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_parser(sub)
     _add_evaluate_parser(sub)
     _add_launch_parser(sub)
+    ep = sub.add_parser("episodes", help="the episode store (episodes.sqlite of a run): summary and export")
+    epsub = ep.add_subparsers(dest="episodes_command", required=True)
+    ei = epsub.add_parser("info", help="schema version, size, episodes per source/agent and per object with the "
+                          "success share and mean time")
+    ei.add_argument("store", type=Path, help="an episodes.sqlite file")
+    ei.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ei.set_defaults(func=_cmd_episodes_info)
+    ee = epsub.add_parser("export", help="write a table of the store as CSV or Parquet (by --out's suffix)")
+    ee.add_argument("store", type=Path, help="an episodes.sqlite file")
+    ee.add_argument("--out", type=Path, required=True, help="FILE.csv or FILE.parquet (written atomically)")
+    ee.add_argument("--table", choices=("episodes", "steps", "pick_outcomes"), default="episodes")
+    ee.set_defaults(func=_cmd_episodes_export)
+
     _add_replay_check_parser(sub)
     return p
 

@@ -45,6 +45,12 @@ class Trajectory:
     final_info: dict[str, Any] = field(default_factory=dict)  # the last step's info (final pose, scores)
     # info["action_mask"] before each action (T, n) int8 (1 = could run); None when the env gave none
     masks: np.ndarray | None = None
+    # Per action, for the episode store (episode_store.py): the scores and the hypothesis after
+    # it (a geometry.Pose or None), and a pick's result where a pick action ran (None otherwise).
+    step_scores: list[dict[str, float]] = field(default_factory=list)
+    step_poses: list[Any] = field(default_factory=list)
+    step_picked: list[bool | None] = field(default_factory=list)
+    initial_operation_seconds: float = 0.0  # measured seconds of the generator call in reset
 
     @property
     def steps(self) -> int:
@@ -95,6 +101,7 @@ def play_episode(
         raise ValueError(f"no first hypothesis: {info['reason']}")
     agent.begin_episode(act_seed)
     initial_info = info
+    initial_elapsed = float(env_.last_outcome.elapsed) if env_.last_outcome is not None else 0.0
     obs_l: list[np.ndarray] = []
     act_l: list[int] = []
     rew_l: list[float] = []
@@ -104,6 +111,9 @@ def play_episode(
     op_seconds: list[float] = []
     block_seconds: list[float] = []
     mask_l: list[np.ndarray] = []
+    step_scores: list[dict[str, float]] = []
+    step_poses: list[Any] = []
+    step_picked: list[bool | None] = []
     first_pick: bool | None = None
     cost = 0.0
     terminated = truncated = stopped = False
@@ -125,8 +135,12 @@ def play_episode(
         oks.append(bool(info["ok"]))
         op_seconds.append(float(env_.last_outcome.elapsed))  # measured, whatever the time mode charges
         block_seconds.append(float(env_.last_outcome.result.elapsed))
-        if first_pick is None and info["ok"] and env_.pipeline.actions[a].kind == Kind.PICK:
+        pick_ran = bool(info["ok"]) and env_.pipeline.actions[a].kind == Kind.PICK
+        if first_pick is None and pick_ran:
             first_pick = bool(info["picked"])
+        step_scores.append(dict(info["scores"]))
+        step_poses.append(info["pose"])
+        step_picked.append(bool(info["picked"]) if pick_ran else None)
         if max_steps is not None and len(act_l) >= max_steps:
             break
     index = (options or {}).get("episode", -1)
@@ -149,4 +163,8 @@ def play_episode(
         initial_info=initial_info,
         final_info=info,
         masks=np.asarray(mask_l, np.int8).reshape(len(mask_l), -1) if mask_l and len(mask_l) == len(act_l) else None,
+        step_scores=step_scores,
+        step_poses=step_poses,
+        step_picked=step_picked,
+        initial_operation_seconds=initial_elapsed,
     )

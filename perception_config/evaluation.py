@@ -33,6 +33,9 @@ Outputs in `out/`:
   inst_count, obj_id, scene_id) for exactly the episodes of the CSVs: pass its absolute path
   as eval_calc_errors/eval_calc_scores' --targets_filename (bop_toolkit_eval.py does)
 - fig5.png, lambda_grid.png, episode_*.png   plots (see plots.py)
+- episodes.sqlite the episode store (episode_store.py): every episode played, appended as it ends
+  (source "evaluate"; a second evaluation into the same folder adds to it); a store that fails
+  is one log line on stderr, the evaluation goes on
 """
 from __future__ import annotations
 
@@ -43,7 +46,7 @@ import re as _re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -51,7 +54,8 @@ from .atomic_file import atomic_write
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset, BopResult, write_results_csv
 from .env import PerceptionConfigEnv, normalise_score
-from .episode_loop import acting_seed, play_episode
+from .episode_loop import Trajectory, acting_seed, play_episode
+from .episode_store import STORE_NAME, StoreWriter, policy_version, store_episode
 from .episodes import EpisodeSource, split_image_keys
 from .geometry import LAMBDA_MAX, Pose, check_noise_lambda
 from .metrics import (
@@ -103,6 +107,7 @@ class EvalAgent:
     name: str
     kind: str
     agent: Any  # an agents.Agent, or any object with act(obs, info) (begin_episode/observe optional)
+    version: str | None = None  # a policy file's version (episode_store.policy_version); None for the others
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -220,7 +225,7 @@ def build_agents(
             out.append(EvalAgent(str(getattr(spec, "name", type(spec).__name__)), "custom", spec))
         elif is_policy_file(spec):
             agent = agents.load_agent(Path(spec), env)
-            out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent))
+            out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent, policy_version(spec)))
         elif isinstance(spec, str):
             if spec not in agents.AGENTS:
                 hint = f" and there is no file {spec}" if (os.sep in spec or "." in spec) else ""
@@ -266,15 +271,19 @@ class _Duck:
             self.agent.observe(*args)
 
 
-def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float, ep_seed: int) -> dict[str, Any]:
+def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float, ep_seed: int,
+                   on_trajectory: Callable[[Trajectory], None] | None = None) -> dict[str, Any]:
     """Play one evaluation episode (the agent's acting randomness seeded from the episode
     seed, so every agent's run of an episode is reproducible whatever ran before it); the
-    per-episode record: trace, poses, scores, errors."""
+    per-episode record: trace, poses, scores, errors. `on_trajectory` gets the trajectory
+    (evaluate stores it in the episode store)."""
     from .agents.base import Agent
 
     player = agent if isinstance(agent, Agent) else _Duck(agent)
     traj = play_episode(env, player, {"episode": int(index), "lambda": float(lam), "episode_seed": int(ep_seed)},
                         acting_seed(ep_seed))
+    if on_trajectory is not None:
+        on_trajectory(traj)
     ep = env.episode
     assert ep is not None
     info = traj.final_info
@@ -447,6 +456,7 @@ def evaluate(
     plots: bool = True,
     n_example_episodes: int = 2,
     use_depth: bool = True,
+    store_episodes: bool = True,
     **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
@@ -461,6 +471,7 @@ def evaluate(
     evaluated as baselines (those naming actions the pipeline lacks are skipped; on RGB-only
     frames they skip the actions that cannot run). `use_depth=False` reads a dataset folder as
     RGB-only; every agent then chooses among the actions that can run (`info["action_mask"]`).
+    `store_episodes`: append every episode to out/episodes.sqlite.
     """
     lams = _check_lambdas(lambdas)
     out = Path(out)
@@ -484,6 +495,15 @@ def evaluate(
         bar = tqdm(total=len(agents) * len(lams) * len(plan), desc="evaluate", unit="ep", dynamic_ncols=True)
     records: list[dict[str, Any]] = []
     per_episode: list[dict[str, Any]] = []
+    writer = StoreWriter(out / STORE_NAME, lambda line: print(line, file=sys.stderr, flush=True)) \
+        if store_episodes else None
+
+    def storer(ea: EvalAgent, ep_seed: int) -> Callable[[Trajectory], None] | None:
+        if writer is None:
+            return None
+        return lambda t: store_episode(writer, t, source="evaluate", agent=ea.name, policy_version=ea.version,
+                                       dataset=str(ds.root), episode_seed=ep_seed)
+
     try:
         for lam in lams:
             for ea in agents:
@@ -491,7 +511,8 @@ def evaluate(
                     bar.set_postfix_str(f"{ea.name} lambda={lam:g}")
                 eps = []
                 for index, ep_seed in plan:
-                    eps.append({"agent": ea.name, **episode_record(env, ea.agent, index, lam, ep_seed)})
+                    eps.append({"agent": ea.name, **episode_record(env, ea.agent, index, lam, ep_seed,
+                                                                   storer(ea, ep_seed))})
                     if bar is not None:
                         bar.update(1)
                 per_episode.extend(eps)
@@ -499,6 +520,8 @@ def evaluate(
     finally:
         if bar is not None:
             bar.close()
+        if writer is not None:
+            writer.close()
     _mark_best_fixed(records)
 
     out.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,10 @@ metadata (`extra.env_settings`) and restored wherever the policy is run.
 Files in `out/`: policy.safetensors (or policy.json for agents without weights),
 checkpoint.safetensors (policy + optimizer/population + episode counter + rng states +
 history; written atomically every `checkpoint_every` episodes; `resume=True` continues from
-it), history.csv and learning_curve.png, all written atomically.
+it), history.csv and learning_curve.png, all written atomically; episodes.sqlite (episode_store.py):
+every episode played, appended by this process after each round (never by the workers), with
+policy_version "train:<run folder>@<episodes learned before the round>" (+ "/actor<i>" for a
+population); a store that fails (full disk, locked, corrupt) is one log line and training goes on.
 
 Stopping (stop_signals.py): SIGINT (Ctrl-C), SIGTERM and SIGHUP drop the round in flight (its
 episodes only: the trainer's rng goes back to the round's start, so a resumed run is the
@@ -40,6 +43,7 @@ import io
 import json
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any, ContextManager
 
@@ -51,6 +55,7 @@ from .atomic_file import atomic_output, atomic_write
 from .blocks.pipeline import pipeline_reference
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
+from .episode_store import STORE_NAME, StoreWriter, store_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .open3d_threads import open3d_single_thread
 from .settings import EnvSettings, settings_from_policy_meta
@@ -169,6 +174,7 @@ def train(
     overwrite: bool = False,
     progress: bool = True,
     use_depth: bool = True,
+    store_episodes: bool = True,
 ) -> Path:
     """Train `agent` ("pg", "es", "simple"; "random"/"fixed" just play) on the train split of
     a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
@@ -183,7 +189,8 @@ def train(
     change); without it an existing run in `out` is an error unless `overwrite`. A stop signal
     writes everything of the last completed round and raises StopRequested (module docstring).
     `use_depth=False` reads the dataset as RGB-only (its depth ignored; an RGB-only dataset is
-    RGB-only anyway): the actions that need depth are masked.
+    RGB-only anyway): the actions that need depth are masked. `store_episodes`: append every
+    episode to out/episodes.sqlite (module docstring).
     """
     settings = settings or EnvSettings()
     if episodes < 1:
@@ -283,6 +290,16 @@ def train(
 
     from tqdm import tqdm
 
+    writer = StoreWriter(out / STORE_NAME, lambda line: _quietly(print, line, file=sys.stderr, flush=True)) \
+        if store_episodes else None
+
+    def store_round(trajectories: list[list[Trajectory]], options: list[dict[str, Any]]) -> None:
+        for i, per_actor in enumerate(trajectories):
+            version = f"train:{out.name}@{done}" + (f"/actor{i}" if len(trajectories) > 1 else "")
+            for t, opt in zip(per_actor, options):
+                store_episode(writer, t, source="train", agent=name, policy_version=version,
+                              dataset=recipe.dataset, episode_seed=opt["episode_seed"])
+
     pool = None
     stops = StopSignals()
     lo, hi = settings.lambda_range
@@ -316,6 +333,8 @@ def train(
                     raise
                 # A learning step is never half done: signals from here on are only recorded.
                 learner.update(trajectories)
+                if writer is not None:
+                    store_round(trajectories, options)
                 for per_actor in trajectories:
                     for t in per_actor:
                         for key, value in zip(HISTORY_FIELDS, (t.ret, t.time, float(t.success),
@@ -333,6 +352,10 @@ def train(
         finally:
             _quietly(bar.close)
             _stop_workers(pool, now=bool(stops.received))
+            if writer is not None:
+                writer.close()
+                if progress:
+                    _quietly(print, f"episode store: {writer.summary()}", flush=True)
         # Signals that arrive now are recorded only: the files are written whole.
         interrupted = bool(stops.received)
         save_checkpoint()

@@ -50,6 +50,15 @@ def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_fa
     assert all(len(r["ros"]["operations"]) <= 5 for r in rows)  # the policy's max_ops reached the configurator
     assert (tmp_path / "replay_check.png").stat().st_size > 10_000
     assert (tmp_path / "logs" / "bag_replay_node.log").read_text().strip()
+    # The configurator appended every estimate to <out>/episodes.sqlite, with the policy's version.
+    from perception_config.episode_store import EpisodeStore, policy_version
+
+    with EpisodeStore(tmp_path / "episodes.sqlite", readonly=True) as store:
+        eps = store.query("SELECT id, source, agent, policy_version, obj_id, episode_seed FROM episodes ORDER BY id")
+        ops = [[r["action"] for r in store.iter_steps("s.episode_id = ? AND s.step > 0", (e[0],))] for e in eps]
+    assert {e[1:4] for e in eps} == {("configurator", "pg", policy_version(policy))}
+    assert [(e[4], e[5], o) for e, o in zip(eps, ops)] == \
+        [(r["obj_id"], r["seed"], r["ros"]["operations"]) for r in rows]
 
 
 def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_path_factory, tmp_path, request):

@@ -51,8 +51,10 @@ def cell(data, tmp_path_factory, ros_node):
     common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0,
               "request_queue": REQUEST_QUEUE}
     nodes = {name: NodeProcess(name, common, logs) for name in OPERATORS}
+    store = logs / "episodes.sqlite"
     nodes["configurator_node"] = NodeProcess("configurator_node",
-                                             {**common, "operator_timeout": 5.0, "noise_lambda": LAMBDA}, logs)
+                                             {**common, "operator_timeout": 5.0, "noise_lambda": LAMBDA,
+                                              "episode_store": str(store)}, logs)
     try:
         # Publish only once every node serves: a publisher can see a subscription match before the
         # subscriber has matched the publisher, and then the first samples come late (after a
@@ -87,7 +89,7 @@ def cell(data, tmp_path_factory, ros_node):
             publish_when_matched(ros_node, pubs["info"], info, subscribers=4)
             publish_when_matched(ros_node, pubs["depth"], depth, subscribers=4)
             publish_when_matched(ros_node, pubs["color"], color, subscribers=4)
-        yield {"nodes": nodes, "frames": frames, "pubs": pubs}
+        yield {"nodes": nodes, "frames": frames, "pubs": pubs, "episode_store": store}
         for pub in pubs.values():
             ros_node.destroy_publisher(pub)
     finally:
@@ -199,9 +201,13 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     from perception_config.agents import make_agent
     from perception_config.env import PerceptionConfigEnv
     from perception_config.episode_loop import acting_seed, play_episode
+    from perception_config.episode_store import EpisodeStore
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     traces, poses = record_estimates(ros_node, request)
+    with EpisodeStore(cell["episode_store"], readonly=True) as store:
+        stored_before = store.count()
+    answers = []
     env = PerceptionConfigEnv(data["root"], data["pipeline"], time_mode="cost_table", min_visib_fract=0.3)
     agent = make_agent("fixed", env)
     stamps = {key: stamp_ns(i) for i, key in enumerate(data["keys"])}
@@ -213,6 +219,8 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
         res = call(ros_node, est, req, timeout=60.0)
         assert res.success, res.message
         assert len(res.operation_elapsed) == len(res.operations) and res.elapsed >= sum(res.operation_elapsed) * 0.99
+        answers.append((seed, req.frame.stamp.sec * 1_000_000_000 + req.frame.stamp.nanosec, ek.obj_id,
+                        list(res.operations), int(res.picked)))
 
         traj = play_episode(env, agent, {"episode": j, "lambda": LAMBDA, "episode_seed": seed}, acting_seed(seed))
         names, local = traj.names, traj.success
@@ -232,6 +240,15 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     assert len(traces) == n and len(poses) == n
     assert all(t.operations and t.header.stamp.sec >= BASE_SEC for t in traces)
     assert sum(t.picked for t in traces) == ros_success
+    # Every estimate is in the configurator's episode store (committed before it answered).
+    with EpisodeStore(cell["episode_store"], readonly=True) as store:
+        rows = store.query("SELECT id, episode_seed, frame_stamp_ns, obj_id, success, source, agent FROM episodes "
+                           "WHERE id > ? ORDER BY id", (stored_before,))
+        stored = [(seed, stamp, obj, [s["action"] for s in store.iter_steps("s.episode_id = ? AND s.step > 0",
+                                                                            (eid,))], ok)
+                  for eid, seed, stamp, obj, ok, *_ in rows]
+    assert stored == answers
+    assert {r[5:] for r in rows} == {("configurator", "fixed:icp_coarse+icp_fine+pick")}
 
 
 def _bad_frames(good):

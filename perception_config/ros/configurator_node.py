@@ -42,6 +42,17 @@ Parameters:
                     each built only while it has a subscriber
   debug_image_max_width   the debug image is scaled down to this width (640; 0 = full size)
   marker_max_triangles    the marker mesh is decimated to at most this many triangles (500)
+  episode_store     an episodes.sqlite file (episode_store.py) to which every estimate's episode is
+                    appended (frame stamp, object, lambda, generator, every operator with its scores,
+                    pose, times and outcome, the pick's result, the policy version); "" (default) =
+                    off: a node has no run folder of its own, so where the store lives is the
+                    launcher's choice (replay-check puts it in its output folder). Written with
+                    synchronous=FULL (a robot's pick outlives a power cut). A store that cannot be
+                    written (full disk, locked by another process for more than 0.5 s, corrupt,
+                    not a store) is one error log line per estimate (repeats counted); the
+                    estimate is answered as usual
+  pick_source       who answers the pick_node's picks, recorded with each pick: "simulated" (default)
+                    or "robot" (pick_node's robot_service set)
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 
 Deadline: an estimate that reaches `estimate_timeout` between two operators answers
@@ -78,6 +89,7 @@ from ..blocks.pipeline import load_pipeline
 from ..datasets.bop import ModelFolder
 from ..env import PerceptionConfigEnv
 from ..episode_loop import acting_seed, play_episode
+from ..episode_store import PICK_SOURCES, StoreWriter, policy_version, store_episode
 from ..geometry import check_noise_lambda
 from ..operators import Episode
 from ..policy_settings import policy_settings
@@ -87,6 +99,8 @@ from .operator_node import make_hypothesis, spin
 from .request_fields import parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
+
+STORE_BUSY_TIMEOUT = 0.5  # s an estimate's answer may wait for another process's lock on the episode store
 
 
 class ConfiguratorNode(Node):
@@ -114,6 +128,8 @@ class ConfiguratorNode(Node):
         self.declare_parameter("publish_debug", True)
         self.declare_parameter("debug_image_max_width", 640)
         self.declare_parameter("marker_max_triangles", 500)
+        self.declare_parameter("episode_store", "")
+        self.declare_parameter("pick_source", "simulated")
         self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
@@ -145,11 +161,22 @@ class ConfiguratorNode(Node):
         if policy:
             self.agent = load_agent(policy, self.env)
             self.agent_name = f"{self.agent.kind} policy {policy}"
+            self.store_agent = self.agent.kind
         else:
             self.agent = make_agent("fixed", self.env, sequence=[s for s in p["fixed_sequence"] if s])
             self.agent_name = "fixed pipeline " + " -> ".join(s for s in p["fixed_sequence"] if s)
+            self.store_agent = "fixed:" + "+".join(s for s in p["fixed_sequence"] if s)  # as evaluation names it
         self._rng = np.random.default_rng()
         self._busy = threading.Lock()
+        self.policy_version = policy_version(policy) if policy else None
+        self.pick_source = str(self.get_parameter("pick_source").value)
+        if self.pick_source not in PICK_SOURCES:
+            raise ValueError(f"pick_source must be one of {PICK_SOURCES}, got {self.pick_source!r}")
+        store = str(self.get_parameter("episode_store").value or "")
+        self.episode_writer = StoreWriter(store, self.get_logger().error, synchronous="FULL",
+                                        busy_timeout=STORE_BUSY_TIMEOUT) if store else None
+        if self.episode_writer is not None and self.episode_writer.open():
+            self.get_logger().info(f"appending every episode to the episode store {store}")
 
         self.pose_pub = self.create_publisher(PoseStamped, "perception/pose", 10)
         self.trace_pub = self.create_publisher(OperatorTrace, "perception/trace", 10)
@@ -234,6 +261,10 @@ class ConfiguratorNode(Node):
                                 require_hypothesis=True, stop=lambda: time.monotonic() >= deadline)
         finally:
             self.operators.deadline = None
+        if self.episode_writer is not None:
+            store_episode(self.episode_writer, traj, source="configurator", agent=self.store_agent,
+                          policy_version=self.policy_version, episode_seed=seed, frame_stamp_ns=stamp_ns,
+                          pick_source=self.pick_source, image_ids=False)
         info, names = traj.final_info, traj.names
         picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
@@ -285,6 +316,9 @@ class ConfiguratorNode(Node):
             print(f"[configurator_node] {self.debug_view.timing()}", flush=True)
         if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
             self.operators.close()
+            if self.episode_writer is not None:
+                print(f"[configurator_node] episode store: {self.episode_writer.summary()}", flush=True)
+                self.episode_writer.close()
             self._busy.release()
 
     async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response

@@ -18,7 +18,8 @@ sequences should agree episode by episode (Open3D's ICP is reproducible only to 
 agreement is counted, not assumed); the success rates are compared against the binomial
 noise of `images` episodes. Time: the operators' seconds (each call plus the scoring after
 it) and the whole estimate's wall time, ROS over in-process. Writes `<out>/results.json`,
-`<out>/episodes.jsonl` and `<out>/replay_check.png`.
+`<out>/episodes.jsonl` and `<out>/replay_check.png`; the configurator appends its episodes to
+`<out>/episodes.sqlite` (the episode store, episode_store.py).
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ from ..datasets.bag import RECORDING_EPOCH_NS, write_frames
 from ..datasets.bop import BopDataset
 from ..env import PerceptionConfigEnv
 from ..episode_loop import acting_seed, play_episode
+from ..episode_store import STORE_NAME
 from ..episodes import split_image_keys
 from ..evaluation import episode_seed
 from ..launch import Launcher, NodeSpec
@@ -140,7 +142,8 @@ def replay_check(
              for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""),
                                                         "noise_lambda": float(noise_lambda),
-                                                        "max_ops": settings.env.max_ops}))
+                                                        "max_ops": settings.env.max_ops,
+                                                        "episode_store": str(out.resolve() / STORE_NAME)}))
     cameras = ("camera/color/image_raw", "camera/camera_info") if rgb_only else \
         ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
     wait_for = [f"{t}:4" for t in cameras]
