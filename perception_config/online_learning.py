@@ -129,9 +129,10 @@ def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None 
 
 # -- candidate and replay check ------------------------------------------------------------------
 def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list[Episode], n_episodes: int,
-                    seed: int) -> Agent:
+                    seed: int, stop: Callable[[], bool] | None = None) -> Agent:
     """REINFORCE continued from the serving version's weights (a fresh pg when it has none) on
-    `n_episodes` episodes drawn from `episodes` with fresh episode seeds; greedy when returned."""
+    `n_episodes` episodes drawn from `episodes` with fresh episode seeds; greedy when returned.
+    `stop` is asked before each round (LearnError when it says so)."""
     from .training import play_round
 
     spec = EnvSpec.from_env(env)
@@ -143,6 +144,8 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
     rng = np.random.default_rng(seed)
     done = 0
     while done < n_episodes:
+        if stop is not None and stop():
+            raise LearnError(f"stopped after {done} of {n_episodes} training episodes")
         k = learner.episodes_per_actor
         picks = rng.integers(len(episodes), size=k)
         options = [{"episode": dataclasses.replace(episodes[i], seed=int(rng.integers(1, 2**31)))} for i in picks]
@@ -179,7 +182,8 @@ def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, ex
 
 
 def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[str], None] = lambda s: None,
-               env: PerceptionConfigEnv | None = None, models: ModelFolder | None = None) -> dict[str, Any]:
+               env: PerceptionConfigEnv | None = None, models: ModelFolder | None = None,
+               stop: Callable[[], bool] | None = None) -> dict[str, Any]:
     """One cycle (module docstring); the result: outcome "promoted" | "discarded" | "failed",
     episodes, cost, serving_cost, serving (version), version (promoted), reason (failed)."""
     learn_dir = Path(learn_dir)
@@ -198,7 +202,8 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
                              f"object's ground truth); at least {MIN_EPISODES} needed")
         check = episodes[-settings.check_episodes:]
         started = time.perf_counter()
-        candidate = train_candidate(env, serving_file, episodes, settings.train_episodes, settings.seed + len(episodes))
+        candidate = train_candidate(env, serving_file, episodes, settings.train_episodes, settings.seed + len(episodes),
+                                    stop)
         serving_agent = load_agent(serving_file, env)
         serving_cost = replay_cost(env, serving_agent, check)
         cost = replay_cost(env, candidate, check)
@@ -264,10 +269,14 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
             except (OSError, ValueError):
                 pass
 
+    def stopped() -> bool:
+        return (stop is not None and stop.is_set()) or os.getppid() != parent
+
     env = None
     models = None
     last = None
-    while not (stop is not None and stop.is_set()) and os.getppid() == parent:
+    log(f"learner: started (pid {os.getpid()}, nice {nice}), a candidate every {settings.every} new estimates")
+    while not stopped():
         count = _stored_count(learn_dir)
         if count is not None and last is None:
             last = count  # the first cycle comes `every` estimates after the worker started
@@ -280,7 +289,7 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
                     env, models = settings.env(), ModelFolder(settings.models_dir)
                 refit_pick_success(learn_dir, log)
                 with open3d_single_thread(True):
-                    result = learn_once(learn_dir, settings, log, env=env, models=models)
+                    result = learn_once(learn_dir, settings, log, env=env, models=models, stop=stopped)
             except Exception as exc:  # noqa: BLE001  (the worker must survive any bad cycle)
                 result = {"outcome": "failed", "serving": None, "reason": f"{type(exc).__name__}: {exc}"[:500]}
             log(format_result(result))

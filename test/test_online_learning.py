@@ -1,0 +1,212 @@
+"""Online learning (issue 16 item 3): policy versions, the learner's candidates and replay check,
+and the configurator with `learn:=true` as an OS process over Fast DDS.
+
+The learner's tests record estimates the way the configurator does (an episode in the store with
+source "configurator", its frame with ground truth in frames/) from the tiny synthetic dataset,
+then run the learner's cycle in-process; the ROS test runs the real node and its learner process.
+"""
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rl_helpers import PIPELINE, pipeline_file
+from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
+
+LINE = re.compile(r"^learner: candidate from (\d+) episodes: cost ([0-9.]+) vs serving ([0-9.]+) -> "
+                  r"(promoted v\d{4}|discarded)$")
+BASE_SEC = 1_700_000_000
+
+
+def stamp_ns(i: int) -> int:
+    return (BASE_SEC + i) * 1_000_000_000
+
+
+@pytest.fixture(scope="module")
+def data(synthetic_dataset, tmp_path_factory):
+    from perception_config.env import PerceptionConfigEnv
+
+    pipe = pipeline_file(tmp_path_factory, PIPELINE)
+    env = PerceptionConfigEnv(synthetic_dataset, pipe, time_mode="cost_table", min_visib_fract=0.3)
+    return {"root": synthetic_dataset, "pipeline": pipe, "env": env}
+
+
+def settings_for(data, **kw):
+    from perception_config.online_learning import LearnerSettings
+
+    return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), data["env"].settings.to_json(), **kw)
+
+
+def record_like_the_configurator(learn_dir: Path, data, sequence: list[str]) -> int:
+    """Every episode of the tiny dataset played by a fixed agent, stored as the configurator
+    stores an estimate (episode + frame with ground truth); version 0 = that agent. The count."""
+    from perception_config.agents import make_agent, save_agent
+    from perception_config.episode_loop import acting_seed, play_episode
+    from perception_config.episode_store import STORE_NAME, StoreWriter, store_episode
+    from perception_config.learn_frames import save_frame
+    from perception_config.online_learning import FRAMES, POLICIES, PolicyVersions
+
+    env = data["env"]
+    agent = make_agent("fixed", env, sequence=sequence)
+    writer = StoreWriter(learn_dir / STORE_NAME, print)
+    keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
+    for j, ek in enumerate(env.source.episodes):
+        stamp, seed = stamp_ns(keys.index((ek.scene_id, ek.im_id))), 1000 + j
+        traj = play_episode(env, agent, {"episode": j, "lambda": 0.5, "episode_seed": seed}, acting_seed(seed))
+        assert store_episode(writer, traj, source="configurator", agent="fixed", policy_version="v0000",
+                             episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
+        frame = env.source.frame(ek.scene_id, ek.im_id)
+        save_frame(learn_dir / FRAMES, stamp, frame, {o.obj_id: o.gt for o in frame.objects})
+    writer.close()
+    path = save_agent(agent, learn_dir / "start.json", {"env_settings": env.settings.to_json(),
+                                                        "pipeline": str(data["pipeline"])})
+    assert PolicyVersions(learn_dir / POLICIES).promote(path, {"start": "fixed"}) == "v0000"
+    return len(env.source.episodes)
+
+
+# -- versions ------------------------------------------------------------------------------------
+def test_policy_versions_promote_select_roll_back_and_never_lose_a_version(tmp_path):
+    from perception_config.policy_versions import PolicyVersionError, PolicyVersions
+
+    v = PolicyVersions(tmp_path / "policies")
+    assert v.current() is None and v.list() == []
+    files = []
+    for i in range(3):
+        f = tmp_path / f"p{i}.json"
+        f.write_text(json.dumps({"policy": i}))
+        files.append(f)
+    assert v.promote(files[0], {"start": "fixed"}) == "v0000"
+    assert v.promote(files[1], {"cost": 1.0}) == "v0001"
+    assert v.current() == "v0001" and v.path("v0001").read_bytes() == files[1].read_bytes()
+    v.select("v0000")  # rollback
+    assert v.current() == "v0000" and v.selected() == "v0000"
+    assert v.promote(files[2]) == "v0002"
+    assert v.current() == "v0000", "a pinned version stays while new ones are promoted"
+    index = v.index.read_bytes()
+    with pytest.raises(PolicyVersionError, match=r"unknown policy version 'v0042'.*kept: v0000, v0001, v0002"):
+        v.select("v0042")
+    assert v.index.read_bytes() == index, "a refused select changes nothing"
+    v.select("")
+    assert v.current() == "v0002"
+    with pytest.raises(FileNotFoundError):
+        v.promote(tmp_path / "missing.json")
+    assert [e["version"] for e in v.list()] == ["v0000", "v0001", "v0002"]
+    assert [json.loads(v.path(e["version"]).read_text())["policy"] for e in v.list()] == [0, 1, 2]
+
+    # Concurrent promotions (the learner) and pins (the node) serialise on the lock: none is lost.
+    threads = [threading.Thread(target=v.promote, args=(files[i % 3],)) for i in range(8)]
+    threads += [threading.Thread(target=v.select, args=("v0001",)) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert [e["version"] for e in v.list()] == [f"v{i:04d}" for i in range(11)]
+    assert v.current() == "v0001"
+    assert not list(v.folder.glob(".*.tmp*")), "no temporary file left behind"
+
+    # A damaged index is refused, naming it; the policy files are still there.
+    v.index.write_text("{not json")
+    with pytest.raises(PolicyVersionError, match="versions.json cannot be read"):
+        v.current()
+    assert len(list(v.folder.glob("v[0-9]*.json"))) == 11
+
+
+def test_frame_files_round_trip_are_bounded_and_a_corrupt_one_is_named(tmp_path, data):
+    from perception_config.learn_frames import frame_path, load_frame, save_frame
+
+    frame = data["env"].source.frame(*sorted({(e.scene_id, e.im_id) for e in data["env"].source.episodes})[0])
+    gt = {o.obj_id: o.gt for o in frame.objects}
+    for i in range(5):
+        save_frame(tmp_path, stamp_ns(i), frame, gt if i else None, keep=3)
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == [f"{stamp_ns(i)}.npz" for i in (2, 3, 4)]
+    back, back_gt = load_frame(frame_path(tmp_path, stamp_ns(4)))
+    assert np.array_equal(back.rgb, frame.rgb) and np.array_equal(back.depth, frame.depth, equal_nan=True)
+    assert np.allclose(back.K, frame.K) and set(back_gt) == set(gt)
+    assert all(back_gt[k] == gt[k] for k in gt)
+    frame_path(tmp_path, stamp_ns(3)).write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(ValueError, match=f"frame file .*{stamp_ns(3)}.npz cannot be read"):
+        load_frame(frame_path(tmp_path, stamp_ns(3)))
+
+
+# -- the learner's cycle -----------------------------------------------------------------------------
+def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data):
+    """Serving a sequence that never picks (every episode truncated): a pg trained on the stored
+    frames beats it by far more than the margin and is promoted. Serving the engineer's
+    icp_coarse, icp_fine, pick: a pg trained on a few episodes does worse and is discarded."""
+    from perception_config.agents import load_agent
+    from perception_config.online_learning import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
+
+    bad = tmp_path / "bad"
+    n = record_like_the_configurator(bad, data, ["regenerate"])
+    lines: list[str] = []
+    r = learn_once(bad, settings_for(data, train_episodes=48), lines.append)
+    line = format_result(r)
+    m = LINE.match(line)
+    assert m, line
+    assert r["outcome"] == "promoted" and m.group(4) == "promoted v0001", line
+    assert int(m.group(1)) == n and r["cost"] < 0.95 * r["serving_cost"]
+    assert r["serving_cost"] > data["env"].settings.truncation_cost  # never picked: every episode truncated
+    versions = PolicyVersions(bad / POLICIES)
+    assert versions.current() == "v0001"
+    assert load_agent(versions.path("v0001"), data["env"]).kind == "pg"
+    assert versions.list()[-1]["info"]["serving"] == "v0000"
+    assert not list((bad / CANDIDATES).glob("*"))
+
+    good = tmp_path / "good"
+    record_like_the_configurator(good, data, ["icp_coarse", "icp_fine", "pick"])
+    r = learn_once(good, settings_for(data, train_episodes=16))
+    assert r["outcome"] == "discarded" and r["cost"] >= 0.95 * r["serving_cost"], format_result(r)
+    assert LINE.match(format_result(r)).group(4) == "discarded"
+    assert [e["version"] for e in PolicyVersions(good / POLICIES).list()] == ["v0000"]
+    assert not list((good / CANDIDATES).glob("*")), "a discarded candidate is deleted"
+
+    # The same cycle again gives the same costs: the replay check is deterministic (cost table).
+    again = learn_once(good, settings_for(data, train_episodes=16))
+    assert (again["cost"], again["serving_cost"]) == (r["cost"], r["serving_cost"])
+
+
+def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data):
+    from perception_config.episode_store import STORE_NAME, EpisodeStore
+    from perception_config.learn_frames import frame_path
+    from perception_config.online_learning import FRAMES, POLICIES, PolicyVersions, format_result, learn_once
+
+    learn = tmp_path / "learn"
+    n = record_like_the_configurator(learn, data, ["icp_coarse", "icp_fine", "pick"])
+    versions = PolicyVersions(learn / POLICIES)
+    store_bytes = (learn / STORE_NAME).read_bytes()
+
+    # a corrupt serving policy file: training fails, logged, serving and the store unchanged
+    good = versions.path("v0000").read_bytes()
+    versions.path("v0000").write_bytes(good[: len(good) // 2])
+    r = learn_once(learn, settings_for(data, train_episodes=8))
+    assert r["outcome"] == "failed" and "v0000" in r["reason"], r
+    assert re.match(r"^learner: no candidate: .+; serving v0000 unchanged$", format_result(r))
+    assert versions.current() == "v0000" and len(versions.list()) == 1
+    versions.path("v0000").write_bytes(good)
+
+    # a corrupt frame is skipped with a line naming it; frames without ground truth cannot be replayed
+    stamps = sorted(int(p.stem) for p in (learn / FRAMES).glob("*.npz"))
+    frame_path(learn / FRAMES, stamps[0]).write_bytes(b"garbage")
+    for s in stamps[1:]:
+        frame_path(learn / FRAMES, s).unlink()
+    lines: list[str] = []
+    r = learn_once(learn, settings_for(data, train_episodes=8), lines.append)
+    assert r["outcome"] == "failed" and f"0 of {n} stored estimates can be replayed" in r["reason"], r
+    assert any("cannot be read" in line and str(stamps[0]) in line for line in lines), lines
+
+    # a store that is not a store: refused, named, not touched
+    (learn / STORE_NAME).rename(learn / "kept.sqlite")
+    (learn / STORE_NAME).write_bytes(b"this is not sqlite")
+    r = learn_once(learn, settings_for(data, train_episodes=8))
+    assert r["outcome"] == "failed" and "episodes.sqlite" in r["reason"], r
+    assert (learn / STORE_NAME).read_bytes() == b"this is not sqlite"
+    assert (learn / "kept.sqlite").read_bytes() == store_bytes
+    with EpisodeStore(learn / "kept.sqlite", readonly=True) as store:
+        assert store.count() == n
+    assert versions.current() == "v0000" and len(versions.list()) == 1
