@@ -210,3 +210,174 @@ def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tm
     with EpisodeStore(learn / "kept.sqlite", readonly=True) as store:
         assert store.count() == n
     assert versions.current() == "v0000" and len(versions.list()) == 1
+
+
+# -- the configurator with learn:=true ----------------------------------------------------------------
+OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
+IDLE, BUSY = 6, 6  # estimates timed with the learner idle, then while it trains
+
+
+def _learner_log(learn_dir: Path) -> str:
+    p = learn_dir / "learner.log"
+    return p.read_text() if p.exists() else ""
+
+
+def _wait(cond, timeout: float, what: str, node=None) -> None:
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} within {timeout} s")
+        if node is not None:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        else:
+            time.sleep(0.05)
+
+
+def _set_version(ros_node, client, value: str):
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    req = SetParameters.Request(parameters=[Parameter(name="policy_version", value=ParameterValue(
+        type=ParameterType.PARAMETER_STRING, string_value=value))])
+    return call(ros_node, client, req, timeout=10.0).results[0]
+
+
+@pytest.mark.ros
+def test_the_configurator_learns_online_without_delaying_estimates(ros_node, data, tmp_path, request):
+    """learn:=true: every estimate is stored with its frame; report_pick_outcome refuses unknown
+    and duplicated outcomes; perception/policy_version and the policy_version parameter roll back
+    and forward (the trace and the store carry the version); estimate_pose's latency while the
+    learner process trains stays within 1.5x + 0.15 s of its latency while the learner is idle."""
+    from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
+    from perception_config_interfaces.srv import EstimatePose, ReportPickOutcome
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
+
+    from perception_config.agents import make_agent, save_agent
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.episode_store import EpisodeStore
+    from perception_config.online_learning import POLICIES, PolicyVersions
+    from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
+
+    env = data["env"]
+    learn = tmp_path / "learn"
+    # Two kept versions, as after a promotion: v0000 the engineer's sequence, v0001 another one.
+    versions = PolicyVersions(learn / POLICIES)
+    extra = {"env_settings": env.settings.to_json(), "pipeline": str(data["pipeline"])}
+    for i, seq in enumerate((["icp_coarse", "icp_fine", "pick"], ["icp_fine", "pick"])):
+        versions.promote(save_agent(make_agent("fixed", env, sequence=seq), tmp_path / f"s{i}.json", extra))
+    common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0}
+    nodes = {name: NodeProcess(name, common, tmp_path) for name in OPERATORS}
+    nodes["configurator_node"] = NodeProcess("configurator_node", {
+        **common, "operator_timeout": 5.0, "noise_lambda": 0.5, "learn": "true", "learn_dir": str(learn),
+        "learn_every": IDLE, "learn_train_episodes": 100000, "learn_check_episodes": 8, "publish_debug": "false"},
+        tmp_path)
+    seen: list[str] = []
+    traces: list = []
+    subs = [ros_node.create_subscription(String, "perception/policy_version", lambda m: seen.append(m.data),
+                                         QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)),
+            ros_node.create_subscription(OperatorTrace, "perception/trace", traces.append, 10)]
+    request.addfinalizer(lambda: [ros_node.destroy_subscription(s) for s in subs])
+    try:
+        est = ros_node.create_client(EstimatePose, "estimate_pose")
+        report = ros_node.create_client(ReportPickOutcome, "report_pick_outcome")
+        params = ros_node.create_client(SetParameters, "configurator_node/set_parameters")
+        wait_for_service(ros_node, est, 30.0, nodes["configurator_node"])
+        for c in (report, params):
+            wait_for_service(ros_node, c, 10.0, nodes["configurator_node"])
+        _wait(lambda: seen and seen[-1] == "v0001", 10.0, "perception/policy_version did not say v0001", ros_node)
+        pubs = {"color": ros_node.create_publisher(Image, "camera/color/image_raw", 10),
+                "depth": ros_node.create_publisher(Image, "camera/depth/image_raw", 10),
+                "info": ros_node.create_publisher(CameraInfo, "camera/camera_info", 10),
+                "gt": ros_node.create_publisher(ObjectPoses, "perception/ground_truth", 10)}
+        ds = BopDataset(data["root"], split="test")
+        keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
+        objects = []
+        for i, key in enumerate(keys):
+            frame = ds.load_frame(*key)
+            color, depth, info = frame_to_msgs(frame, stamp_ns(i))
+            gt = ObjectPoses(header=color.header, object_ids=[str(o.obj_id) for o in frame.objects],
+                             poses=[pose_to_msg(o.gt) for o in frame.objects])
+            # the configurator listens too (learn): 5 subscribers of the camera, 3 of the ground truth
+            publish_when_matched(ros_node, pubs["gt"], gt, subscribers=3)
+            publish_when_matched(ros_node, pubs["info"], info, subscribers=5)
+            publish_when_matched(ros_node, pubs["depth"], depth, subscribers=5)
+            publish_when_matched(ros_node, pubs["color"], color, subscribers=5)
+            objects += [(stamp_ns(i), o.obj_id) for o in frame.objects if (o.visib_fract or 0) >= 0.3]
+        _wait(lambda: "learner: started" in _learner_log(learn), 60.0, "the learner process did not start")
+
+        def estimate(k: int):
+            stamp, obj = objects[k % len(objects)]
+            req = EstimatePose.Request(object_id=str(obj), noise_lambda=0.5, seed=500 + k)
+            req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            t0 = time.perf_counter()
+            res = call(ros_node, est, req, timeout=60.0)
+            assert res.success, res.message
+            return res, time.perf_counter() - t0
+
+        answers = []
+        idle = []
+        for k in range(IDLE):
+            res, wall = estimate(k)
+            answers.append(res)
+            idle.append(wall)
+            assert "training a candidate" not in _learner_log(learn), "the learner trained before learn_every"
+        _wait(lambda: "training a candidate" in _learner_log(learn), 10.0, "the learner did not start training")
+        busy = []
+        for k in range(IDLE, IDLE + BUSY):
+            res, wall = estimate(k)
+            answers.append(res)
+            busy.append(wall)
+        log = _learner_log(learn)
+        assert "learner: candidate from" not in log and "no candidate" not in log, "training ended too early:\n" + log
+        print(f"estimate_pose wall time, median of {IDLE} / {BUSY}: learner idle {np.median(idle):.3f} s, "
+              f"learner training {np.median(busy):.3f} s")
+        assert np.median(busy) <= 1.5 * np.median(idle) + 0.15, (idle, busy)
+        assert all(r.operations[:2] == ["icp_fine", "pick"][:len(r.operations[:2])] for r in answers)
+
+        # every estimate stored (its id answered) with v0001, and its frame kept with the ground truth
+        ids = [r.estimate_id for r in answers]
+        assert all(ids) and len(set(ids)) == len(ids)
+        with EpisodeStore(learn / "episodes.sqlite", readonly=True) as store:
+            rows = store.query("SELECT id, policy_version, frame_stamp_ns, obj_id FROM episodes ORDER BY id")
+        assert [r[0] for r in rows] == ids and {r[1] for r in rows} == {"v0001"}
+        _wait(lambda: all((learn / "frames" / f"{r[2]}.npz").exists() for r in rows), 10.0, "frames not saved")
+
+        # pick outcomes: recorded once; unknown or duplicated: success=false, the node serves on
+        ok = call(ros_node, report, ReportPickOutcome.Request(estimate_id=ids[0], picked=True))
+        assert ok.success, ok.message
+        dup = call(ros_node, report, ReportPickOutcome.Request(estimate_id=ids[0], picked=False))
+        assert not dup.success and "already has a reported pick outcome" in dup.message
+        unknown = call(ros_node, report, ReportPickOutcome.Request(estimate_id=987654, picked=True))
+        assert not unknown.success and "unknown estimate 987654" in unknown.message
+        with EpisodeStore(learn / "episodes.sqlite", readonly=True) as store:
+            assert store.query("SELECT episode_id, picked, source FROM pick_outcomes") == [(ids[0], 1, "robot")]
+
+        # rollback to v0000 and forward again; an unknown version is refused with the kept ones
+        refused = _set_version(ros_node, params, "v0042")
+        assert not refused.successful and "v0000, v0001" in refused.reason
+        assert _set_version(ros_node, params, "v0000").successful
+        _wait(lambda: seen[-1] == "v0000", 10.0, "perception/policy_version did not say v0000", ros_node)
+        n_traces = len(traces)
+        res, _ = estimate(0)
+        assert res.operations[:2] == ["icp_coarse", "icp_fine"]
+        _wait(lambda: len(traces) > n_traces, 5.0, "no trace", ros_node)
+        assert traces[-1].policy_version == "v0000"
+        assert _set_version(ros_node, params, "").successful
+        _wait(lambda: seen[-1] == "v0001", 10.0, "perception/policy_version did not return to v0001", ros_node)
+        res2, _ = estimate(1)
+        with EpisodeStore(learn / "episodes.sqlite", readonly=True) as store:
+            got = store.query("SELECT id, policy_version FROM episodes WHERE id IN (?, ?) ORDER BY id",
+                              (res.estimate_id, res2.estimate_id))
+        assert got == [(res.estimate_id, "v0000"), (res2.estimate_id, "v0001")]
+        assert nodes["configurator_node"].alive()
+        pid = int(re.search(r"learner process (\d+) started", nodes["configurator_node"].output()).group(1))
+    finally:
+        codes = {name: node.stop() for name, node in nodes.items()}
+    assert codes["configurator_node"] == 0, nodes["configurator_node"].output()
+    assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text().lower(), \
+        "the learner process outlived its configurator"
