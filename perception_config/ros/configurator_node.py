@@ -327,7 +327,10 @@ class ConfiguratorNode(Node):
                                 pick_source=self.pick_source, image_ids=False)
             response.estimate_id = int(eid or 0)
         if self.learning is not None:
-            self.learning.capture(frame_stamp)
+            try:
+                self.learning.capture(frame_stamp)
+            except Exception as exc:  # noqa: BLE001  (learning must never fail an estimate)
+                self.get_logger().error(f"learn: frame of the estimate not kept: {exc!r}")
         info, names = traj.final_info, traj.names
         picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
@@ -382,12 +385,15 @@ class ConfiguratorNode(Node):
         self.agent_name = f"{agent.kind} policy version {version}"
 
     def _learning_tick(self) -> None:
-        self.learning.drain()
-        if self._busy.acquire(blocking=False):  # never waits for an estimate
-            try:
-                self.learning.sync(self._swap)
-            finally:
-                self._busy.release()
+        try:
+            self.learning.drain()
+            if self._busy.acquire(blocking=False):  # never waits for an estimate
+                try:
+                    self.learning.sync(self._swap)
+                finally:
+                    self._busy.release()
+        except Exception as exc:  # noqa: BLE001  (the node keeps serving whatever the learner sent)
+            self.get_logger().error(f"learn: {exc!r}; the current version keeps serving")
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         for param in params:
