@@ -8,6 +8,7 @@ then run the learner's cycle in-process; the ROS test runs the real node and its
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 import time
@@ -214,7 +215,8 @@ def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tm
 
 # -- the configurator with learn:=true ----------------------------------------------------------------
 OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
-IDLE, BUSY = 6, 6  # estimates timed with the learner idle, then while it trains
+# estimates timed with the learner idle, then while it trains (more for a measurement: the env var)
+IDLE = BUSY = int(os.environ.get("PERCEPTION_CONFIG_LEARN_LATENCY_SAMPLES", "6"))
 
 
 def _learner_log(learn_dir: Path) -> str:
@@ -335,7 +337,8 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
         log = _learner_log(learn)
         assert "learner: candidate from" not in log and "no candidate" not in log, "training ended too early:\n" + log
         print(f"estimate_pose wall time, median of {IDLE} / {BUSY}: learner idle {np.median(idle):.3f} s, "
-              f"learner training {np.median(busy):.3f} s")
+              f"learner training {np.median(busy):.3f} s; mean {np.mean(idle):.3f} / {np.mean(busy):.3f} s, "
+              f"max {np.max(idle):.3f} / {np.max(busy):.3f} s")
         assert np.median(busy) <= 1.5 * np.median(idle) + 0.15, (idle, busy)
         assert all(r.operations[:2] == ["icp_fine", "pick"][:len(r.operations[:2])] for r in answers)
 
@@ -374,6 +377,17 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             got = store.query("SELECT id, policy_version FROM episodes WHERE id IN (?, ?) ORDER BY id",
                               (res.estimate_id, res2.estimate_id))
         assert got == [(res.estimate_id, "v0000"), (res2.estimate_id, "v0001")]
+
+        # a damaged versions index: one error line, the current version keeps serving
+        index = learn / POLICIES / "versions.json"
+        saved = index.read_bytes()
+        index.write_text("{damaged")
+        res3, _ = estimate(3)
+        assert res3.success and res3.estimate_id > res2.estimate_id
+        _wait(lambda: "cannot serve the new version" in nodes["configurator_node"].output(), 5.0, "no error line")
+        _wait(lambda: len(traces) >= n_traces + 3, 5.0, "no trace", ros_node)
+        assert traces[-1].policy_version == "v0001"
+        index.write_bytes(saved)
         assert nodes["configurator_node"].alive()
         first = nodes["configurator_node"]
         pid = int(re.search(r"learner process (\d+) started", first.output()).group(1))
