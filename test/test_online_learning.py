@@ -135,6 +135,26 @@ def test_frame_files_round_trip_are_bounded_and_a_corrupt_one_is_named(tmp_path,
         load_frame(frame_path(tmp_path, stamp_ns(3)))
 
 
+def test_a_frame_that_cannot_be_written_leaves_nothing_behind(tmp_path, data, monkeypatch):
+    """A full disk while a frame is written: OSError for the caller (the node logs it), no file,
+    no temporary file, the frames already kept untouched."""
+    import errno
+
+    from perception_config import learn_frames
+
+    frame = data["env"].source.frame(*sorted({(e.scene_id, e.im_id) for e in data["env"].source.episodes})[0])
+    kept = learn_frames.save_frame(tmp_path, stamp_ns(0), frame, None)
+    before = kept.read_bytes()
+
+    def full(*args, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(learn_frames.np, "savez_compressed", full)
+    with pytest.raises(OSError, match="No space left"):
+        learn_frames.save_frame(tmp_path, stamp_ns(1), frame, None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [kept.name] and kept.read_bytes() == before
+
+
 # -- the learner's cycle -----------------------------------------------------------------------------
 def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data):
     """Serving a sequence that never picks (every episode truncated): a pg trained on the stored
@@ -244,6 +264,19 @@ def _set_version(ros_node, client, value: str):
     req = SetParameters.Request(parameters=[Parameter(name="policy_version", value=ParameterValue(
         type=ParameterType.PARAMETER_STRING, string_value=value))])
     return call(ros_node, client, req, timeout=10.0).results[0]
+
+
+@pytest.mark.ros
+def test_learn_without_learn_dir_or_with_an_unknown_version_does_not_start(data, tmp_path):
+    base = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "publish_debug": "false"}
+    started = []
+    for params, says in (({"learn": "true"}, "learn is true but learn_dir is not set"),
+                         ({"learn": "true", "learn_dir": str(tmp_path / "l"), "policy_version": "v0007"},
+                          "unknown policy version 'v0007'")):
+        started.append((NodeProcess("configurator_node", {**base, **params}, tmp_path), says))
+    for node, says in started:  # started together: one start-up's time
+        node.proc.wait(60)
+        assert node.stop() == 2 and says in node.output(), node.output()
 
 
 @pytest.mark.ros
