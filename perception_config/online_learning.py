@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import sqlite3
 import time
 from dataclasses import dataclass, field
@@ -246,6 +247,9 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
     line, to `<learn_dir>/learner.log`. Ends when `stop` (an Event) is set or the parent dies."""
     learn_dir = Path(learn_dir)
     parent = os.getppid()
+    # A launcher stops a node with SIGINT to its whole process group: the configurator ends this
+    # process through `stop` (or its death), so Ctrl-C is not ours to handle; SIGTERM still ends it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(nice)
     except OSError:
