@@ -44,18 +44,20 @@ def settings_for(data, **kw):
     return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), data["env"].settings.to_json(), **kw)
 
 
-def record_like_the_configurator(learn_dir: Path, data, sequence: list[str]) -> int:
-    """Every episode of the tiny dataset played by a fixed agent, stored as the configurator
-    stores an estimate (episode + frame with ground truth); version 0 = that agent. The count."""
-    from perception_config.agents import make_agent, save_agent
+@pytest.fixture(scope="module")
+def recorded(data, tmp_path_factory):
+    """Every episode of the tiny dataset played by the engineer's sequence, stored as the
+    configurator stores an estimate (an episode in the store + its frame with ground truth)."""
+    from perception_config.agents import make_agent
     from perception_config.episode_loop import acting_seed, play_episode
     from perception_config.episode_store import STORE_NAME, StoreWriter, store_episode
     from perception_config.learn_frames import save_frame
-    from perception_config.online_learning import FRAMES, POLICIES, PolicyVersions
+    from perception_config.online_learning import FRAMES
 
     env = data["env"]
-    agent = make_agent("fixed", env, sequence=sequence)
-    writer = StoreWriter(learn_dir / STORE_NAME, print)
+    out = tmp_path_factory.mktemp("recorded")
+    agent = make_agent("fixed", env)
+    writer = StoreWriter(out / STORE_NAME, print)
     keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
     for j, ek in enumerate(env.source.episodes):
         stamp, seed = stamp_ns(keys.index((ek.scene_id, ek.im_id))), 1000 + j
@@ -63,10 +65,22 @@ def record_like_the_configurator(learn_dir: Path, data, sequence: list[str]) -> 
         assert store_episode(writer, traj, source="configurator", agent="fixed", policy_version="v0000",
                              episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
         frame = env.source.frame(ek.scene_id, ek.im_id)
-        save_frame(learn_dir / FRAMES, stamp, frame, {o.obj_id: o.gt for o in frame.objects})
+        save_frame(out / FRAMES, stamp, frame, {o.obj_id: o.gt for o in frame.objects})
     writer.close()
-    path = save_agent(agent, learn_dir / "start.json", {"env_settings": env.settings.to_json(),
-                                                        "pipeline": str(data["pipeline"])})
+    return out
+
+
+def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence: list[str]) -> int:
+    """A learn_dir with the recorded estimates and version 0 = the fixed `sequence`; the count."""
+    import shutil
+
+    from perception_config.agents import make_agent, save_agent
+    from perception_config.online_learning import POLICIES, PolicyVersions
+
+    shutil.copytree(recorded, learn_dir)
+    env = data["env"]
+    path = save_agent(make_agent("fixed", env, sequence=sequence), learn_dir / "start.json",
+                      {"env_settings": env.settings.to_json(), "pipeline": str(data["pipeline"])})
     assert PolicyVersions(learn_dir / POLICIES).promote(path, {"start": "fixed"}) == "v0000"
     return len(env.source.episodes)
 
@@ -156,7 +170,7 @@ def test_a_frame_that_cannot_be_written_leaves_nothing_behind(tmp_path, data, mo
 
 
 # -- the learner's cycle -----------------------------------------------------------------------------
-def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data):
+def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data, recorded):
     """Serving a sequence that never picks (every episode truncated): a pg trained on the stored
     frames beats it by far more than the margin and is promoted. Serving the engineer's
     icp_coarse, icp_fine, pick: a pg trained on a few episodes does worse and is discarded."""
@@ -164,7 +178,7 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     from perception_config.online_learning import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
 
     bad = tmp_path / "bad"
-    n = record_like_the_configurator(bad, data, ["regenerate"])
+    n = record_like_the_configurator(bad, data, recorded, ["regenerate"])
     lines: list[str] = []
     r = learn_once(bad, settings_for(data, train_episodes=48), lines.append)
     line = format_result(r)
@@ -180,7 +194,7 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     assert not list((bad / CANDIDATES).glob("*"))
 
     good = tmp_path / "good"
-    record_like_the_configurator(good, data, ["icp_coarse", "icp_fine", "pick"])
+    record_like_the_configurator(good, data, recorded, ["icp_coarse", "icp_fine", "pick"])
     r = learn_once(good, settings_for(data, train_episodes=16))
     assert r["outcome"] == "discarded" and r["cost"] >= 0.95 * r["serving_cost"], format_result(r)
     assert LINE.match(format_result(r)).group(4) == "discarded"
@@ -192,13 +206,13 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     assert (again["cost"], again["serving_cost"]) == (r["cost"], r["serving_cost"])
 
 
-def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data):
+def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data, recorded):
     from perception_config.episode_store import STORE_NAME, EpisodeStore
     from perception_config.learn_frames import frame_path
     from perception_config.online_learning import FRAMES, POLICIES, PolicyVersions, format_result, learn_once
 
     learn = tmp_path / "learn"
-    n = record_like_the_configurator(learn, data, ["icp_coarse", "icp_fine", "pick"])
+    n = record_like_the_configurator(learn, data, recorded, ["icp_coarse", "icp_fine", "pick"])
     versions = PolicyVersions(learn / POLICIES)
     store_bytes = (learn / STORE_NAME).read_bytes()
 
