@@ -54,7 +54,7 @@ LEARNER_LINE = re.compile(
     r" -> (?:(?P<promoted>promoted) (?P<version>[^\s,;]+)|(?P<discarded>discarded))")
 ROS_LOG_TIME = re.compile(r"\[(\d{9,}\.\d+)\]")  # rcutils' default format: [INFO] [1733100000.123] [node]: ...
 DEFAULT_TOLERANCE = 0.10
-DEFAULT_WINDOW = 50
+DEFAULT_WINDOW = 200  # estimates: the rolling mean time of a fixed policy varies by +-10 % over 200 (README)
 
 
 # --------------------------------------------------------------------------- one estimate
@@ -276,11 +276,17 @@ def reached_within(success: Sequence[float], times: Sequence[float], ref_success
 
 
 def reference_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Success share and mean charged time of the reference's estimates."""
+    """Success share and mean charged time of the reference's estimates, with their standard
+    errors: the time per estimate is heavy-tailed (a failed estimate is charged its failed picks
+    at the robot's cost, ~100x a quick success), so its mean needs many estimates."""
     if not rows:
         raise ValueError("the reference has no estimates")
-    return {"estimates": len(rows), "success": float(np.mean([r["success"] for r in rows])),
-            "time_s": float(np.mean([r["time_s"] for r in rows])),
+    success = np.array([r["success"] for r in rows], np.float64)
+    times = np.array([r["time_s"] for r in rows], np.float64)
+    return {"estimates": len(rows), "success": float(success.mean()), "time_s": float(times.mean()),
+            "success_se": float(success.std() / math.sqrt(len(rows))),
+            "time_se": float(times.std() / math.sqrt(len(rows))),
+            "time_median_s": float(np.median(times)),
             "first_pick_success": float(np.mean([r["first_pick_success"] for r in rows])),
             "policy_version": rows[0]["policy_version"]}
 
@@ -370,7 +376,12 @@ def format_summary(s: dict[str, Any]) -> str:
              if s["estimates"] else "no estimates",
              f"reference {ref.get('name', '')} ({ref['estimates']} estimates, "
              f"{ref.get('measured', 'through the nodes')}): "
-             f"success {ref['success']:.1%}, mean time {ref['time_s']:.3f} s"]
+             f"success {ref['success']:.1%}" + (f" +- {ref['success_se']:.1%}" if "success_se" in ref else "")
+             + f", mean time {ref['time_s']:.3f} s" + (f" +- {ref['time_se']:.3f} s (standard errors)"
+                                                       if "time_se" in ref else "")]
+    if ref.get("time_se") and ref["time_se"] > 0.5 * s["tolerance"] * ref["time_s"]:
+        lines.append(f"  the reference's mean time is known to {ref['time_se'] / ref['time_s']:.0%} only (one standard "
+                     f"error), more than half the {s['tolerance']:.0%} tolerance: measure it over more rounds")
     if s["reached_within"] is not None:
         lines.append(f"within {s['tolerance']:.0%} of the reference on success and time (rolling {s['window']}) "
                      f"from estimate {s['reached_within']} to the end")

@@ -375,6 +375,8 @@ def _add_cell_sim_parser(sub: argparse._SubParsersAction) -> None:
                     help="the offline-trained policy whose success and time are the reference lines")
     cs.add_argument("--reference-from", type=Path, default=None, metavar="CSV",
                     help="reuse a previous run's reference.csv instead of measuring the reference again")
+    cs.add_argument("--reference-rounds", type=int, default=1, metavar="R",
+                    help="rounds over the bag (every object of every frame once each) for the reference (1)")
     cs.add_argument("--estimates", type=int, default=200, help="estimates of the cell (200)")
     cs.add_argument("--out", type=Path, required=True, help="output folder")
     cs.add_argument("--no-learn", dest="learn", action="store_false",
@@ -387,7 +389,7 @@ def _add_cell_sim_parser(sub: argparse._SubParsersAction) -> None:
                     help="noise level of the simulated initial hypotheses (0.5)")
     cs.add_argument("--seed", type=int, default=0, help="the estimates' seeds")
     cs.add_argument("--rate", type=float, default=1.0, help="replay rate, x the recorded timing (1.0)")
-    cs.add_argument("--window", type=int, default=50, help="estimates in the rolling window (50)")
+    cs.add_argument("--window", type=int, default=200, help="estimates in the rolling window (200)")
     cs.add_argument("--quiet", action="store_true", help="no progress bar")
     cs.set_defaults(func=_cmd_cell_sim)
 

@@ -165,6 +165,12 @@ def test_summary_and_plot_of_a_constructed_learning_run(tmp_path):
     assert f"from estimate {s['reached_within']} to the end" in text
     assert "v0001: replay-check cost 2.000 vs start 5.000 (-60.0%)" in text
     assert "no promoted version worse than its predecessor" in text
+    assert reference["success_se"] == pytest.approx(0.3 / math.sqrt(40)) and reference["time_se"] == 0.0
+    assert "measure it over more rounds" not in text
+    # A heavy-tailed reference (one estimate in ten charged 10 s) over 40 estimates: said to be too uncertain.
+    tailed = reference_figures([_row(i, 1, 10.0 if i % 10 == 0 else 0.1) for i in range(40)])
+    assert tailed["time_se"] == pytest.approx(np.std([10.0 if i % 10 == 0 else 0.1 for i in range(40)]) / math.sqrt(40))
+    assert "measure it over more rounds" in format_summary(summarise(rows, tailed, [], window=30))
     never = summarise(rows[:59], reference, [], window=30)
     assert never["reached_within"] is None and "not reached within 59" in format_summary(never)
     plot_cell_sim(tmp_path / "cell_sim.png", rows, reference, 30, [(60, "v0001")], reached=s["reached_within"])
