@@ -320,7 +320,7 @@ def plot_cell_sim(path: str | os.PathLike, rows: Sequence[dict[str, Any]], refer
                 ax.annotate(version, (index + 1, 1.0), xycoords=("data", "axes fraction"), rotation=90,
                             va="top", ha="right", fontsize=8, color="tab:red")
         if reached is not None:
-            ax.axvline(reached, color="black", lw=0.8)
+            ax.axvline(reached, color="black", lw=0.8, label=f"within {tolerance:.0%} from here on")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(0, 1.05)
@@ -399,6 +399,9 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["promotions"]:
         lines.append("no promoted version worse than its predecessor" if s["all_not_worse"]
                      else "a promoted version is WORSE than its predecessor on the replay check")
+    if s.get("learner_failures"):
+        lines.append(f"learner: {len(s['learner_failures'])} cycles without a candidate, the last: "
+                     f"{s['learner_failures'][-1].split('learner: ', 1)[-1]}")
     if s["unanswered"]:
         lines.append(f"{s['unanswered']} estimates not answered (counted as failures; see the message column)")
     if s["without_trace"]:

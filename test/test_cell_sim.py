@@ -171,6 +171,8 @@ def test_summary_and_plot_of_a_constructed_learning_run(tmp_path):
     tailed = reference_figures([_row(i, 1, 10.0 if i % 10 == 0 else 0.1) for i in range(40)])
     assert tailed["time_se"] == pytest.approx(np.std([10.0 if i % 10 == 0 else 0.1 for i in range(40)]) / math.sqrt(40))
     assert "measure it over more rounds" in format_summary(summarise(rows, tailed, [], window=30))
+    s["learner_failures"] = ["[WARN] learner: no candidate: OSError: disk full; serving v0001 unchanged"]
+    assert "1 cycles without a candidate, the last: no candidate: OSError: disk full" in format_summary(s)
     never = summarise(rows[:59], reference, [], window=30)
     assert never["reached_within"] is None and "not reached within 59" in format_summary(never)
     plot_cell_sim(tmp_path / "cell_sim.png", rows, reference, 30, [(60, "v0001")], reached=s["reached_within"])

@@ -296,8 +296,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
             raise KeyboardInterrupt("stopped during the reference pass")
         ref_rows = ref_log.rows
         measured = f"{reference_rounds} round{'s' if reference_rounds > 1 else ''} through the nodes"
-    ref = {**reference_figures(ref_rows), "name": reference.name if reference.stem != "policy" else
-           f"{reference.parent.name}/{reference.name}", "measured": measured}
+    ref = {**reference_figures(ref_rows), "name": _policy_name(reference), "measured": measured}
 
     # The cell.
     conf: dict[str, Any] = {**base, "policy": str(start_policy or "")}
@@ -318,17 +317,23 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
                                      seed=seed, start_version=start_version, desc="cell", **drive_common)
     events = learner_events(lines)
     summary = summarise(log.rows, ref, events, window, tolerance, requested=estimates)
+    summary["learner_failures"] = [line.strip() for line in lines if "learner: no candidate:" in line]
     summary.update({"start": start if start_policy is None else str(start_policy), "learn": learn,
                     "bag": str(bag_path), "frames": frames, "noise_lambda": noise_lambda, "interrupted": not completed,
                     "learner_lines": [e.line for e in events]})
     marks = [(p["first_estimate"], p["version"]) for p in summary["promotions"] if p["first_estimate"] is not None]
-    start_name = summary["start"] if start_policy is None else start_policy.name
+    start_name = summary["start"] if start_policy is None else _policy_name(start_policy)
     plot_cell_sim(out / "cell_sim.png", log.rows, ref, window, marks, tolerance=tolerance,
                   reached=summary["reached_within"],
                   title=f"cell from {start_name}{' learning' if learn else ' (no learning)'}, "
                         f"{frames} frames in a loop, lambda {noise_lambda:g}")
     atomic_write(out / "summary.json", json.dumps(_finite(summary), indent=2) + "\n")
     return summary
+
+
+def _policy_name(path: Path) -> str:
+    """A policy file as people know it: runs/<run>/policy.safetensors by its run folder."""
+    return f"{path.parent.name}/{path.name}" if path.stem == "policy" else path.name
 
 
 def _finite(x: Any) -> Any:
