@@ -371,6 +371,9 @@ def _add_cell_sim_parser(sub: argparse._SubParsersAction) -> None:
     cs.add_argument("--start", default="fixed", metavar="fixed|untrained|POLICY",
                     help="what serves first: the fixed sequence, an untrained pg policy (learning only) or a policy "
                          "file (default fixed)")
+    cs.add_argument("--fixed-sequence", default=None, metavar="A,B,...",
+                    help="the fixed sequence of --start fixed (default: the configurator's, icp_coarse,icp_fine,pick; "
+                         "the best on the demo dataset is d2co,icp_fine,pick)")
     cs.add_argument("--reference", type=Path, required=True, metavar="POLICY",
                     help="the offline-trained policy whose success and time are the reference lines")
     cs.add_argument("--reference-from", type=Path, default=None, metavar="CSV",

@@ -224,7 +224,7 @@ def test_a_short_cell_run_without_learning(ros_node, tmp_path_factory, tmp_path,
     assert len({r["frame_stamp_ns"] for r in rows[:one_round]}) == bag_info(bag)["frames"]
     assert len({(r["frame_stamp_ns"], r["obj_id"]) for r in rows[:one_round]}) == one_round
     assert len({r["seed"] for r in rows}) == estimates  # a fresh initial hypothesis every estimate
-    assert {r["policy_version"] for r in rows} == {"fixed"} and all(r["trace"] for r in rows)
+    assert {r["policy_version"] for r in rows} == {"fixed:icp_coarse+icp_fine+pick"} and all(r["trace"] for r in rows)
     # The reference: the policy through the same nodes, one round.
     ref = read_estimates(out / "reference.csv")
     assert len(ref) == one_round and {r["policy_version"] for r in ref} == {policy_version(policy)}

@@ -48,6 +48,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from tqdm import tqdm
 
+from ..agents.fixed import DEFAULT_SEQUENCE
 from ..atomic_file import atomic_write
 from ..blocks.base import Kind
 from ..blocks.pipeline import load_pipeline
@@ -77,7 +78,6 @@ from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
 
 STARTS = ("fixed", "untrained")
-FIXED_VERSION = "fixed"
 TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
 SERVICE_NODES = ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node")
 
@@ -222,8 +222,8 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
              estimates: int = 200, learn: bool = True, learn_every: int | None = None,
              learn_margin: float | None = None, noise_lambda: float = 0.5, seed: int = 0, rate: float = 1.0,
              images: int | None = None, window: int = DEFAULT_WINDOW, tolerance: float = DEFAULT_TOLERANCE,
-             reference_from: str | Path | None = None, reference_rounds: int = 1, quiet: bool = True,
-             progress: bool = True) -> dict[str, Any]:
+             reference_from: str | Path | None = None, reference_rounds: int = 1,
+             fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True) -> dict[str, Any]:
     """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
     out = Path(out).resolve()
     if (bag is None) == (dataset is None):
@@ -248,6 +248,10 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     settings = policy_settings([p for p in (reference, start_policy) if p is not None])
     pipeline = load_pipeline(settings.pipeline)
     pick_actions = [a.name for a in pipeline.actions if a.block.kind == Kind.PICK]
+    sequence = list(fixed_sequence or DEFAULT_SEQUENCE)
+    unknown = [a for a in sequence if a not in pipeline.action_names]
+    if unknown:
+        raise ValueError(f"--fixed-sequence: {unknown} are not actions of the pipeline ({pipeline.action_names})")
     out.mkdir(parents=True, exist_ok=True)
 
     if dataset is not None:
@@ -299,7 +303,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     ref = {**reference_figures(ref_rows), "name": _policy_name(reference), "measured": measured}
 
     # The cell.
-    conf: dict[str, Any] = {**base, "policy": str(start_policy or "")}
+    conf: dict[str, Any] = {**base, "policy": str(start_policy or ""), "fixed_sequence": sequence}
     if learn:
         conf.update({"learn": True, "learn_dir": str(out / "learn"),
                      "learn_start": "policy" if start_policy else start})
@@ -311,7 +315,8 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
         conf["episode_store"] = str(out / STORE_NAME)
     specs = service_specs(models_dir, settings.pipeline, frames, rgb_only, conf)
     specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
-    start_version = policy_version(start_policy) if start_policy else FIXED_VERSION if start == "fixed" else start
+    start_version = policy_version(start_policy) if start_policy else \
+        "fixed:" + "+".join(sequence) if start == "fixed" else start  # as the episode store names the agent
     with EstimateLog(out / "estimates.csv") as log:
         completed, lines = run_phase(specs, out, "cell", log, quiet=quiet, estimates=estimates, rounds=None,
                                      seed=seed, start_version=start_version, desc="cell", **drive_common)
@@ -322,10 +327,11 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
                     "bag": str(bag_path), "frames": frames, "noise_lambda": noise_lambda, "interrupted": not completed,
                     "learner_lines": [e.line for e in events]})
     marks = [(p["first_estimate"], p["version"]) for p in summary["promotions"] if p["first_estimate"] is not None]
-    start_name = summary["start"] if start_policy is None else _policy_name(start_policy)
+    start_name = _policy_name(start_policy) if start_policy else \
+        f"fixed {' -> '.join(sequence)}" if start == "fixed" else start
     plot_cell_sim(out / "cell_sim.png", log.rows, ref, window, marks, tolerance=tolerance,
                   reached=summary["reached_within"],
-                  title=f"cell from {start_name}{' learning' if learn else ' (no learning)'}, "
+                  title=f"cell from {start_name}, {'learning' if learn else 'no learning'}, "
                         f"{frames} frames in a loop, lambda {noise_lambda:g}")
     atomic_write(out / "summary.json", json.dumps(_finite(summary), indent=2) + "\n")
     return summary
@@ -357,6 +363,7 @@ def run_cli(args: Any) -> int:
                      learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed, rate=args.rate,
                      images=args.images, window=args.window, reference_from=args.reference_from,
                      reference_rounds=args.reference_rounds,
+                     fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence else None,
                      progress=not args.quiet)
     finally:
         rclpy.try_shutdown()
