@@ -33,9 +33,12 @@ summary and plot cover them (exit code 130).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import signal
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -74,6 +77,7 @@ from ..evaluation import episode_seed
 from ..launch import Launcher, default_models
 from ..policy_settings import is_policy_file, policy_settings
 from ..ros_environment import configure_ros_environment
+from ..stop_signals import Interrupted, StopRequested, StopSignals, signal_name
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
 
@@ -137,9 +141,11 @@ class CellNode:
 def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates: int | None, rounds: int | None,
           frames_per_round: int, noise_lambda: float, seed: int, pick_actions: list[str], failed_pick_cost: float,
           start_version: str, frame_timeout: float, alive: Callable[[], None], desc: str, window: int = DEFAULT_WINDOW,
-          progress: bool = True) -> bool:
+          progress: bool = True, stop: StopSignals | None = None) -> bool:
     """Estimate frame after frame (see the module docstring) until `estimates` are done or
-    `rounds` rounds are complete; rows go to `log`. False when stopped by Ctrl-C."""
+    `rounds` rounds are complete; rows go to `log`. False when stopped by a stop signal (`stop`:
+    SIGINT, SIGTERM, SIGHUP abandon the estimate in flight; without it, Ctrl-C)."""
+    interruptible = stop.interruptible if stop is not None else contextlib.nullcontext
     done: set[int] = set()
     round_no = index = 0
     succ: list[float] = []
@@ -147,15 +153,17 @@ def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates
     bar = tqdm(total=estimates, desc=desc, unit="estimate", disable=not progress)
     try:
         while (estimates is None or index < estimates) and (rounds is None or round_no < rounds):
-            stamp, ids = cell.next_frame(done, frame_timeout, alive)
+            with interruptible():
+                stamp, ids = cell.next_frame(done, frame_timeout, alive)
             done.add(stamp)
             counts = {i: ids.count(i) for i in ids}
             for obj in dict.fromkeys(ids):
                 if counts[obj] != 1 or (estimates is not None and index >= estimates):
                     continue
                 ep_seed = max(1, episode_seed(seed, index))
-                answer = client.call(stamp, obj, noise_lambda, ep_seed)
-                trace = cell.trace_for(stamp, obj) if answer["success"] else None
+                with interruptible():  # the row is written outside: a signal never cuts a line short
+                    answer = client.call(stamp, obj, noise_lambda, ep_seed)
+                    trace = cell.trace_for(stamp, obj) if answer["success"] else None
                 oks = list(trace.ok) if trace is not None else None
                 version = (getattr(trace, "policy_version", "") if trace is not None else "") or cell.version \
                     or start_version
@@ -183,7 +191,7 @@ def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates
                 done.clear()
                 round_no += 1
         return True
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Interrupted):
         return False
     finally:
         bar.close()
@@ -223,7 +231,8 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
              learn_margin: float | None = None, noise_lambda: float = 0.5, seed: int = 0, rate: float = 1.0,
              images: int | None = None, window: int = DEFAULT_WINDOW, tolerance: float = DEFAULT_TOLERANCE,
              reference_from: str | Path | None = None, reference_rounds: int = 1,
-             fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True) -> dict[str, Any]:
+             fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True,
+             stop: StopSignals | None = None) -> dict[str, Any]:
     """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
     out = Path(out).resolve()
     if (bag is None) == (dataset is None):
@@ -276,7 +285,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     # The frame's stamps repeat every pass; a frame not seen for a whole pass plus start-up is lost.
     frame_timeout = 90.0 + 2.0 * info.get("duration_s", 0.0) / (rate if rate > 0 else 1.0)
     base = {"noise_lambda": float(noise_lambda), "max_ops": settings.env.max_ops}
-    drive_common = {"noise_lambda": noise_lambda, "pick_actions": pick_actions,
+    drive_common = {"stop": stop, "noise_lambda": noise_lambda, "pick_actions": pick_actions,
                     "failed_pick_cost": settings.env.failed_pick_cost, "frame_timeout": frame_timeout,
                     "frames_per_round": truth,
                     "window": window, "progress": progress}
@@ -297,7 +306,9 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
                                      seed=seed + 1, start_version=policy_version(reference),
                                      desc="reference", **drive_common)
         if not completed:
-            raise KeyboardInterrupt("stopped during the reference pass")
+            raise StopRequested(stop.received[0] if stop is not None and stop.received else signal.SIGINT,
+                                f"stopped during the reference pass; {len(ref_log.rows)} reference estimates in "
+                                f"{out / 'reference.csv'}")
         ref_rows = ref_log.rows
         measured = f"{reference_rounds} round{'s' if reference_rounds > 1 else ''} through the nodes"
     ref = {**reference_figures(ref_rows), "name": _policy_name(reference), "measured": measured}
@@ -354,20 +365,26 @@ def _finite(x: Any) -> Any:
 
 
 def run_cli(args: Any) -> int:
-    """`perception-config cell-sim`: exit 0 when the run completed, 130 when stopped by Ctrl-C."""
+    """`perception-config cell-sim`: exit 0 when the run completed; stopped by SIGINT, SIGTERM or
+    SIGHUP: what ran is written and summarised, exit 128 + the signal number."""
     configure_ros_environment()  # loopback defaults before rclpy starts
     rclpy.init()
     try:
-        s = cell_sim(args.out, args.reference, bag=args.bag, dataset=args.dataset, models=args.models,
-                     start=args.start, estimates=args.estimates, learn=args.learn, learn_every=args.learn_every,
-                     learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed, rate=args.rate,
-                     images=args.images, window=args.window, reference_from=args.reference_from,
-                     reference_rounds=args.reference_rounds,
-                     fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence else None,
-                     progress=not args.quiet)
+        with StopSignals().installed() as stop:
+            s = cell_sim(args.out, args.reference, bag=args.bag, dataset=args.dataset, models=args.models,
+                         start=args.start, estimates=args.estimates, learn=args.learn, learn_every=args.learn_every,
+                         learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed,
+                         rate=args.rate, images=args.images, window=args.window, reference_from=args.reference_from,
+                         reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
+                         fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
+                         else None)
     finally:
         rclpy.try_shutdown()
     print(format_summary(s))
     print(f"wrote {Path(args.out) / 'estimates.csv'}, {Path(args.out) / 'cell_sim.png'} and "
           f"{Path(args.out) / 'summary.json'}")
-    return 130 if s["interrupted"] else 0
+    if stop.received:
+        print(f"perception-config cell-sim: stopped by {signal_name(stop.received[0])} after {s['estimates']} "
+              "estimates", file=sys.stderr)
+        return 128 + stop.received[0]
+    return 0
