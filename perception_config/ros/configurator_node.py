@@ -53,6 +53,25 @@ Parameters:
                     estimate is answered as usual
   pick_source       who answers the pick_node's picks, recorded with each pick: "simulated" (default)
                     or "robot" (pick_node's robot_service set)
+  learn             online learning (ros/learning.py, online_learning.py): every estimate is stored
+                    with its frame in `learn_dir`, a learner process trains candidates and promotes
+                    those that beat the serving version on a replay of stored episodes; the serving
+                    policy is swapped between estimates (false)
+  learn_dir         the learning state: episodes.sqlite (the store, unless episode_store is given),
+                    frames/, policies/ (v0000..., versions.json), learner.log; required with learn
+  learn_start       version 0 when learn_dir has none: "policy" (the policy file, else the fixed
+                    pipeline), "fixed" or "untrained" (a fresh pg policy)
+  learn_margin      a candidate is promoted only if its replayed mean cost is below (1 - margin) x
+                    the serving version's (0.05)
+  learn_every       new stored estimates between two candidates (20)
+  learn_train_episodes, learn_check_episodes   a candidate's training episodes (200) and the
+                    newest stored episodes of its replay check (40)
+  policy_version    (learn) pin a kept version at run time (`ros2 param set ... policy_version v0002`);
+                    "" = the newest promoted; an unknown version is refused with the kept ones
+Topics: `perception/policy_version` (std_msgs/String, transient local): the serving version after
+every change. Service `report_pick_outcome` (ReportPickOutcome): the robot's pick result for an
+estimate (EstimatePose's `estimate_id`), recorded on the episode's last step in the store; an
+unknown estimate or a second report answers success=false with the reason.
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 
 Deadline: an estimate that reaches `estimate_timeout` between two operators answers
@@ -69,6 +88,7 @@ remap the operator services with global rules, not `configurator_node:`-prefixed
 from __future__ import annotations
 
 import math
+import sqlite3
 import threading
 import time
 from collections import deque
@@ -77,24 +97,26 @@ from pathlib import Path
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
-from perception_config_interfaces.srv import EstimatePose
+from perception_config_interfaces.srv import EstimatePose, ReportPickOutcome
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from ..agents import load_agent, make_agent
 from ..agents.fixed import DEFAULT_SEQUENCE
-from ..blocks.pipeline import load_pipeline
+from ..blocks.pipeline import load_pipeline, pipeline_reference
 from ..datasets.bop import ModelFolder
 from ..env import PerceptionConfigEnv
 from ..episode_loop import acting_seed, play_episode
-from ..episode_store import PICK_SOURCES, StoreWriter, policy_version, store_episode
+from ..episode_store import PICK_SOURCES, STORE_NAME, EpisodeStoreError, StoreWriter, policy_version, store_episode
 from ..geometry import check_noise_lambda
 from ..operators import Episode
 from ..policy_settings import policy_settings
 from .camera_frames import camera_qos, stamp_text
 from .debug_view import DebugView
+from .learning import NodeLearning, version_qos
 from .operator_node import make_hypothesis, spin
 from .request_fields import parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
@@ -130,6 +152,14 @@ class ConfiguratorNode(Node):
         self.declare_parameter("marker_max_triangles", 500)
         self.declare_parameter("episode_store", "")
         self.declare_parameter("pick_source", "simulated")
+        self.declare_parameter("learn", False)
+        self.declare_parameter("learn_dir", "")
+        self.declare_parameter("learn_start", "policy")
+        self.declare_parameter("learn_margin", 0.05)
+        self.declare_parameter("learn_every", 20)
+        self.declare_parameter("learn_train_episodes", 200)
+        self.declare_parameter("learn_check_episodes", 40)
+        self.declare_parameter("policy_version", "")
         self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
@@ -173,6 +203,29 @@ class ConfiguratorNode(Node):
         if self.pick_source not in PICK_SOURCES:
             raise ValueError(f"pick_source must be one of {PICK_SOURCES}, got {self.pick_source!r}")
         store = str(self.get_parameter("episode_store").value or "")
+        self.learning: NodeLearning | None = None
+        pinned = str(self.get_parameter("policy_version").value or "")
+        if self.get_parameter("learn").value:
+            learn_dir = str(self.get_parameter("learn_dir").value or "")
+            store = store or (str(Path(learn_dir) / STORE_NAME) if learn_dir else "")
+            self.learning = NodeLearning(
+                self, self.env, learn_dir, start=str(self.get_parameter("learn_start").value), policy=policy,
+                fixed_sequence=[s for s in p["fixed_sequence"] if s],
+                pipeline=pipeline_reference(settings.pipeline) if isinstance(settings.pipeline, (str, Path)) else None,
+                models_dir=p["models_dir"], margin=float(self.get_parameter("learn_margin").value),
+                every=int(self.get_parameter("learn_every").value),
+                train_episodes=int(self.get_parameter("learn_train_episodes").value),
+                check_episodes=int(self.get_parameter("learn_check_episodes").value), pinned=pinned,
+                camera_qos=p["camera_qos"], use_depth=self.use_depth)
+            self.learning.sync(self._swap)
+            self.create_timer(0.5, self._learning_tick, callback_group=MutuallyExclusiveCallbackGroup())
+        elif pinned:
+            raise ValueError("policy_version is set but learn is false: versions exist only with online learning")
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.version_pub = self.create_publisher(String, "perception/policy_version", version_qos()) \
+            if self.learning is None else self.learning.pub
+        if self.learning is None:
+            self.version_pub.publish(String(data=self.policy_version or ""))
         self.episode_writer = StoreWriter(store, self.get_logger().error, synchronous="FULL",
                                         busy_timeout=STORE_BUSY_TIMEOUT) if store else None
         if self.episode_writer is not None and self.episode_writer.open():
@@ -187,6 +240,8 @@ class ConfiguratorNode(Node):
         self.requests = RequestQueue(self, p["request_queue"], self.get_name())
         self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
                             qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
+        self.create_service(ReportPickOutcome, "report_pick_outcome", self._on_pick_outcome,
+                            qos_profile=service_qos(), callback_group=MutuallyExclusiveCallbackGroup())
 
         self.auto_objects = [parse_object_id(o) for o in p["auto_objects"] if o]
         self.auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
@@ -256,15 +311,26 @@ class ConfiguratorNode(Node):
         limit = min(limit, self.max_ops_cap)
         deadline = time.monotonic() + self.estimate_timeout
         self.operators.deadline = deadline
+        if self.learning is not None:  # between estimates: a promoted or pinned version starts serving here
+            self.learning.sync(self._swap)
         try:
             traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
                                 require_hypothesis=True, stop=lambda: time.monotonic() >= deadline)
         finally:
             self.operators.deadline = None
+        frame_stamp = stamp_ns  # the frame the operators used (a request for "the latest" names none)
+        if self.operators.stamp is not None:
+            frame_stamp = int(self.operators.stamp.sec) * 1_000_000_000 + int(self.operators.stamp.nanosec)
         if self.episode_writer is not None:
-            store_episode(self.episode_writer, traj, source="configurator", agent=self.store_agent,
-                          policy_version=self.policy_version, episode_seed=seed, frame_stamp_ns=stamp_ns,
-                          pick_source=self.pick_source, image_ids=False)
+            eid = store_episode(self.episode_writer, traj, source="configurator", agent=self.store_agent,
+                                policy_version=self.policy_version, episode_seed=seed, frame_stamp_ns=frame_stamp,
+                                pick_source=self.pick_source, image_ids=False)
+            response.estimate_id = int(eid or 0)
+        if self.learning is not None:
+            try:
+                self.learning.capture(frame_stamp)
+            except Exception as exc:  # noqa: BLE001  (learning must never fail an estimate)
+                self.get_logger().error(f"learn: frame of the estimate not kept: {exc!r}")
         info, names = traj.final_info, traj.names
         picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
@@ -296,6 +362,7 @@ class ConfiguratorNode(Node):
         trace.elapsed = list(response.operation_elapsed)
         trace.ok = oks
         trace.picked = bool(response.picked)
+        trace.policy_version = self.policy_version or ""
         self.trace_pub.publish(trace)
 
     def _show(self, response: EstimatePose.Response, object_id: str) -> None:
@@ -308,7 +375,63 @@ class ConfiguratorNode(Node):
         self.debug_view.show(response.hypothesis, model, list(response.operations), bool(response.picked),
                              response.elapsed)
 
+    # -- online learning ---------------------------------------------------------------------------
+    def _swap(self, version: str, agent) -> None:
+        """Serve another policy version (called between estimates, the estimate lock held)."""
+        self.agent = agent
+        self.policy_version = version
+        seq = getattr(agent, "sequence", None)
+        self.store_agent = "fixed:" + "+".join(seq) if agent.kind == "fixed" and seq else agent.kind
+        self.agent_name = f"{agent.kind} policy version {version}"
+
+    def _learning_tick(self) -> None:
+        try:
+            self.learning.drain()
+            if self._busy.acquire(blocking=False):  # never waits for an estimate
+                try:
+                    self.learning.sync(self._swap)
+                finally:
+                    self._busy.release()
+        except Exception as exc:  # noqa: BLE001  (the node keeps serving whatever the learner sent)
+            self.get_logger().error(f"learn: {exc!r}; the current version keeps serving")
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        for param in params:
+            if param.name == "policy_version":
+                if self.learning is None:
+                    return SetParametersResult(successful=False,
+                                               reason="policy_version needs learn:=true (no versions without it)")
+                result = self.learning.check_pin(str(param.value or ""))
+                if not result.successful:
+                    self.get_logger().warning(f"policy_version {param.value!r} refused: {result.reason}")
+                    return result
+                self.get_logger().info(f"policy_version set to {param.value or 'the newest'}: serving it from the "
+                                       "next estimate")
+        return SetParametersResult(successful=True)
+
+    def _on_pick_outcome(self, request: ReportPickOutcome.Request, response: ReportPickOutcome.Response
+                         ) -> ReportPickOutcome.Response:
+        """The robot's pick result for a stored estimate: recorded on the episode's last step."""
+        eid = int(request.estimate_id)
+        try:
+            if self.episode_writer is None:
+                raise EpisodeStoreError("no episode store: set episode_store (or learn with learn_dir)")
+            store = self.episode_writer._ensure_open()
+            rows = store.query("SELECT steps FROM episodes WHERE id = ? AND source = 'configurator'", (eid,))
+            if not rows:
+                raise EpisodeStoreError(f"unknown estimate {eid}: not an estimate of this store "
+                                        f"({self.episode_writer.path})")
+            store.record_pick_outcome(eid, int(rows[0][0] or 0), bool(request.picked), "robot")
+        except (EpisodeStoreError, sqlite3.Error, OSError) as exc:
+            self.get_logger().warning(f"report_pick_outcome for estimate {eid} refused: {exc}")
+            response.success, response.message = False, str(exc)
+            return response
+        response.success, response.message = True, f"estimate {eid}: picked={bool(request.picked)} recorded"
+        return response
+
     def on_exit(self) -> None:
+        if self.learning is not None:
+            self.learning.close()
         self.requests.close()
         print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
         if self.debug_view is not None:
