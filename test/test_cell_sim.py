@@ -243,3 +243,39 @@ def test_a_short_cell_run_without_learning(ros_node, tmp_path_factory, tmp_path,
     assert s["candidates"] == 0 and s["promotions"] == []
     assert ("within 10% of the reference" in format_summary(s)) or ("not reached within" in format_summary(s))
     assert (out / "logs" / "cell" / "bag_replay_node.log").read_text().count("looping") >= 1
+
+
+@pytest.mark.ros
+def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_path_factory, tmp_path, policy):
+    """With learning (the configurator of issue 16 item 3): learn, learn_dir, learn_start and learn_every
+    reach the configurator; version 0 (the fixed start) serves, each row carries it (from the trace) and
+    the id under which the configurator stored the estimate in <out>/learn/episodes.sqlite, whose
+    charged time and outcome are the row's. A reference CSV of a previous run is reused."""
+    from perception_config.datasets.bag import write_bag
+    from perception_config.episode_store import EpisodeStore
+    from perception_config.ros.cell_sim_run import cell_sim
+
+    root = tiny_dataset(tmp_path_factory)
+    bag = tmp_path / "tiny.mcap"
+    write_bag(root, bag, progress=False)
+    with EstimateLog(tmp_path / "reference.csv") as ref:
+        for i in range(4):
+            ref.append(_row(i, int(i != 0), 0.5))
+    out = tmp_path / "out"
+    s = cell_sim(out, policy, bag=bag, models=root / "models", start="fixed", estimates=6, learn=True,
+                 learn_every=1000, window=3, reference_from=tmp_path / "reference.csv", rate=2.0, progress=False)
+    print(format_summary(s))
+    rows = read_estimates(out / "estimates.csv")
+    assert len(rows) == 6 and s["learn"] and not s["interrupted"]
+    assert s["reference"]["estimates"] == 4 and s["reference"]["success"] == pytest.approx(0.75)
+    assert {r["policy_version"] for r in rows} == {"v0000"} and all(r["trace"] for r in rows)
+    assert (out / "learn" / "policies" / "versions.json").is_file()
+    assert not (out / "episodes.sqlite").exists()  # learning's store is the one
+    with EpisodeStore(out / "learn" / "episodes.sqlite", readonly=True) as store:
+        stored = {e[0]: e[1:] for e in store.query(
+            "SELECT id, episode_seed, success, first_pick_success, time_s, policy_version FROM episodes")}
+    for r in rows:
+        seed, success, first, time_s, version = stored[r["estimate_id"]]
+        assert (seed, success, first, version) == (r["seed"], r["success"], r["first_pick_success"], "v0000")
+        assert math.isclose(r["time_s"], time_s, rel_tol=1e-9, abs_tol=1e-9)
+    assert s["candidates"] == 0  # learn_every 1000: no candidate in 6 estimates
