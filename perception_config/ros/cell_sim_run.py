@@ -378,6 +378,10 @@ def run_cli(args: Any) -> int:
                          reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
                          fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
                          else None)
+    except RuntimeError as exc:  # a node died, no frames came: the rows that ran are in estimates.csv
+        print(f"perception-config cell-sim: {exc}; the estimates made so far are in {Path(args.out)}",
+              file=sys.stderr)
+        return 1
     finally:
         rclpy.try_shutdown()
     print(format_summary(s))
