@@ -279,3 +279,24 @@ def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_
         assert (seed, success, first, version) == (r["seed"], r["success"], r["first_pick_success"], "v0000")
         assert math.isclose(r["time_s"], time_s, rel_tol=1e-9, abs_tol=1e-9)
     assert s["candidates"] == 0  # learn_every 1000: no candidate in 6 estimates
+
+
+def test_bad_arguments_are_refused_before_anything_starts(tmp_path_factory, tmp_path, policy):
+    from perception_config.ros.cell_sim_run import cell_sim
+
+    root = tiny_dataset(tmp_path_factory)
+    out = tmp_path / "out"
+    kw = {"dataset": root, "estimates": 5}
+    with pytest.raises(ValueError, match="exactly one of --bag and --dataset"):
+        cell_sim(out, policy, **kw, bag=tmp_path / "x.mcap")
+    with pytest.raises(FileNotFoundError, match="neither fixed, untrained nor a policy file"):
+        cell_sim(out, policy, start=str(tmp_path / "nope.safetensors"), **kw)
+    with pytest.raises(ValueError, match="untrained needs learning"):
+        cell_sim(out, policy, start="untrained", learn=False, **kw)
+    with pytest.raises(ValueError, match=r"\['d2co'\] are not actions of the pipeline"):
+        cell_sim(out, policy, fixed_sequence=["icp_fine", "d2co", "pick"], **kw)
+    with pytest.raises(FileNotFoundError, match="reference policy"):
+        cell_sim(out, tmp_path / "missing.safetensors", **kw)
+    with pytest.raises(ValueError, match="--estimates must be >= 1"):
+        cell_sim(out, policy, **{**kw, "estimates": 0})
+    assert not out.exists()
