@@ -348,6 +348,8 @@ def summarise(rows: Sequence[dict[str, Any]], reference: dict[str, Any], events:
     succ = [float(r["success"]) for r in rows]
     times = [float(r["time_s"]) for r in rows]
     promo = check_promotions(events)
+    if promo["promotions"] and promo["promotions"][0]["previous"] is None and rows:
+        promo["promotions"][0]["previous"] = rows[0]["policy_version"]  # what served first (learning's v0000)
     indices = promotion_indices(rows, promo["promotions"])
     for p, i in zip(promo["promotions"], indices):
         p["first_estimate"] = i

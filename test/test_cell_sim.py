@@ -163,7 +163,7 @@ def test_summary_and_plot_of_a_constructed_learning_run(tmp_path):
     assert s["reached_within"] is not None and 60 + 30 <= s["reached_within"] <= 150
     text = format_summary(s)
     assert f"from estimate {s['reached_within']} to the end" in text
-    assert "v0001: replay-check cost 2.000 vs start 5.000 (-60.0%)" in text
+    assert "v0001: replay-check cost 2.000 vs fixed 5.000 (-60.0%)" in text  # the version that served first
     assert "no promoted version worse than its predecessor" in text
     assert reference["success_se"] == pytest.approx(0.3 / math.sqrt(40)) and reference["time_se"] == 0.0
     assert "measure it over more rounds" not in text
