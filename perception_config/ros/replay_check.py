@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from perception_config_interfaces.srv import EstimatePose
 from tqdm import tqdm
 
 from ..agents import load_agent, make_agent
@@ -48,6 +47,7 @@ from ..evaluation import episode_seed
 from ..launch import Launcher, NodeSpec
 from ..policy_settings import policy_settings
 from ..ros_environment import configure_ros_environment
+from .estimate_client import EstimateClient
 
 RECORD_RATE_HZ = 10.0
 
@@ -78,26 +78,49 @@ def run_through_ros(plan: list[dict[str, Any]], stamps: dict[tuple[int, int], in
                     timeout: float = 120.0) -> list[dict[str, Any]]:
     node = rclpy.create_node(f"replay_check_{os.getpid()}")
     try:
-        client = node.create_client(EstimatePose, "estimate_pose")
-        if not client.wait_for_service(timeout_sec=60.0):
-            raise RuntimeError("estimate_pose did not appear within 60 s: see the configurator's log")
-        out = []
-        for ep in tqdm(plan, desc="through ROS", unit="episode", leave=False):
-            req = EstimatePose.Request(object_id=str(ep["obj_id"]), noise_lambda=ep["lambda"], seed=ep["seed"])
-            req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamps[(ep["scene_id"], ep["im_id"])], 1_000_000_000)
-            t0 = time.perf_counter()
-            future = client.call_async(req)
-            rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
-            wall = time.perf_counter() - t0
-            res = future.result()
-            if res is None:
-                raise RuntimeError(f"estimate_pose gave no answer within {timeout} s")
-            out.append({"success": bool(res.success), "message": res.message, "picked": bool(res.picked),
-                        "operations": list(res.operations), "operation_seconds": list(res.operation_elapsed),
-                        "wall": wall})
-        return out
+        client = EstimateClient(node, timeout=timeout)
+        return [client.call(stamps[(ep["scene_id"], ep["im_id"])], ep["obj_id"], ep["lambda"], ep["seed"])
+                for ep in tqdm(plan, desc="through ROS", unit="episode", leave=False)]
     finally:
         node.destroy_node()
+
+
+def record_images(ds: BopDataset, keys: list[tuple[int, int]], bag: Path,
+                  quiet: bool = True) -> tuple[dict[tuple[int, int], int], bool]:
+    """Record the images `keys` of `ds` to `bag` (replacing it) at RECORD_RATE_HZ; returns each
+    image's stamp and whether the dataset is RGB-only (then the bag has no depth topic)."""
+    for stale in (bag, bag.parent / "metadata.yaml"):
+        stale.unlink(missing_ok=True)
+    rgb_only = ds.load_frame(*keys[0], with_models=False).depth is None
+    frames = (ds.load_frame(s, i, with_models=False) for s, i in keys)
+    write_frames(frames, bag, RECORD_RATE_HZ, progress=not quiet, total=len(keys))
+    return {key: RECORDING_EPOCH_NS + round(i * 1e9 / RECORD_RATE_HZ) for i, key in enumerate(keys)}, rgb_only
+
+
+def service_specs(models_dir: Path, pipeline: Any, frames: int, rgb_only: bool,
+                  configurator: dict[str, Any]) -> list[NodeSpec]:
+    """The four operator nodes and the configurator (with `configurator`'s extra parameters),
+    caching `frames` frames by stamp (a few more), on `pipeline` (None: the built-in one)."""
+    common: dict[str, Any] = {"models_dir": str(Path(models_dir).resolve()), "cache_size": max(30, frames + 5)}
+    if pipeline:
+        common["pipeline"] = pipeline_reference(pipeline)
+    if rgb_only:  # the operators assemble colour + camera_info frames; the configurator masks depth actions
+        common["use_depth"] = False
+    specs = [NodeSpec(name, params=dict(common))
+             for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
+    specs.append(NodeSpec("configurator_node", params={**common, **configurator}))
+    return specs
+
+
+def replay_spec(bag: Path, rate: float, rgb_only: bool, ground_truth_subscribers: int = 2,
+                **params: Any) -> NodeSpec:
+    """bag_replay_node starting once the four operator nodes subscribe to the camera topics and
+    `ground_truth_subscribers` to the ground truth (generation and pick, plus any client)."""
+    cameras = ("camera/color/image_raw", "camera/camera_info") if rgb_only else \
+        ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
+    wait_for = [f"{t}:4" for t in cameras] + [f"perception/ground_truth:{ground_truth_subscribers}"]
+    return NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
+                                               "wait_for": wait_for, **params})
 
 
 def replay_check(
@@ -117,12 +140,7 @@ def replay_check(
     keys = sorted(image_keys)[: max(1, int(images))]
 
     bag = out / "replay.mcap"
-    for stale in (bag, out / "metadata.yaml"):
-        stale.unlink(missing_ok=True)
-    rgb_only = ds.load_frame(*keys[0], with_models=False).depth is None  # an RGB-only dataset: no depth topic
-    frames = (ds.load_frame(s, i, with_models=False) for s, i in keys)
-    write_frames(frames, bag, RECORD_RATE_HZ, progress=not quiet, total=len(keys))
-    stamps = {key: RECORDING_EPOCH_NS + round(i * 1e9 / RECORD_RATE_HZ) for i, key in enumerate(keys)}
+    stamps, rgb_only = record_images(ds, keys, bag, quiet)
 
     # The policy's settings, time measured (the configurator measures it too).
     env = PerceptionConfigEnv(ds, settings.pipeline, settings.env.replace(time_mode="measured"), image_keys=keys)
@@ -133,22 +151,10 @@ def replay_check(
              "lambda": float(noise_lambda), "seed": episode_seed(seed, j)}
             for j, ek in enumerate(env.source.episodes) if counts[(ek.scene_id, ek.im_id, ek.obj_id)] == 1]
 
-    common: dict[str, Any] = {"models_dir": str(Path(ds.models_dir).resolve()), "cache_size": max(30, len(keys) + 5)}
-    if settings.pipeline:
-        common["pipeline"] = pipeline_reference(settings.pipeline)
-    if rgb_only:  # the operators assemble colour + camera_info frames; the configurator masks depth actions
-        common["use_depth"] = False
-    specs = [NodeSpec(name, params=dict(common))
-             for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
-    specs.append(NodeSpec("configurator_node", params={**common, "policy": str(policy or ""),
-                                                        "noise_lambda": float(noise_lambda),
-                                                        "max_ops": settings.env.max_ops,
-                                                        "episode_store": str(out.resolve() / STORE_NAME)}))
-    cameras = ("camera/color/image_raw", "camera/camera_info") if rgb_only else \
-        ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
-    wait_for = [f"{t}:4" for t in cameras]
-    specs.append(NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
-                                                     "wait_for": wait_for + ["perception/ground_truth:2"]}))
+    specs = service_specs(Path(ds.models_dir), settings.pipeline, len(keys), rgb_only,
+                          {"policy": str(policy or ""), "noise_lambda": float(noise_lambda),
+                           "max_ops": settings.env.max_ops, "episode_store": str(out.resolve() / STORE_NAME)})
+    specs.append(replay_spec(bag, rate, rgb_only))
     log_dir = out / "logs"
     with open(out / "launch.log", "w") as launch_log:
         launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)

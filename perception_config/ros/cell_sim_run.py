@@ -1,0 +1,394 @@
+"""`perception-config cell-sim`: a simulated robot cell through the nodes (the record, figures
+and verdict are perception_config/cell_sim.py).
+
+    perception-config cell-sim --dataset data/default --start fixed \\
+        --reference runs/demo-pg/policy.safetensors --estimates 300 --out outputs/cell
+
+1. The bag: `--bag` as given, or `--dataset`'s test images of the reference policy (its split
+   seed and test fraction) recorded to `<out>/cell.mcap` (replay-check's recording).
+2. The reference: the reference policy through the same nodes for `--reference-rounds` rounds
+   (a round: every object of every frame of the bag once; 1 by default), no learning, into
+   `<out>/reference.csv` (or a previous run's with `--reference-from`). Through the nodes rather
+   than in-process (evaluation): the cell's time is the time through ROS on this machine, under
+   the same load, which the README measures at 1.14-1.24x the in-process operator time; an
+   in-process reference would hold the cell to a time no learning through the nodes can reach,
+   and its frames, lambda and charged time would not be the cell's.
+3. The cell: generation/refinement/scoring/pick nodes, the configurator serving the start
+   (`fixed`: the fixed sequence, `untrained`: a fresh pg policy (learning only), or a policy
+   file) with `learn:=true` (the learner of issue 16, its state in `<out>/learn`) unless
+   `--no-learn`, and bag_replay_node with `loop:=true`, each its own process (the launcher,
+   loopback ROS defaults). This process sees every replayed frame's ground truth and, whenever
+   the previous frame's estimates are done, takes the next frame that arrives which it has not
+   estimated in this round (a round = every frame of the bag once, so the cell's frames and the
+   reference's are the same mix), and calls estimate_pose for each of its objects (an object id
+   that occurs twice in a frame is skipped: the simulated pick cannot tell the two apart) with
+   `--lambda` and a fresh seed per estimate, until `--estimates` are done.
+4. Per estimate, a row of `<out>/estimates.csv` (cell_sim.ESTIMATE_COLUMNS); the operator trace
+   (perception/trace) gives the ok flags the charged time needs, and the serving policy version
+   (the trace's, perception/policy_version, or the start's). The learner's lines are read from
+   the configurator's log; `<out>/cell_sim.png`, `<out>/summary.json` and the printed summary.
+
+Ctrl-C stops the cell: the rows so far are kept (estimates.csv.part is flushed per row) and the
+summary and plot cover them (exit code 130).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any, Callable
+
+import rclpy
+from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from tqdm import tqdm
+
+from ..agents.fixed import DEFAULT_SEQUENCE
+from ..atomic_file import atomic_write
+from ..blocks.base import Kind
+from ..blocks.pipeline import load_pipeline
+from ..cell_sim import (
+    DEFAULT_TOLERANCE,
+    DEFAULT_WINDOW,
+    EstimateLog,
+    charged_time,
+    first_pick_success,
+    format_summary,
+    learner_events,
+    plot_cell_sim,
+    read_estimates,
+    reference_figures,
+    rolling_mean,
+    summarise,
+)
+from ..datasets.bag import bag_info
+from ..datasets.bop import BopDataset
+from ..episode_store import STORE_NAME, policy_version
+from ..episodes import split_image_keys
+from ..evaluation import episode_seed
+from ..launch import Launcher, default_models
+from ..policy_settings import is_policy_file, policy_settings
+from ..ros_environment import configure_ros_environment
+from ..stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from .estimate_client import EstimateClient
+from .replay_check import record_images, replay_spec, service_specs
+
+STARTS = ("fixed", "untrained")
+TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
+SERVICE_NODES = ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node")
+
+
+class CellNode:
+    """This process's view of the cell: the replayed frames' ground truth, the operator traces
+    and the serving policy version, received while an estimate is awaited (EstimateClient spins
+    the same node)."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.fresh: list[tuple[int, list[str]]] = []  # frames arrived since the cell last got ready
+        self.traces: deque[OperatorTrace] = deque(maxlen=64)
+        self.version: str | None = None
+        node.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10)
+        node.create_subscription(OperatorTrace, "perception/trace", lambda msg: self.traces.append(msg), 64)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        node.create_subscription(String, "perception/policy_version", self._on_version, latched)
+
+    def _on_ground_truth(self, msg: ObjectPoses) -> None:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.fresh.append((stamp, list(msg.object_ids)))
+
+    def _on_version(self, msg: String) -> None:
+        self.version = msg.data or None
+
+    def next_frame(self, done: set[int], timeout: float, alive: Callable[[], None]) -> tuple[int, list[str]]:
+        """The first frame arriving from now on that is not in `done`; RuntimeError after
+        `timeout` s without one; `alive()` raises when a node died."""
+        self.fresh.clear()
+        deadline = time.monotonic() + timeout
+        while True:
+            for stamp, ids in self.fresh:
+                if stamp not in done:
+                    return stamp, ids
+            self.fresh.clear()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no new frame's ground truth on perception/ground_truth within {timeout:g} s")
+            alive()
+            rclpy.spin_once(self.node, timeout_sec=0.1)
+
+    def trace_for(self, stamp_ns: int, object_id: str, timeout: float = TRACE_WAIT_S) -> OperatorTrace | None:
+        """The trace of the estimate just answered (its frame stamp and object), waiting briefly."""
+        deadline = time.monotonic() + timeout
+        while True:
+            while self.traces:
+                t = self.traces.popleft()
+                if (t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec == stamp_ns
+                        and t.object_id == object_id):
+                    return t
+            if time.monotonic() > deadline:
+                return None
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+
+
+def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates: int | None, rounds: int | None,
+          frames_per_round: int, noise_lambda: float, seed: int, pick_actions: list[str], failed_pick_cost: float,
+          start_version: str, frame_timeout: float, alive: Callable[[], None], desc: str, window: int = DEFAULT_WINDOW,
+          progress: bool = True, stop: StopSignals | None = None) -> bool:
+    """Estimate frame after frame (see the module docstring) until `estimates` are done or
+    `rounds` rounds are complete; rows go to `log`. False when stopped by a stop signal (`stop`:
+    SIGINT, SIGTERM, SIGHUP abandon the estimate in flight; without it, Ctrl-C)."""
+    interruptible = stop.interruptible if stop is not None else contextlib.nullcontext
+    done: set[int] = set()
+    round_no = index = 0
+    succ: list[float] = []
+    times: list[float] = []
+    bar = tqdm(total=estimates, desc=desc, unit="estimate", disable=not progress)
+    try:
+        while (estimates is None or index < estimates) and (rounds is None or round_no < rounds):
+            with interruptible():
+                stamp, ids = cell.next_frame(done, frame_timeout, alive)
+            done.add(stamp)
+            counts = {i: ids.count(i) for i in ids}
+            for obj in dict.fromkeys(ids):
+                if counts[obj] != 1 or (estimates is not None and index >= estimates):
+                    continue
+                ep_seed = max(1, episode_seed(seed, index))
+                with interruptible():  # the row is written outside: a signal never cuts a line short
+                    answer = client.call(stamp, obj, noise_lambda, ep_seed)
+                    trace = cell.trace_for(stamp, obj) if answer["success"] else None
+                oks = list(trace.ok) if trace is not None else None
+                version = (getattr(trace, "policy_version", "") if trace is not None else "") or cell.version \
+                    or start_version
+                row = {
+                    "index": index, "round": round_no, "wall_time": time.time(), "frame_stamp_ns": stamp,
+                    "obj_id": int(obj), "seed": ep_seed, "answered": int(answer["success"]),
+                    "success": int(answer["picked"]),
+                    "time_s": charged_time(answer["operations"], answer["operation_seconds"], oks, answer["picked"],
+                                           pick_actions, failed_pick_cost),
+                    "operator_s": float(sum(answer["operation_seconds"])), "estimate_wall_s": answer["wall"],
+                    "first_pick_success": int(first_pick_success(answer["operations"], oks, answer["picked"],
+                                                                 pick_actions)),
+                    "operations": len(answer["operations"]), "policy_version": version,
+                    "estimate_id": answer["estimate_id"], "trace": int(trace is not None),
+                    "message": answer["message"],
+                }
+                log.append(row)
+                succ.append(row["success"])
+                times.append(row["time_s"])
+                index += 1
+                bar.update(1)
+                bar.set_postfix(success=f"{rolling_mean(succ, window)[-1]:.2f}",
+                                time=f"{rolling_mean(times, window)[-1]:.2f}s", version=version[:12])
+            if len(done) >= frames_per_round:
+                done.clear()
+                round_no += 1
+        return True
+    except (KeyboardInterrupt, Interrupted):
+        return False
+    finally:
+        bar.close()
+
+
+def _alive(launcher: Launcher, log_dir: Path) -> Callable[[], None]:
+    def check() -> None:
+        dead = [n for n in SERVICE_NODES + ("bag_replay_node",) if launcher.returncode(n) is not None]
+        if dead:
+            raise RuntimeError(f"{', '.join(dead)} stopped (see {log_dir})")
+    return check
+
+
+def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: bool = True,
+              **drive_args: Any) -> tuple[bool, list[str]]:
+    """Start `specs`, drive the cell, stop them; (completed, the configurator's log lines)."""
+    log_dir = out / "logs" / name
+    with open(out / f"launch-{name}.log", "w") as launch_log:
+        launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
+        with launcher:
+            node = rclpy.create_node(f"cell_sim_{name}_{os.getpid()}")
+            try:
+                cell = CellNode(node)
+                launcher.wait_for_line("configurator_node", "serving", timeout=120.0)
+                client = EstimateClient(node)
+                completed = drive(cell, client, log, alive=_alive(launcher, log_dir), **drive_args)
+            finally:
+                node.destroy_node()
+    lines = (log_dir / "configurator_node.log").read_text(errors="replace").splitlines() \
+        if (log_dir / "configurator_node.log").is_file() else []
+    return completed, lines
+
+
+def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None = None,
+             dataset: str | Path | None = None, models: str | Path | None = None, start: str = "fixed",
+             estimates: int = 200, learn: bool = True, learn_every: int | None = None,
+             learn_margin: float | None = None, noise_lambda: float = 0.5, seed: int = 0, rate: float = 1.0,
+             images: int | None = None, window: int = DEFAULT_WINDOW, tolerance: float = DEFAULT_TOLERANCE,
+             reference_from: str | Path | None = None, reference_rounds: int = 1,
+             fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True,
+             stop: StopSignals | None = None) -> dict[str, Any]:
+    """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
+    out = Path(out).resolve()
+    if (bag is None) == (dataset is None):
+        raise ValueError("give exactly one of --bag and --dataset")
+    if estimates < 1:
+        raise ValueError(f"--estimates must be >= 1, got {estimates}")
+    if not 1 <= window:
+        raise ValueError(f"--window must be >= 1, got {window}")
+    if not 1 <= reference_rounds:
+        raise ValueError(f"--reference-rounds must be >= 1, got {reference_rounds}")
+    reference = Path(reference).resolve()
+    if not reference.is_file():
+        raise FileNotFoundError(f"reference policy {reference} does not exist")
+    start_policy = None
+    if start not in STARTS:
+        start_policy = Path(start).resolve()
+        if not is_policy_file(start_policy):
+            raise FileNotFoundError(f"--start {start}: neither fixed, untrained nor a policy file")
+    if start == "untrained" and not learn:
+        raise ValueError("--start untrained needs learning (the configurator makes the untrained policy): "
+                         "drop --no-learn, or start from fixed or a policy file")
+    settings = policy_settings([p for p in (reference, start_policy) if p is not None])
+    pipeline = load_pipeline(settings.pipeline)
+    pick_actions = [a.name for a in pipeline.actions if a.block.kind == Kind.PICK]
+    sequence = list(fixed_sequence or DEFAULT_SEQUENCE)
+    unknown = [a for a in sequence if a not in pipeline.action_names]
+    if unknown:
+        raise ValueError(f"--fixed-sequence: {unknown} are not actions of the pipeline ({pipeline.action_names})")
+    out.mkdir(parents=True, exist_ok=True)
+
+    if dataset is not None:
+        ds = BopDataset(Path(dataset), split="test")
+        keys = sorted(split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)[1])
+        keys = keys[: images] if images else keys
+        bag_path = out / "cell.mcap"
+        record_images(ds, keys, bag_path, quiet=not progress)
+        models_dir = Path(ds.models_dir)
+    else:
+        bag_path = Path(bag).resolve()
+        models_dir = Path(models).resolve() if models else default_models(Path.cwd(), print)
+    if not (models_dir / "models_info.json").is_file():
+        raise FileNotFoundError(f"models folder {models_dir} has no models_info.json")
+    info = bag_info(bag_path)
+    frames = int(info["frames"])
+    truth = sum(t["count"] for t in info["topics"] if t["topic"].lstrip("/") == "perception/ground_truth")
+    if frames < 1 or truth < 1:
+        raise ValueError(f"bag {bag_path} has {frames} frames and {truth} ground truth messages: the simulated "
+                         "cell needs both (record one with `perception-config bag write` or give --dataset)")
+    rgb_only = isinstance(info.get("frame_topics"), dict) and "depth" not in info["frame_topics"]
+    # The frame's stamps repeat every pass; a frame not seen for a whole pass plus start-up is lost.
+    frame_timeout = 90.0 + 2.0 * info.get("duration_s", 0.0) / (rate if rate > 0 else 1.0)
+    base = {"noise_lambda": float(noise_lambda), "max_ops": settings.env.max_ops}
+    drive_common = {"stop": stop, "noise_lambda": noise_lambda, "pick_actions": pick_actions,
+                    "failed_pick_cost": settings.env.failed_pick_cost, "frame_timeout": frame_timeout,
+                    "frames_per_round": truth,
+                    "window": window, "progress": progress}
+
+    # The reference: `reference_rounds` rounds through the same nodes, without learning.
+    if reference_from is not None:
+        ref_rows = read_estimates(reference_from)
+        measured = f"from {reference_from}"
+    else:
+        specs = service_specs(models_dir, settings.pipeline, frames, rgb_only,
+                              {**base, "policy": str(reference),
+                               "episode_store": str(out / "reference" / STORE_NAME)})
+        specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
+        (out / "reference").mkdir(exist_ok=True)
+        with EstimateLog(out / "reference.csv") as ref_log:
+            completed, _ = run_phase(specs, out, "reference", ref_log, quiet=quiet, estimates=None,
+                                     rounds=reference_rounds,
+                                     seed=seed + 1, start_version=policy_version(reference),
+                                     desc="reference", **drive_common)
+        if not completed:
+            raise StopRequested(stop.received[0] if stop is not None and stop.received else signal.SIGINT,
+                                f"stopped during the reference pass; {len(ref_log.rows)} reference estimates in "
+                                f"{out / 'reference.csv'}")
+        ref_rows = ref_log.rows
+        measured = f"{reference_rounds} round{'s' if reference_rounds > 1 else ''} through the nodes"
+    ref = {**reference_figures(ref_rows), "name": _policy_name(reference), "measured": measured}
+
+    # The cell.
+    conf: dict[str, Any] = {**base, "policy": str(start_policy or ""), "fixed_sequence": sequence}
+    if learn:
+        conf.update({"learn": True, "learn_dir": str(out / "learn"),
+                     "learn_start": "policy" if start_policy else start})
+        if learn_every is not None:
+            conf["learn_every"] = int(learn_every)
+        if learn_margin is not None:
+            conf["learn_margin"] = float(learn_margin)
+    else:
+        conf["episode_store"] = str(out / STORE_NAME)
+    specs = service_specs(models_dir, settings.pipeline, frames, rgb_only, conf)
+    specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
+    start_version = policy_version(start_policy) if start_policy else \
+        "fixed:" + "+".join(sequence) if start == "fixed" else start  # as the episode store names the agent
+    with EstimateLog(out / "estimates.csv") as log:
+        completed, lines = run_phase(specs, out, "cell", log, quiet=quiet, estimates=estimates, rounds=None,
+                                     seed=seed, start_version=start_version, desc="cell", **drive_common)
+    events = learner_events(lines)
+    summary = summarise(log.rows, ref, events, window, tolerance, requested=estimates)
+    summary["learner_failures"] = [line.strip() for line in lines if "learner: no candidate:" in line]
+    summary.update({"start": start if start_policy is None else str(start_policy), "learn": learn,
+                    "bag": str(bag_path), "frames": frames, "noise_lambda": noise_lambda, "interrupted": not completed,
+                    "learner_lines": [e.line for e in events]})
+    marks = [(p["first_estimate"], p["version"]) for p in summary["promotions"] if p["first_estimate"] is not None]
+    start_name = _policy_name(start_policy) if start_policy else \
+        f"fixed {' -> '.join(sequence)}" if start == "fixed" else start
+    plot_cell_sim(out / "cell_sim.png", log.rows, ref, window, marks, tolerance=tolerance,
+                  reached=summary["reached_within"],
+                  title=f"cell from {start_name}, {'learning' if learn else 'no learning'}, "
+                        f"{frames} frames in a loop, lambda {noise_lambda:g}")
+    atomic_write(out / "summary.json", json.dumps(_finite(summary), indent=2) + "\n")
+    return summary
+
+
+def _policy_name(path: Path) -> str:
+    """A policy file as people know it: runs/<run>/policy.safetensors by its run folder."""
+    return f"{path.parent.name}/{path.name}" if path.stem == "policy" else path.name
+
+
+def _finite(x: Any) -> Any:
+    """JSON without NaN/inf (null instead)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def run_cli(args: Any) -> int:
+    """`perception-config cell-sim`: exit 0 when the run completed; stopped by SIGINT, SIGTERM or
+    SIGHUP: what ran is written and summarised, exit 128 + the signal number."""
+    configure_ros_environment()  # loopback defaults before rclpy starts
+    rclpy.init()
+    try:
+        with StopSignals().installed() as stop:
+            s = cell_sim(args.out, args.reference, bag=args.bag, dataset=args.dataset, models=args.models,
+                         start=args.start, estimates=args.estimates, learn=args.learn, learn_every=args.learn_every,
+                         learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed,
+                         rate=args.rate, images=args.images, window=args.window, reference_from=args.reference_from,
+                         reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
+                         fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
+                         else None)
+    except RuntimeError as exc:  # a node died, no frames came: the rows that ran are in estimates.csv
+        print(f"perception-config cell-sim: {exc}; the estimates made so far are in {Path(args.out)}",
+              file=sys.stderr)
+        return 1
+    finally:
+        rclpy.try_shutdown()
+    print(format_summary(s))
+    print(f"wrote {Path(args.out) / 'estimates.csv'}, {Path(args.out) / 'cell_sim.png'} and "
+          f"{Path(args.out) / 'summary.json'}")
+    if stop.received:
+        print(f"perception-config cell-sim: stopped by {signal_name(stop.received[0])} after {s['estimates']} "
+              "estimates", file=sys.stderr)
+        return 128 + stop.received[0]
+    return 0
