@@ -97,7 +97,8 @@ class CellNode:
         self.traces: deque[OperatorTrace] = deque(maxlen=64)
         self.version: str | None = None
         node.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10)
-        node.create_subscription(OperatorTrace, "perception/trace", lambda msg: self.traces.append(msg), 64)
+        self._trace_sub = node.create_subscription(OperatorTrace, "perception/trace",
+                                                   lambda msg: self.traces.append(msg), 64)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         node.create_subscription(String, "perception/policy_version", self._on_version, latched)
@@ -123,6 +124,16 @@ class CellNode:
                 raise RuntimeError(f"no new frame's ground truth on perception/ground_truth within {timeout:g} s")
             alive()
             rclpy.spin_once(self.node, timeout_sec=0.1)
+
+    def wait_for_trace_publisher(self, timeout: float, alive: Callable[[], None]) -> None:
+        """Wait until the configurator's trace publisher is matched with this subscription: a trace
+        published before discovery completes is lost (volatile QoS), and its estimate's row with it."""
+        deadline = time.monotonic() + timeout
+        while self._trace_sub.get_publisher_count() < 1:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"perception/trace: no publisher matched within {timeout:g} s")
+            alive()
+            rclpy.spin_once(self.node, timeout_sec=0.05)
 
     def trace_for(self, stamp_ns: int, object_id: str, timeout: float = TRACE_WAIT_S) -> OperatorTrace | None:
         """The trace of the estimate just answered (its frame stamp and object), waiting briefly."""
@@ -216,6 +227,7 @@ def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: boo
             try:
                 cell = CellNode(node)
                 launcher.wait_for_line("configurator_node", "serving", timeout=120.0)
+                cell.wait_for_trace_publisher(30.0, _alive(launcher, log_dir))
                 client = EstimateClient(node)
                 completed = drive(cell, client, log, alive=_alive(launcher, log_dir), **drive_args)
             finally:

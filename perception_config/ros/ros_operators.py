@@ -95,6 +95,7 @@ class RosOperators:
         # time.monotonic() by which the current estimate must end (None: no deadline); a call
         # waits at most until then and raises DeadlineReached
         self.deadline: float | None = None
+        self._discovered: set[str] = set()  # services that have been ready once
 
     # -- calls -------------------------------------------------------------------------------
     def _call(self, which: str, request: Any) -> Any:
@@ -105,11 +106,15 @@ class RosOperators:
             if remaining <= 0:
                 raise DeadlineReached(f"the deadline came before calling {client.srv_name}")
             timeout, cut = min(timeout, remaining), remaining < timeout
-        # A node that has just started may not be discovered yet: wait a little for it.
-        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=min(timeout, 2.0)):
-            if cut and timeout < 2.0:
+        # A node that has just started may not be discovered yet: wait for it, up to the call's
+        # timeout the first time (discovery on a loaded machine takes seconds), 2 s once it has
+        # been seen (then it is more likely gone than late).
+        wait = min(timeout, 2.0) if which in self._discovered else timeout
+        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=wait):
+            if cut and timeout <= wait:
                 raise DeadlineReached(f"the deadline came while waiting for {client.srv_name} to be discovered")
             raise OperatorCallError(f"service {client.srv_name} is not available: is {NODES[which]} running?")
+        self._discovered.add(which)
         start = time.perf_counter()
         future = client.call_async(request)
         self._executor.spin_until_future_complete(future, timeout_sec=timeout)
