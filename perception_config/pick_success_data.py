@@ -55,7 +55,8 @@ def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[fl
                       progress: bool = True) -> list[dict[str, Any]]:
     """Play `n_episodes` episodes of `dataset` (every image) in-process with a random masked
     policy (uniform over the actions the frame allows, at most `max_steps` actions, ended by a
-    successful pick), lambda drawn from `lambdas`; one row per hypothesis, in the store's shape."""
+    successful pick), lambda drawn from `lambdas`; one row per hypothesis, in the store's shape.
+    Seeded and in the env's cost-table mode: the same call gives the same rows on any machine load."""
     from tqdm import tqdm
 
     from .env import PerceptionConfigEnv
@@ -66,7 +67,9 @@ def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[fl
     if not lambdas or not all(math.isfinite(x) and x >= 0 for x in lambdas):
         raise ValueError(f"lambdas must be finite numbers >= 0, got {lambdas}")
     root = Path(dataset)
-    env = PerceptionConfigEnv(root, pipeline, split="test", use_depth=use_depth, max_ops=max(1, max_steps))
+    # cost-table mode: no wall-clock bound cuts a block short, so the rows do not depend on the load
+    env = PerceptionConfigEnv(root, pipeline, split="test", use_depth=use_depth, max_ops=max(1, max_steps),
+                              time_mode="cost_table")
     rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
     for ep in tqdm(range(n_episodes), desc="collect episodes", disable=not progress, unit="ep"):
