@@ -43,7 +43,14 @@ def load_step_rows(store_path: str | Path) -> list[dict[str, Any]]:
     except ImportError as exc:
         raise ValueError(f"reading {path} needs perception_config.episode_store, which this build lacks ({exc}); "
                          f"use --dataset to play episodes instead") from None
-    return [row for row in EpisodeStore(path).iter_steps() if row.get("pose") is not None]
+    try:
+        store = EpisodeStore(path, readonly=True)
+    except TypeError:  # a store without the read-only mode
+        store = EpisodeStore(path)
+    try:
+        return [row for row in store.iter_steps() if row.get("pose") is not None]
+    finally:
+        getattr(store, "close", lambda: None)()
 
 
 def _pose_json(pose: Pose) -> dict[str, np.ndarray]:
