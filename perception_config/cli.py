@@ -178,7 +178,13 @@ def _cmd_fit_score(args: argparse.Namespace) -> int:
     source["command"] = " ".join(["perception-config fit-score", *(_argv_of(args))])
     table = featurise(rows, dataset=args.dataset if args.store is not None else None, progress=not args.quiet)
     hidden = tuple(int(x) for x in args.hidden.split(",") if x.strip())
-    metrics = fit_score(table, args.out, hidden=hidden, epochs=args.epochs, seed=args.seed, source=source)
+    base = None
+    if args.recalibrate is not None:
+        from .blocks.pick_success import load_model
+
+        base = load_model(str(args.recalibrate))
+        source["recalibrated"] = str(args.recalibrate)
+    metrics = fit_score(table, args.out, hidden=hidden, epochs=args.epochs, seed=args.seed, source=source, base=base)
     print(format_metrics(metrics))
     print(f"wrote {metrics['model']}, {metrics['reliability']} and {metrics['metrics_file']}")
     return 0
@@ -191,6 +197,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         out += ["--dataset", str(args.dataset)]
     if args.store is None:
         out += ["--episodes", str(args.episodes), "--lambdas", args.lambdas, "--max-steps", str(args.max_steps)]
+    if args.recalibrate is not None:
+        out += ["--recalibrate", str(args.recalibrate)]
     return out + ["--hidden", args.hidden, "--epochs", str(args.epochs), "--seed", str(args.seed),
                   "--out", str(args.out)]
 
@@ -208,6 +216,9 @@ def _add_fit_score_parser(sub: Any) -> None:
     fs.add_argument("--episodes", type=int, default=1500, help="episodes to play (--dataset)")
     fs.add_argument("--lambdas", default="0.1,0.3,0.5,0.7,1.0", help="noise levels of the played episodes")
     fs.add_argument("--max-steps", type=int, default=8, help="actions per played episode at most")
+    fs.add_argument("--recalibrate", metavar="MODEL", default=None,
+                    help="keep this model's network, fit only its calibration to these episodes (e.g. a real camera "
+                         "or cell's); 'pick_success' is the shipped one")
     fs.add_argument("--hidden", default="32,16", help="hidden layer widths of the MLP")
     fs.add_argument("--epochs", type=int, default=300, help="full-batch Adam steps")
     fs.add_argument("--seed", type=int, default=0)

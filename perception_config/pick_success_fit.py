@@ -87,20 +87,27 @@ def split_images(table: FeatureTable, test_fraction: float = DEFAULT_TEST_FRACTI
 
 
 def fit_model(table: FeatureTable, hidden: Sequence[int] = (32, 16), epochs: int = 300, seed: int = 0,
-              test_fraction: float = DEFAULT_TEST_FRACTION, split_seed: int = DEFAULT_SPLIT_SEED
-              ) -> tuple[PickSuccessModel, dict[str, Any], dict[str, np.ndarray]]:
+              test_fraction: float = DEFAULT_TEST_FRACTION, split_seed: int = DEFAULT_SPLIT_SEED,
+              base: PickSuccessModel | None = None) -> tuple[PickSuccessModel, dict[str, Any], dict[str, np.ndarray]]:
     """(model, metrics, split masks): the MLP trained on the fit images, Platt-calibrated on the
-    calibration images, measured on the held-out images."""
+    calibration images, measured on the held-out images. With a `base` model, only recalibrated:
+    its network kept, Platt scaling fitted again on the fit and calibration images (a camera or
+    cell whose frames the base never saw: the ranking stays, the probabilities move)."""
     masks = split_images(table, test_fraction, split_seed)
     fit, cal, test = masks["fit"], masks["calibration"], masks["test"]
+    if base is not None:
+        cal = fit | cal
     for name, m in (("fit", fit), ("calibration", cal)):
         if len(set(table.y[m].tolist())) < 2:
             which = "successes" if table.y[m].all() else "failures"
             raise ValueError(f"the {name} images' hypotheses are all {which}: nothing to learn from; collect more "
                              f"episodes (or several lambdas)")
-    median, spread = robust_scaling(table.X[fit])
-    layers = fit_mlp(encode(table.X[fit], median, spread), table.y[fit], hidden, epochs, seed=seed)
-    model = PickSuccessModel(tuple(table.feature_names), median, spread, layers)
+    if base is None:
+        median, spread = robust_scaling(table.X[fit])
+        layers = fit_mlp(encode(table.X[fit], median, spread), table.y[fit], hidden, epochs, seed=seed)
+        model = PickSuccessModel(tuple(table.feature_names), median, spread, layers)
+    else:
+        model = PickSuccessModel(base.feature_names, base.median, base.spread, base.layers)
     model.calibration = fit_platt(model.logit(table.X[cal]), table.y[cal])
     metrics: dict[str, Any] = {}
     for name, m in (("fit", fit), ("calibration", cal), ("test", test)):
@@ -109,10 +116,17 @@ def fit_model(table: FeatureTable, hidden: Sequence[int] = (32, 16), epochs: int
                          "rgbd": score_metrics(p[~table.rgb_only[m]], table.y[m][~table.rgb_only[m]]),
                          "rgb_only": score_metrics(p[table.rgb_only[m]], table.y[m][table.rgb_only[m]])}
     metrics["images"] = {name: len({table.images[i] for i in np.flatnonzero(m)}) for name, m in masks.items()}
-    model.record = {"hidden": list(hidden), "epochs": int(epochs), "seed": int(seed), "rows": len(table),
-                    "images": metrics["images"],
+    model.record = {"hidden": [w.shape[0] for w, _ in model.layers[:-1]], "epochs": int(epochs), "seed": int(seed),
+                    "rows": len(table), "images": metrics["images"],
                     "test": {k: {m: metrics["test"][k].get(m) for m in ("n", "auc", "brier", "ece")}
                              for k in ("all", "rgbd", "rgb_only")}}
+    if base is not None:
+        model.record.update(recalibrated_from=base.record, base_calibration=list(base.calibration))
+        p = base.predict(table.X[test])
+        metrics["test_before_recalibration"] = {
+            "all": score_metrics(p, table.y[test]),
+            "rgbd": score_metrics(p[~table.rgb_only[test]], table.y[test][~table.rgb_only[test]]),
+            "rgb_only": score_metrics(p[table.rgb_only[test]], table.y[test][table.rgb_only[test]])}
     return model, metrics, masks
 
 
@@ -152,11 +166,12 @@ def plot_reliability(p_by_set: dict[str, tuple[np.ndarray, np.ndarray]], path: s
 
 
 def fit_score(table: FeatureTable, out_dir: str | Path, hidden: Sequence[int] = (32, 16), epochs: int = 300,
-              seed: int = 0, source: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Fit, calibrate, measure; write MODEL_FILE, reliability.png and metrics.json into `out_dir`.
-    Returns the metrics (with the written paths)."""
+              seed: int = 0, source: dict[str, Any] | None = None, base: PickSuccessModel | None = None
+              ) -> dict[str, Any]:
+    """Fit (or with `base` only recalibrate), calibrate, measure; write MODEL_FILE,
+    reliability.png and metrics.json into `out_dir`. Returns the metrics (with the written paths)."""
     out = Path(out_dir)
-    model, metrics, masks = fit_model(table, hidden, epochs, seed)
+    model, metrics, masks = fit_model(table, hidden, epochs, seed, base=base)
     model.record["source"] = source or {}
     test = masks["test"]
     p = model.predict(table.X[test])
@@ -180,11 +195,18 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     """The held-out figures as a few lines."""
     lines = [f"held-out images: {metrics['images']['test']} (fit {metrics['images']['fit']}, "
              f"calibration {metrics['images']['calibration']})"]
-    for key, label in (("rgbd", "RGB-D"), ("rgb_only", "RGB-only"), ("all", "all")):
-        m = metrics["test"][key]
-        if m.get("n"):
-            lines.append(f"  {label:8s} n={m['n']:5d} success {100 * m['base_rate']:5.1f} %  AUC {m['auc']:.3f}  "
-                         f"Brier {m['brier']:.3f}  ECE {m['ece']:.3f}")
+    for which, title in (("test_before_recalibration", "before recalibration:"), ("test", None)):
+        if which not in metrics:
+            continue
+        if title:
+            lines.append(title)
+        for key, label in (("rgbd", "RGB-D"), ("rgb_only", "RGB-only"), ("all", "all")):
+            m = metrics[which][key]
+            if m.get("n"):
+                lines.append(f"  {label:8s} n={m['n']:5d} success {100 * m['base_rate']:5.1f} %  AUC {m['auc']:.3f}  "
+                             f"Brier {m['brier']:.3f}  ECE {m['ece']:.3f}")
+        if title:
+            lines.append("recalibrated:")
     return "\n".join(lines)
 
 

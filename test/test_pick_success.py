@@ -172,6 +172,16 @@ def test_fit_score_on_a_tiny_dataset(synthetic_dataset, tmp_path, capsys):
     assert 0 <= test["brier"] <= 0.25
     block = create("pick_success", model=str(out))
     assert block.model.record["source"]["episodes"] == 40
+    # recalibration keeps the network and fits only Platt's (a, b)
+    again = tmp_path / "recalibrated"
+    assert main(["fit-score", "--dataset", str(synthetic_dataset), "--episodes", "20", "--seed", "1",
+                 "--recalibrate", str(out), "--quiet", "--out", str(again)]) == 0
+    assert "before recalibration" in capsys.readouterr().out
+    re = create("pick_success", model=str(again)).model
+    for (w0, b0), (w1, b1) in zip(block.model.layers, re.layers):
+        np.testing.assert_array_equal(w0, w1)
+        np.testing.assert_array_equal(b0, b1)
+    assert re.record["source"]["recalibrated"] == str(out) and "recalibrated_from" in re.record
 
 
 def test_played_rows_are_reproducible(synthetic_dataset):
