@@ -255,7 +255,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--episodes", type=int, default=None, help="episodes per lambda (default: every test episode)")
     ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
     ev.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML or shipped name (default, rgb; default: the policy's, else default)")
+                    help="pipeline YAML or shipped name (default, rgb, pick_success; default: the policy's, "
+                         "else default)")
     ev.add_argument("--split-seed", type=int, default=None,
                     help="train/test split seed (default: the policy's, else 0)")
     ev.add_argument("--test-fraction", type=float, default=None,
@@ -307,7 +308,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                          f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
     tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
@@ -436,7 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
         _add_dataset_args(c)
         c.add_argument("--out", type=Path, required=True, help="JSON output file")
         c.add_argument("--pipeline", type=Path, default=None,
-                       help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                       help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success "
+                            "(default: default)")
         c.add_argument("--frames", type=int, default=10, help="number of images to use")
         c.add_argument("--split", default="test")
         c.add_argument("--quiet", action="store_true")
@@ -450,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_args(c)
     c.add_argument("--out", type=Path, required=True, help="folder for real.json and real.png, or a .json file")
     c.add_argument("--pipeline", type=Path, default=None,
-                   help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                   help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
     c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
     c.add_argument("--seeds", type=int, default=5, help="perturbations per object and lambda")
     c.add_argument("--lambdas", default="0,0.1,0.3", help="starting noise levels of the refiners (0 = ground truth)")
