@@ -24,12 +24,14 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from .blocks.pick import SimulatedPick
 from .datasets.bop import BopDataset
 from .geometry import Pose
 from .metrics import pose_mssd
 from .vision.pick_features import FEATURE_NAMES, pick_features, rgb_only
 
-PICK_MSSD_SHARE = 0.1  # the pick criterion: MSSD <= this x diameter (blocks/pick.py SimulatedPick's default)
+# the pick criterion: MSSD <= this x diameter, SimulatedPick's default (blocks/pick.py), read from the block
+PICK_MSSD_SHARE = float(next(p.default for p in SimulatedPick.params if p.name == "mssd_threshold"))
 DEFAULT_COLLECT_LAMBDAS = (0.1, 0.3, 0.5, 0.7, 1.0)
 
 
