@@ -134,7 +134,8 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
-    package_data={PACKAGE: ["config/*.yaml", "ros/*.xml"]},
+    package_data={PACKAGE: ["config/*.yaml", "config/pick_success/*.safetensors", "config/pick_success/*.json",
+                            "ros/*.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

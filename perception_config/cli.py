@@ -180,6 +180,74 @@ def _cmd_blocks(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit_score(args: argparse.Namespace) -> int:
+    _one_core()
+    from .pick_success_data import collect_step_rows, featurise, load_step_rows
+    from .pick_success_fit import fit_score, format_metrics
+
+    if args.store is None and args.dataset is None:
+        raise ValueError("give --store DB (learn from stored episodes) or --dataset DIR (play episodes)")
+    if args.store is not None:
+        rows = load_step_rows(args.store)
+        source = {"store": str(args.store), "rows": len(rows)}
+    else:
+        lambdas = [float(x) for x in args.lambdas.split(",")]
+        rows = collect_step_rows(args.dataset, args.episodes, lambdas, seed=args.seed, max_steps=args.max_steps,
+                                 progress=not args.quiet)
+        source = {"dataset": str(args.dataset), "episodes": args.episodes, "lambdas": lambdas, "seed": args.seed,
+                  "max_steps": args.max_steps, "policy": "random (masked)"}
+    source["command"] = " ".join(["perception-config fit-score", *(_argv_of(args))])
+    table = featurise(rows, dataset=args.dataset if args.store is not None else None, progress=not args.quiet)
+    hidden = tuple(int(x) for x in args.hidden.split(",") if x.strip())
+    base = None
+    if args.recalibrate is not None:
+        from .blocks.pick_success import load_model
+
+        base = load_model(str(args.recalibrate))
+        source["recalibrated"] = str(args.recalibrate)
+    metrics = fit_score(table, args.out, hidden=hidden, epochs=args.epochs, seed=args.seed, source=source, base=base)
+    print(format_metrics(metrics))
+    print(f"wrote {metrics['model']}, {metrics['reliability']} and {metrics['metrics_file']}")
+    return 0
+
+
+def _argv_of(args: argparse.Namespace) -> list[str]:
+    """fit-score's options as given (recorded with the model, so it can be fitted again)."""
+    out = ["--store", str(args.store)] if args.store is not None else []
+    if args.dataset is not None:
+        out += ["--dataset", str(args.dataset)]
+    if args.store is None:
+        out += ["--episodes", str(args.episodes), "--lambdas", args.lambdas, "--max-steps", str(args.max_steps)]
+    if args.recalibrate is not None:
+        out += ["--recalibrate", str(args.recalibrate)]
+    return out + ["--hidden", args.hidden, "--epochs", str(args.epochs), "--seed", str(args.seed),
+                  "--out", str(args.out)]
+
+
+def _add_fit_score_parser(sub: Any) -> None:
+    fs = sub.add_parser(
+        "fit-score", help="fit the learned pick-success score (block pick_success) from stored or played episodes",
+        description="Fit the pick_success model: features of every hypothesis of the episodes (the episode store's "
+                    "step rows, or episodes played here with a random masked policy), labelled by the pick "
+                    "criterion against the ground truth; a small MLP, Platt-calibrated on held-out images; "
+                    "prints AUC, Brier and ECE on the held-out test images.")
+    fs.add_argument("--store", type=Path, help="an episode store (SQLite) to learn from")
+    fs.add_argument("--dataset", type=Path, help="a BOP dataset to play episodes on; with --store: the dataset "
+                                                 "folder the store's rows refer to (default: the path they name)")
+    fs.add_argument("--episodes", type=int, default=1500, help="episodes to play (--dataset)")
+    fs.add_argument("--lambdas", default="0.1,0.3,0.5,0.7,1.0", help="noise levels of the played episodes")
+    fs.add_argument("--max-steps", type=int, default=8, help="actions per played episode at most")
+    fs.add_argument("--recalibrate", metavar="MODEL", default=None,
+                    help="keep this model's network, fit only its calibration to these episodes (e.g. a real camera "
+                         "or cell's); 'pick_success' is the shipped one")
+    fs.add_argument("--hidden", default="32,16", help="hidden layer widths of the MLP")
+    fs.add_argument("--epochs", type=int, default=300, help="full-batch Adam steps")
+    fs.add_argument("--seed", type=int, default=0)
+    fs.add_argument("--out", type=Path, required=True, help="folder for the model, reliability.png, metrics.json")
+    fs.add_argument("--quiet", action="store_true", help="no progress bars")
+    fs.set_defaults(func=_cmd_fit_score)
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
@@ -209,7 +277,8 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--episodes", type=int, default=None, help="episodes per lambda (default: every test episode)")
     ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
     ev.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML or shipped name (default, rgb; default: the policy's, else default)")
+                    help="pipeline YAML or shipped name (default, rgb, pick_success; default: the policy's, "
+                         "else default)")
     ev.add_argument("--split-seed", type=int, default=None,
                     help="train/test split seed (default: the policy's, else 0)")
     ev.add_argument("--test-fraction", type=float, default=None,
@@ -263,7 +332,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                          f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
     tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
@@ -448,7 +517,8 @@ def build_parser() -> argparse.ArgumentParser:
         _add_dataset_args(c)
         c.add_argument("--out", type=Path, required=True, help="JSON output file")
         c.add_argument("--pipeline", type=Path, default=None,
-                       help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                       help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success "
+                            "(default: default)")
         c.add_argument("--frames", type=int, default=10, help="number of images to use")
         c.add_argument("--split", default="test")
         c.add_argument("--quiet", action="store_true")
@@ -462,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_args(c)
     c.add_argument("--out", type=Path, required=True, help="folder for real.json and real.png, or a .json file")
     c.add_argument("--pipeline", type=Path, default=None,
-                   help="pipeline YAML, or a shipped pipeline by name: default, rgb (default: default)")
+                   help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
     c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
     c.add_argument("--seeds", type=int, default=5, help="perturbations per object and lambda")
     c.add_argument("--lambdas", default="0,0.1,0.3", help="starting noise levels of the refiners (0 = ground truth)")
@@ -492,6 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_replay_check_parser(sub)
     _add_cell_sim_parser(sub)
+    _add_fit_score_parser(sub)
     return p
 
 

@@ -132,7 +132,7 @@ def pipeline_from_dict(data: Any, source: str = "<pipeline>") -> Pipeline:
 
 
 def shipped_pipelines() -> list[str]:
-    """Names of the pipelines shipped in the package (`<name>_pipeline.yaml`): 'default', 'rgb'."""
+    """Names of the pipelines shipped in the package (`<name>_pipeline.yaml`): 'default', 'pick_success', 'rgb'."""
     return sorted(p.name[: -len("_pipeline.yaml")] for p in resources.files("perception_config.config").iterdir()
                   if p.name.endswith("_pipeline.yaml"))
 

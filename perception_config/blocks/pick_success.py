@@ -1,0 +1,86 @@
+"""The learned pick-success score: the probability that picking the current hypothesis succeeds.
+
+`pick_success` computes the features of vision/pick_features.py at the hypothesis (the
+pipeline's scores at their default parameters, depth residual statistics, outline-to-edge
+agreement, visible fraction; the depth ones NaN on an RGB-only frame, which the model was
+trained to expect) and returns the calibrated probability of a model fitted with
+`perception-config fit-score` (pick_success_model.py). Unlike the other scores it answers the
+question an agent asks before a pick in the pick's own terms (symmetry-aware MSSD <= 0.1 x
+diameter), so "pick when pick_success is high" is a rule an agent can learn quickly.
+
+The `model` parameter names the model file (or the folder fit-score wrote). A relative path is
+looked up in the working directory, then in the package's config folder; the default is the
+model shipped there (config/pick_success/, fitted on the synthetic default dataset by the
+command in its metrics.json). A missing, corrupt or mismatched model is refused when the block
+is built (a pipeline that names it does not load), with the file named; an empty `model` is
+refused too, so a pipeline cannot run a score that has no model behind it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..pick_success_model import PickSuccessModel
+from ..vision.pick_features import pick_features
+from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+SHIPPED_MODEL = "pick_success/pick_success.safetensors"  # in CONFIG_DIR: fitted on the synthetic default dataset
+_MODELS: dict[tuple[str, int, int], PickSuccessModel] = {}  # (path, mtime_ns, size) -> model, loaded once
+
+
+def resolve_model_path(name: str) -> Path:
+    """The model file `name` names: as given when it exists (absolute, or relative to the working
+    directory), else relative to the package's config folder; a folder means its model file."""
+    path = Path(name).expanduser()
+    if not path.is_absolute() and not path.exists() and (CONFIG_DIR / path).exists():
+        path = CONFIG_DIR / path
+    return path
+
+
+def load_model(name: str) -> PickSuccessModel:
+    """The model at `name` (resolve_model_path), read once per file version."""
+    path = resolve_model_path(name)
+    target = path / "pick_success.safetensors" if path.is_dir() else path
+    try:
+        st = target.stat()
+        key = (str(target.resolve()), st.st_mtime_ns, st.st_size)
+    except OSError:
+        key = None
+    if key is not None and key in _MODELS:
+        return _MODELS[key]
+    model = PickSuccessModel.load(target)  # PickSuccessModelError (a ValueError) naming the file
+    if key is not None:
+        _MODELS[key] = model
+    return model
+
+
+@register
+class PickSuccess(Block):
+    """Learned probability that a pick at the hypothesis succeeds (fit with `perception-config fit-score`)."""
+
+    kind = Kind.SCORING
+    name = "pick_success"
+    default_cost = 0.015  # its own scoring pass: ~15 ms per hypothesis on the synthetic frames, one core
+    inputs = (RGB, MODEL, POSE)  # depth is used when the frame has it; RGB-only frames score too
+    score_names = ("pick_success",)
+    score_ranges = {"pick_success": (0.0, 1.0)}
+    params = (
+        Param("model", SHIPPED_MODEL, doc="the pick-success model file or folder (perception-config fit-score); "
+                                          "relative: the working directory, then the package's config folder"),
+    )
+
+    def __init__(self, **overrides) -> None:
+        super().__init__(**overrides)
+        if not self.config["model"]:
+            raise ValueError("block 'pick_success' needs a model: set its parameter model to a file written by "
+                             f"`perception-config fit-score` (the shipped one: {SHIPPED_MODEL})")
+        self.model = load_model(str(self.config["model"]))
+
+    def run(self, inp: BlockInput) -> BlockResult:
+        assert inp.frame is not None and inp.pose is not None
+        features = pick_features(inp.frame, inp.model, inp.pose, inp.cache)
+        p = self.model.predict_one(features)
+        return BlockResult(ok=True, scores={"pick_success": p}, info={"features": features})
+
+
+__all__ = ["PickSuccess", "load_model", "resolve_model_path"]
