@@ -40,19 +40,10 @@ def load_step_rows(store_path: str | Path) -> list[dict[str, Any]]:
     path = Path(store_path)
     if not path.is_file():
         raise FileNotFoundError(f"episode store {path} does not exist")
-    try:
-        from .episode_store import EpisodeStore  # issue 16 item 1; the store's module
-    except ImportError as exc:
-        raise ValueError(f"reading {path} needs perception_config.episode_store, which this build lacks ({exc}); "
-                         f"use --dataset to play episodes instead") from None
-    try:
-        store = EpisodeStore(path, readonly=True)
-    except TypeError:  # a store without the read-only mode
-        store = EpisodeStore(path)
-    try:
+    from .episode_store import EpisodeStore
+
+    with EpisodeStore(path, readonly=True) as store:
         return [row for row in store.iter_steps() if row.get("pose") is not None]
-    finally:
-        getattr(store, "close", lambda: None)()
 
 
 def _pose_json(pose: Pose) -> dict[str, np.ndarray]:

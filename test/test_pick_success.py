@@ -198,34 +198,25 @@ def test_played_rows_are_reproducible(synthetic_dataset):
                           "picked", "pick_source"} for r in a)
 
 
-def test_store_rows_are_read_through_the_store_module(tmp_path, monkeypatch):
-    """load_step_rows reads the episode store's iter_steps (a stand-in module when the store is not
-    in this build) and keeps the rows with a pose."""
-    import sys
-    import types
-
+def test_fit_score_from_an_episode_store_of_a_training_run(synthetic_dataset, tmp_path, capsys):
+    """The store a training run writes (episodes.sqlite) is fit-score's input: every stored
+    hypothesis with a pose becomes a row labelled by the pick criterion."""
+    from perception_config.cli import main
     from perception_config.pick_success_data import load_step_rows
 
-    rows = [{"step": 0, "pose": {"R": np.eye(3), "t": np.array([0, 0, 0.5])}}, {"step": 1, "pose": None}]
-    opened = []
-
-    class Store:
-        def __init__(self, path, readonly=False):
-            opened.append((path, readonly))
-
-        def iter_steps(self, where=None):
-            return iter(rows)
-
-        def close(self):
-            opened.append("closed")
-
-    db = tmp_path / "episodes.db"
-    db.write_bytes(b"")
-    module = types.ModuleType("perception_config.episode_store")
-    module.EpisodeStore = Store
-    monkeypatch.setitem(sys.modules, "perception_config.episode_store", module)
-    assert load_step_rows(db) == rows[:1]
-    assert opened == [(db, True), "closed"]
+    run = tmp_path / "run"
+    assert main(["train", "--dataset", str(synthetic_dataset), "--agent", "random", "--episodes", "30",
+                 "--time-mode", "cost_table", "--workers", "1", "--out", str(run)]) == 0
+    rows = load_step_rows(run / "episodes.sqlite")
+    assert len(rows) >= 30 and all(r["pose"]["R"].shape == (3, 3) for r in rows)
+    assert {r["episode_source"] for r in rows} == {"train"} and {r["step"] for r in rows} >= {0, 1}
+    capsys.readouterr()
+    out = tmp_path / "model"
+    assert main(["fit-score", "--store", str(run / "episodes.sqlite"), "--epochs", "200", "--hidden", "16",
+                 "--quiet", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["test"]["rgbd"]["n"] > 0 and metrics["test"]["rgbd"]["auc"] > 0.6, metrics["test"]
+    assert create("pick_success", model=str(out)).model.record["source"]["store"].endswith("episodes.sqlite")
 
 
 def test_fit_score_names_its_bad_input(tmp_path, capsys):
