@@ -390,7 +390,7 @@ def plot_real(result: dict[str, Any], path: str | Path) -> Path:
     """Bars, overall and per object: the share within tolerance after one call from the ground
     truth (lambda 0, when measured), and at the largest lambda at the start / after one call /
     after the chain, for every refiner; then each score's AUC per object."""
-    from .plots import _save, plt
+    from .plots import plt, save_figure
 
     lams = [f"{x:g}" for x in result["settings"]["lambdas"]]
     lam, k = lams[lams.index(max(lams, key=float))], result["settings"]["max_calls"]
@@ -429,4 +429,4 @@ def plot_real(result: dict[str, Any], path: str | Path) -> Path:
         ax.set_ylabel("AUC (in vs out)")
         ax.legend(fontsize=7, ncol=4)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -31,7 +31,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .atomic_file import atomic_output, atomic_write
+from .atomic_file import atomic_write
 
 ESTIMATE_COLUMNS = (
     "index",  # 0, 1, ... in the order estimated
@@ -296,10 +296,7 @@ def plot_cell_sim(path: str | os.PathLike, rows: Sequence[dict[str, Any]], refer
                   tolerance: float = DEFAULT_TOLERANCE, reached: int | None = None) -> Path:
     """Rolling success share and rolling mean time per estimate over the estimate index, the
     reference as horizontal lines with its tolerance band, promotions as vertical lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import plt, save_figure  # lazy: matplotlib (Agg) only when plotting
 
     x = np.array([r["index"] for r in rows]) + 1
     success = rolling_mean([r["success"] for r in rows], window)
@@ -328,13 +325,7 @@ def plot_cell_sim(path: str | os.PathLike, rows: Sequence[dict[str, Any]], refer
     axes[1].set_xlabel("estimate")
     if title:
         axes[0].set_title(title)
-    path = Path(path)
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- summary

@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .atomic_file import atomic_output, atomic_write
+from .atomic_file import atomic_write
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .pick_success_data import FeatureTable
 from .pick_success_model import MODEL_FILE, PickSuccessModel, encode, fit_mlp, fit_platt, robust_scaling
@@ -133,10 +133,7 @@ def fit_model(table: FeatureTable, hidden: Sequence[int] = (32, 16), epochs: int
 def plot_reliability(p_by_set: dict[str, tuple[np.ndarray, np.ndarray]], path: str | Path, title: str = "") -> Path:
     """The reliability diagram (observed success rate against predicted probability per bin,
     marker area ~ count) and the histogram of predictions, one curve per named set."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import plt, save_figure  # lazy: matplotlib (Agg) only when plotting
 
     fig, (ax, hx) = plt.subplots(1, 2, figsize=(10, 4.4))
     ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="perfectly calibrated")
@@ -156,13 +153,7 @@ def plot_reliability(p_by_set: dict[str, tuple[np.ndarray, np.ndarray]], path: s
     hx.set(xlabel="predicted probability", ylabel="hypotheses", title="predictions", yscale="log")
     hx.legend(fontsize=7)
     fig.tight_layout()
-    path = Path(path)
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def fit_score(table: FeatureTable, out_dir: str | Path, hidden: Sequence[int] = (32, 16), epochs: int = 300,

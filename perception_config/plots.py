@@ -25,7 +25,7 @@ from .scene import Frame  # noqa: E402
 GT_COLOUR, INIT_COLOUR, FINAL_COLOUR = "#1f77ff", "#e41a1c", "#2ca02c"
 
 
-def _save(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
     """Save a figure atomically and close it."""
     path = Path(path)
     try:
@@ -106,7 +106,7 @@ def plot_fig5(records: Sequence[dict[str, Any]], path: str | os.PathLike) -> Pat
     n = records[0]["episodes"] if records else 0
     fig.suptitle(f"Agents vs noise level ({n} test episodes per lambda; time and operations over successful episodes)",
                  fontsize=12)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- hypotheses on the image
@@ -184,7 +184,7 @@ def plot_lambda_grid(
         _draw_masks(ax, frame, box, masks)
     fig.suptitle(f"Initial hypotheses (red) vs ground truth (blue)\nscene {frame.scene_id} image {frame.im_id} "
                  f"object {model.obj_id}", fontsize=11)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_episode(
@@ -251,7 +251,7 @@ def plot_episode(
     ax_side.set_title("side view: observed point cloud and model" if frame.depth is not None
                       else "side view: model (RGB-only frame: no observed depth)", fontsize=10)
     fig.suptitle(title, fontsize=10)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 __all__ = ["plot_fig5", "plot_lambda_grid", "plot_episode", "silhouette"]
