@@ -28,8 +28,9 @@ Each cycle reports one line (`format_result`), the line the configurator logs:
 A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line
 `learner: no candidate: <reason>; serving vN unchanged`; the worker keeps running.
 
-The pick-success score (issue 16 item 2, another module) is refitted by `refit_pick_success`,
-a hook called once per cycle; it does nothing here yet (see its docstring).
+The learner improves the policy only: it does not refit the pick_success score (fit-score reads
+stores whose episodes name dataset images; the configurator's name frames by stamp, whose ground
+truth is in the frame ring, which fit-score does not read yet).
 """
 from __future__ import annotations
 
@@ -164,15 +165,6 @@ def replay_cost(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode])
     return float(np.mean(costs))
 
 
-def refit_pick_success(learn_dir: Path, log: Callable[[str], None]) -> None:
-    """HOOK (issue 16 item 2): refit the `pick_success` scoring block on the stored estimates and
-    their reported pick outcomes (table pick_outcomes; `perception-config fit-score`). The score
-    is built by another module in parallel; until it is merged this hook does nothing, so a
-    cycle improves the policy only. Wire it here: fit on `learn_dir/episodes.sqlite`, write the
-    new score weights next to the policies, and let the next candidate's env use them."""
-    return None
-
-
 def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, extra: dict[str, Any]) -> Path:
     folder = learn_dir / CANDIDATES
     folder.mkdir(parents=True, exist_ok=True)
@@ -291,7 +283,6 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
             try:
                 if env is None:
                     env, models = settings.env(), ModelFolder(settings.models_dir)
-                refit_pick_success(learn_dir, log)
                 with open3d_single_thread(True):
                     result = learn_once(learn_dir, settings, log, env=env, models=models, stop=stopped)
             except Exception as exc:  # noqa: BLE001  (the worker must survive any bad cycle)
