@@ -3,10 +3,27 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
+from typing import Iterable, Iterator, TypeVar
+
+T = TypeVar("T")
 
 
 class BagFormatError(ValueError):
     """A bag that cannot be read as RGB-D frames; the message names the file, topic and problem."""
+
+
+def reading(records: Iterable[T], what: str) -> Iterator[T]:
+    """The records of a storage library's reader; whatever it raises on damaged data becomes a
+    BagFormatError "<what> (<error>)" (the caller names the file and the storage)."""
+    it = iter(records)
+    while True:
+        try:
+            record = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:
+            raise BagFormatError(f"{what} ({type(exc).__name__}: {exc})") from None
+        yield record
 
 
 class BagTruncatedError(BagFormatError):

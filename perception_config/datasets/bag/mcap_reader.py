@@ -21,7 +21,7 @@ import yaml
 
 from .compression import decompress_stream
 from .definitions import definition
-from .errors import BagFormatError, BagTruncatedError
+from .errors import BagFormatError, BagTruncatedError, reading
 from .type_names import normalize_type_name
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -292,15 +292,10 @@ class McapFile:
                 return
             with open(self.path, "rb") as f:
                 reader = SeekingReader(f, validate_crcs=True, record_size_limit=MAX_RECORD_BYTES)
-                it = reader.iter_messages(topics=topics, log_time_order=True)
-                while True:
-                    try:
-                        _schema, channel, message = next(it)
-                    except StopIteration:
-                        return
-                    except Exception as exc:
-                        raise BagFormatError(f"{self.path}: damaged MCAP data ({type(exc).__name__}: {exc})") from None
+                for _schema, channel, message in reading(reader.iter_messages(topics=topics, log_time_order=True),
+                                                         f"{self.path}: damaged MCAP data"):
                     yield chans[channel.id], message.log_time, message.data
+            return
         from mcap.records import Message
 
         for batch in self._record_batches():

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Iterator
 
 from .compression import decompress_stream
-from .errors import BagFormatError
+from .errors import BagFormatError, reading
 from .mcap_reader import _ChannelInfo, _Schema
 
 
@@ -72,14 +72,7 @@ class Db3File:
         conns = [c for i, c in self._conns.items() if channel_ids is None or i in channel_ids]
         if not conns:
             return
-        it = self._reader.messages(conns)
-        while True:
-            try:
-                conn, log_time, data = next(it)
-            except StopIteration:
-                return
-            except Exception as exc:
-                raise BagFormatError(f"{self.path}: damaged sqlite3 data ({type(exc).__name__}: {exc})") from None
+        for conn, log_time, data in reading(self._reader.messages(conns), f"{self.path}: damaged sqlite3 data"):
             yield self._channels[conn.id], log_time, data
 
     def truncation_message(self) -> str:
