@@ -197,7 +197,13 @@ def _cmd_fit_score(args: argparse.Namespace) -> int:
         source = {"dataset": str(args.dataset), "episodes": args.episodes, "lambdas": lambdas, "seed": args.seed,
                   "max_steps": args.max_steps, "policy": "random (masked)"}
     source["command"] = " ".join(["perception-config fit-score", *(_argv_of(args))])
-    table = featurise(rows, dataset=args.dataset if args.store is not None else None, progress=not args.quiet)
+    frames = args.frames
+    if frames is None and args.store is not None and (Path(args.store).parent / "frames").is_dir():
+        frames = Path(args.store).parent / "frames"  # a configurator's learn_dir: its kept frames
+    models = args.models if args.models is not None else (
+        Path(args.dataset) / "models" if args.dataset is not None else None)
+    table = featurise(rows, dataset=args.dataset if args.store is not None else None, progress=not args.quiet,
+                      frames_dir=frames, models_dir=models)
     hidden = tuple(int(x) for x in args.hidden.split(",") if x.strip())
     base = None
     if args.recalibrate is not None:
@@ -216,6 +222,9 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
     out = ["--store", str(args.store)] if args.store is not None else []
     if args.dataset is not None:
         out += ["--dataset", str(args.dataset)]
+    for flag, value in (("--frames", args.frames), ("--models", args.models)):
+        if value is not None:
+            out += [flag, str(value)]
     if args.store is None:
         out += ["--episodes", str(args.episodes), "--lambdas", args.lambdas, "--max-steps", str(args.max_steps)]
     if args.recalibrate is not None:
@@ -234,6 +243,12 @@ def _add_fit_score_parser(sub: Any) -> None:
     fs.add_argument("--store", type=Path, help="an episode store (SQLite) to learn from")
     fs.add_argument("--dataset", type=Path, help="a BOP dataset to play episodes on; with --store: the dataset "
                                                  "folder the store's rows refer to (default: the path they name)")
+    fs.add_argument("--frames", type=Path, default=None,
+                    help="with --store: the frames the configurator kept (learn_frames), for its estimates' rows "
+                         "(default: frames/ beside the store, a learn_dir's); labelled by their ground truth, else "
+                         "by the robot's reported pick outcomes")
+    fs.add_argument("--models", type=Path, default=None,
+                    help="the models folder of the kept frames' objects (default: the --dataset's models/)")
     fs.add_argument("--episodes", type=int, default=1500, help="episodes to play (--dataset)")
     fs.add_argument("--lambdas", default="0.1,0.3,0.5,0.7,1.0", help="noise levels of the played episodes")
     fs.add_argument("--max-steps", type=int, default=8, help="actions per played episode at most")

@@ -28,9 +28,9 @@ Each cycle reports one line (`format_result`), the line the configurator logs:
 A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line
 `learner: no candidate: <reason>; serving vN unchanged`; the worker keeps running.
 
-The learner improves the policy only: it does not refit the pick_success score (fit-score reads
-stores whose episodes name dataset images; the configurator's name frames by stamp, whose ground
-truth is in the frame ring, which fit-score does not read yet).
+When the pipeline scores pick_success, each cycle first refits that score (score_learning.py:
+candidates checked on held-out stored frames, promoted by the same margin, versions in
+`<learn_dir>/pick_success/`), then trains the policy candidate on the score that then serves.
 """
 from __future__ import annotations
 
@@ -47,6 +47,7 @@ import numpy as np
 
 from .agents import Agent, EnvSpec, make_agent
 from .agents.policy_io import load_agent, policy_info, save_agent
+from .blocks.pick_success import follow_score_versions
 from .blocks.pipeline import load_pipeline
 from .datasets.bop import ModelFolder
 from .env import PerceptionConfigEnv
@@ -55,6 +56,7 @@ from .episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
 from .learn_frames import frame_path, load_frame
 from .operators import Episode
 from .policy_versions import PolicyVersionError, PolicyVersions
+from .score_learning import SCORES, format_score_result, pick_success_block, refit_score_once
 from .settings import EnvSettings
 
 __all__ = ["PolicyVersions", "LearnerSettings", "learn_once", "run_learner", "format_result"]
@@ -81,9 +83,14 @@ class LearnerSettings:
     poll_seconds: float = 1.0
     extra: dict[str, Any] = field(default_factory=dict)  # recorded in each candidate's metadata
 
-    def env(self) -> PerceptionConfigEnv:
+    def env(self, learn_dir: str | Path | None = None) -> PerceptionConfigEnv:
+        """The serving environment in cost-table time; its pick_success score follows the score
+        versions of `learn_dir` (score_learning.py)."""
         settings = EnvSettings.from_json(self.env_settings, "learner settings").replace(time_mode="cost_table")
-        return PerceptionConfigEnv(None, load_pipeline(self.pipeline), settings)
+        pipeline = load_pipeline(self.pipeline)
+        if learn_dir is not None:
+            follow_score_versions(pipeline, Path(learn_dir) / SCORES)
+        return PerceptionConfigEnv(None, pipeline, settings)
 
 
 class LearnError(RuntimeError):
@@ -187,7 +194,7 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         if serving is None:
             raise LearnError(f"no serving version in {versions.folder}")
         serving_file = versions.path(serving)
-        env = env or settings.env()
+        env = env or settings.env(learn_dir)
         models = models or ModelFolder(settings.models_dir)
         episodes, looked = replayable_episodes(learn_dir, models, log=log)
         if len(episodes) < MIN_EPISODES:
@@ -282,7 +289,12 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
             log(f"learner: training a candidate ({count} estimates stored)")
             try:
                 if env is None:
-                    env, models = settings.env(), ModelFolder(settings.models_dir)
+                    env, models = settings.env(learn_dir), ModelFolder(settings.models_dir)
+                if pick_success_block(env.pipeline) is not None:
+                    with open3d_single_thread(True):
+                        scored = refit_score_once(learn_dir, settings.models_dir, settings.margin, settings.seed, log)
+                    log(format_score_result(scored))
+                    report("result", scored)
                 with open3d_single_thread(True):
                     result = learn_once(learn_dir, settings, log, env=env, models=models, stop=stopped)
             except Exception as exc:  # noqa: BLE001  (the worker must survive any bad cycle)

@@ -1,8 +1,9 @@
 """Training data of the learned pick-success score: step rows, their labels and features.
 
 A step row is one hypothesis an episode held (the shape `EpisodeStore.iter_steps()` yields:
-`episode_dataset`, `episode_scene_id`, `episode_im_id`, `episode_obj_id`, `pose` {"R", "t"},
-`scores`, `picked`, `pick_source`, ...). Rows come from the episode store (`load_step_rows`)
+`episode_dataset`, `episode_scene_id`, `episode_im_id` (or `episode_frame_stamp_ns`: a frame the
+configurator kept, learn_frames.py), `episode_obj_id`, `pose` {"R", "t"}, `scores`, `picked`,
+`pick_source`, ...). Rows come from the episode store (`load_step_rows`)
 or are played here with a random masked policy (`collect_step_rows`, for a dataset without a
 store). `featurise` turns rows into a FeatureTable: the frame of each row is read from its
 dataset, the features of vision/pick_features.py computed at the row's pose, and the label
@@ -132,53 +133,111 @@ def _dedupe(rows: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
         if row.get("pose") is None:
             continue
         p = row["pose"]
-        key = (str(row["episode_dataset"]), int(row["episode_scene_id"]), int(row["episode_im_id"]),
-               int(row["episode_obj_id"]), np.asarray(p["R"], float).round(9).tobytes(),
-               np.asarray(p["t"], float).round(9).tobytes())
+        key = (str(row.get("episode_dataset")), row.get("episode_scene_id"), row.get("episode_im_id"),
+               row.get("episode_frame_stamp_ns"), int(row["episode_obj_id"]),
+               np.asarray(p["R"], float).round(9).tobytes(), np.asarray(p["t"], float).round(9).tobytes())
         if key not in seen:
             seen[key] = dict(row)
-        elif row.get("picked") is not None and seen[key].get("picked") is None:
+        elif row.get("picked") is not None and (seen[key].get("picked") is None or (
+                row.get("pick_source") == "robot" and seen[key].get("pick_source") != "robot")):
             seen[key]["picked"], seen[key]["pick_source"] = row["picked"], row.get("pick_source")
     return list(seen.values())
 
 
+class _ImageSource:
+    """The frame and the object instances (model, ground truths) of one row's image."""
+
+    def __init__(self, dataset: str | Path | None, frames_dir: str | Path | None, models_dir: str | Path | None):
+        self.dataset = dataset
+        self.frames_dir = Path(frames_dir) if frames_dir is not None else None
+        self.models_dir = models_dir
+        self._datasets: dict[str, BopDataset] = {}
+        self._models: Any = None
+
+    def key(self, row: dict[str, Any]) -> tuple[str, int, int] | None:
+        """(dataset, scene_id, im_id) of a dataset image, ("frames:<dir>", -1, stamp_ns) of a kept
+        frame (the configurator's estimates, learn_frames.py), None when neither is known."""
+        if row.get("episode_im_id") is not None and row.get("episode_scene_id") is not None:
+            root = str(self.dataset) if self.dataset is not None else str(row.get("episode_dataset"))
+            return root, int(row["episode_scene_id"]), int(row["episode_im_id"])
+        if row.get("episode_frame_stamp_ns") is not None and self.frames_dir is not None:
+            return f"frames:{self.frames_dir}", -1, int(row["episode_frame_stamp_ns"])
+        return None
+
+    def load(self, key: tuple[str, int, int], obj_ids: set[int]
+             ) -> tuple[Any, dict[int, tuple[Any, list[Pose]]]] | None:
+        """The frame and, per object id, (model, ground-truth poses); None when a kept frame is gone."""
+        root, scene_id, im_id = key
+        if scene_id < 0:
+            from .datasets.bop import ModelFolder
+            from .learn_frames import frame_path, load_frame
+
+            path = frame_path(self.frames_dir, im_id)
+            if not path.exists():
+                return None  # pruned from the ring: its rows cannot be featurised
+            frame, gt = load_frame(path)  # ValueError naming the file
+            if self._models is None:
+                if self.models_dir is None:
+                    raise ValueError("the step rows name kept frames (the configurator's estimates): pass the "
+                                     "models folder their objects come from")
+                self._models = ModelFolder(self.models_dir)
+            return frame, {i: (self._models.model(str(i)), [gt[i]] if i in gt else []) for i in obj_ids}
+        if root not in self._datasets:
+            if not (Path(root) / "models").is_dir():
+                raise FileNotFoundError(f"the step rows name dataset {root!r}, which is not a BOP dataset folder "
+                                        f"here (pass the dataset's folder)")
+            self._datasets[root] = BopDataset(Path(root))
+        frame = self._datasets[root].load_frame(scene_id, im_id)
+        out: dict[int, tuple[Any, list[Pose]]] = {}
+        for obj_id in obj_ids:
+            instances = [o for o in frame.objects if o.obj_id == obj_id and o.model is not None]
+            if not instances:
+                raise ValueError(f"{root} scene {scene_id} image {im_id} has no object {obj_id} with a model")
+            out[obj_id] = (instances[0].model, [o.gt for o in instances if o.gt is not None])
+        return frame, out
+
+
 def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None, with_rgb_only: bool = True,
-              progress: bool = True) -> FeatureTable:
+              progress: bool = True, frames_dir: str | Path | None = None,
+              models_dir: str | Path | None = None) -> FeatureTable:
     """The FeatureTable of step rows (module docstring). `dataset` replaces the rows' own
-    `episode_dataset` (a store written on another machine names its path there)."""
+    `episode_dataset` (a store written on another machine names its path there). Rows of the
+    configurator's estimates name a kept frame by stamp instead of an image: they are read from
+    `frames_dir` (learn_frames.py) with their objects' models from `models_dir`, labelled by the
+    frame's ground truth when it came with one, else by a stored pick outcome alone (a robot
+    cell: only the picked hypotheses are labelled); rows with neither, or whose frame was pruned,
+    are left out."""
     from tqdm import tqdm
 
     rows = _dedupe(rows)
     if not rows:
         raise ValueError("no step rows with a hypothesis pose to learn from")
+    source = _ImageSource(dataset, frames_dir, models_dir)
     groups: dict[tuple[str, int, int], list[dict[str, Any]]] = {}
     for row in rows:
-        root = str(dataset) if dataset is not None else str(row["episode_dataset"])
-        groups.setdefault((root, int(row["episode_scene_id"]), int(row["episode_im_id"])), []).append(row)
-    datasets: dict[str, BopDataset] = {}
+        key = source.key(row)
+        if key is not None:
+            groups.setdefault(key, []).append(row)
     X, y, images, blank, share, lams = [], [], [], [], [], []
     bar = tqdm(total=len(rows), desc="features", disable=not progress, unit="pose")
-    for (root, scene_id, im_id), group in groups.items():
-        if root not in datasets:
-            if not (Path(root) / "models").is_dir():
-                raise FileNotFoundError(f"the step rows name dataset {root!r}, which is not a BOP dataset folder "
-                                        f"here (pass the dataset's folder)")
-            datasets[root] = BopDataset(Path(root))
-        frame = datasets[root].load_frame(scene_id, im_id)
+    for key, group in groups.items():
+        loaded = source.load(key, {int(r["episode_obj_id"]) for r in group})
+        if loaded is None:
+            bar.update(len(group))
+            continue
+        frame, objects = loaded
         cache: dict[str, Any] = {}
         for row in group:
             bar.update(1)
-            obj_id = int(row["episode_obj_id"])
-            instances = [o for o in frame.objects if o.obj_id == obj_id and o.model is not None]
-            if not instances:
-                raise ValueError(f"{root} scene {scene_id} image {im_id} has no object {obj_id} with a model")
-            model = instances[0].model
+            model, truths = objects[int(row["episode_obj_id"])]
             pose = _as_pose(row["pose"])
             if not pose.is_valid():
                 continue
-            label, mssd = pick_label(model, pose, [o.gt for o in instances if o.gt is not None])
+            label, mssd = pick_label(model, pose, truths) if truths else (None, math.nan)
             if row.get("picked") is not None:
                 label = bool(row["picked"])
+            if label is None:
+                continue  # no ground truth and no pick outcome: nothing to learn from this row
             f = pick_features(frame, model, pose, cache)
             lam = row.get("episode_noise_lambda")
             variants = [(f, frame.depth is None)]
@@ -187,13 +246,13 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
             for feats, is_rgb in variants:
                 X.append([feats[n] for n in FEATURE_NAMES])
                 y.append(label)
-                images.append((root, scene_id, im_id))
+                images.append(key)
                 blank.append(is_rgb)
                 share.append(mssd)
                 lams.append(float(lam) if lam is not None else math.nan)
     bar.close()
     if not X:
-        raise ValueError("no step row has a valid hypothesis pose")
+        raise ValueError("no step row has a valid hypothesis pose with a label (ground truth or a pick outcome)")
     return FeatureTable(np.asarray(X, float), np.asarray(y, bool), images, np.asarray(blank, bool),
                         np.asarray(share, float), np.asarray(lams, float))
 

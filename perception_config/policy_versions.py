@@ -1,4 +1,7 @@
-"""Versioned policy files of online learning: every promotion is kept, any version can serve again.
+"""Versioned files of online learning: every promotion is kept, any version can serve again.
+
+Policies (`<learn_dir>/policies/`) and the pick-success score (`<learn_dir>/pick_success/`) are
+versioned the same way; `what` names which in the messages.
 
 A folder (`<learn_dir>/policies/`) holds `v0000.<ext>` (version 0: what served first), `v0001...`
 (one per promoted candidate) and `versions.json`:
@@ -34,8 +37,9 @@ class PolicyVersionError(ValueError):
 class PolicyVersions:
     """The versions in `folder` (created when absent)."""
 
-    def __init__(self, folder: str | Path) -> None:
+    def __init__(self, folder: str | Path, what: str = "policy") -> None:
         self.folder = Path(folder)
+        self.what = what
         self.folder.mkdir(parents=True, exist_ok=True)
         self.index = self.folder / INDEX
 
@@ -46,12 +50,12 @@ class PolicyVersions:
         try:
             data = read_json_file(self.index)
         except (OSError, ValueError) as exc:
-            raise PolicyVersionError(f"policy versions {self.index} cannot be read ({exc}): the policy files are "
-                                     "kept; restore the index or move the folder aside") from None
+            raise PolicyVersionError(f"{self.what} versions {self.index} cannot be read ({exc}): the {self.what} "
+                                     "files are kept; restore the index or move the folder aside") from None
         if not (isinstance(data, dict) and isinstance(data.get("versions"), list)
                 and all(isinstance(v, dict) and VERSION_RE.match(str(v.get("version", ""))) and v.get("file")
                         for v in data["versions"])):
-            raise PolicyVersionError(f"policy versions {self.index} is not a versions index")
+            raise PolicyVersionError(f"{self.what} versions {self.index} is not a versions index")
         return data
 
     def list(self) -> list[dict[str, Any]]:
@@ -74,11 +78,11 @@ class PolicyVersions:
         return data["versions"][-1]["version"] if data["versions"] else None
 
     def path(self, version: str) -> Path:
-        """The policy file of `version`; PolicyVersionError naming the kept ones when unknown."""
+        """The file of `version`; PolicyVersionError naming the kept ones when unknown."""
         for v in self.list():
             if v["version"] == version:
                 return self.folder / Path(v["file"]).name
-        raise PolicyVersionError(f"unknown policy version {version!r} in {self.folder} "
+        raise PolicyVersionError(f"unknown {self.what} version {version!r} in {self.folder} "
                                  f"(kept: {', '.join(v['version'] for v in self.list()) or 'none'})")
 
     def stamp(self) -> tuple[int, int] | None:
@@ -103,7 +107,7 @@ class PolicyVersions:
         atomic_write(self.index, json.dumps(data, indent=1) + "\n")
 
     def promote(self, src_path: str | Path, info: dict[str, Any] | None = None) -> str:
-        """Keep a copy of the policy file `src_path` as the next version; its name ("v0003").
+        """Keep a copy of the file `src_path` as the next version; its name ("v0003").
         The pin (if any) stays: a rolled-back configurator keeps its version until unpinned."""
         src = Path(src_path)
         payload = src.read_bytes()
@@ -125,7 +129,7 @@ class PolicyVersions:
             if version:
                 known = [v["version"] for v in data["versions"]]
                 if version not in known:
-                    raise PolicyVersionError(f"unknown policy version {version!r} in {self.folder} "
+                    raise PolicyVersionError(f"unknown {self.what} version {version!r} in {self.folder} "
                                              f"(kept: {', '.join(known) or 'none'})")
             data["selected"] = version or None
             self._write(data)

@@ -14,12 +14,21 @@ model shipped there (config/pick_success/, fitted on the synthetic default datas
 command in its metrics.json). A missing, corrupt or mismatched model is refused when the block
 is built (a pipeline that names it does not load), with the file named; an empty `model` is
 refused too, so a pipeline cannot run a score that has no model behind it.
+
+The `versions` parameter follows online learning (online_learning.py): a folder of score
+versions (policy_versions.PolicyVersions, `<learn_dir>/pick_success/`). While it holds a version,
+the version it selects serves instead of `model`, checked before each scoring (a stat of the
+index), so a promotion or a rollback reaches every node that scores without a restart; until
+the learner writes version 0 (the pipeline's model), `model` serves. A version that cannot be
+loaded is skipped: the model that served keeps serving, and the block's info says why.
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
-from ..pick_success_model import PickSuccessModel
+from ..pick_success_model import PickSuccessModel, PickSuccessModelError
+from ..policy_versions import PolicyVersionError, PolicyVersions
 from ..vision.pick_features import pick_features
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -67,6 +76,8 @@ class PickSuccess(Block):
     params = (
         Param("model", SHIPPED_MODEL, doc="the pick-success model file or folder (perception-config fit-score); "
                                           "relative: the working directory, then the package's config folder"),
+        Param("versions", "", doc="a folder of score versions written by online learning (<learn_dir>/pick_success): "
+                                  "its selected version serves once there is one; empty: `model` always"),
     )
 
     def __init__(self, **overrides) -> None:
@@ -75,12 +86,54 @@ class PickSuccess(Block):
             raise ValueError("block 'pick_success' needs a model: set its parameter model to a file written by "
                              f"`perception-config fit-score` (the shipped one: {SHIPPED_MODEL})")
         self.model = load_model(str(self.config["model"]))
+        self.version: str | None = None  # the score version serving (None: `model`)
+        self._versions: PolicyVersions | None = None
+        self._stamp: tuple[int, int] | None = None
+        self._problem = ""
+        if self.config["versions"]:
+            self.follow_versions(self.config["versions"])
+
+    def follow_versions(self, folder: str | Path) -> None:
+        """Serve the score versions in `folder` from the next scoring on."""
+        self.config["versions"] = str(folder)
+        self._versions = PolicyVersions(folder, "pick_success")
+        self._stamp = None
+
+    def refresh(self) -> None:
+        """Serve the versions folder's selected version when its index changed (module docstring)."""
+        if self._versions is None:
+            return
+        stamp = self._versions.stamp()
+        if stamp is None or stamp == self._stamp:
+            return
+        self._stamp = stamp
+        try:
+            version = self._versions.current()
+            if version is not None and version != self.version:
+                self.model = load_model(str(self._versions.path(version)))
+                self.version = version
+            self._problem = ""
+        except (PolicyVersionError, PickSuccessModelError, OSError) as exc:
+            self._problem = f"pick_success version not loaded ({exc}); {self.version or 'the model'} keeps serving"
 
     def run(self, inp: BlockInput) -> BlockResult:
         assert inp.frame is not None and inp.pose is not None
+        self.refresh()
         features = pick_features(inp.frame, inp.model, inp.pose, inp.cache)
         p = self.model.predict_one(features)
-        return BlockResult(ok=True, scores={"pick_success": p}, info={"features": features})
+        info = {"features": features, "version": self.version}
+        if self._problem:
+            info["problem"] = self._problem
+        return BlockResult(ok=True, scores={"pick_success": p}, info=info)
 
 
-__all__ = ["PickSuccess", "load_model", "resolve_model_path"]
+def follow_score_versions(pipeline: Any, folder: str | Path) -> int:
+    """Make every pick_success block of `pipeline`'s scoring set follow the score versions in
+    `folder` (module docstring); how many blocks follow."""
+    blocks = [b for b in pipeline.scoring if isinstance(b, PickSuccess)]
+    for block in blocks:
+        block.follow_versions(folder)
+    return len(blocks)
+
+
+__all__ = ["PickSuccess", "load_model", "resolve_model_path", "follow_score_versions"]

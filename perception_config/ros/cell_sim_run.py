@@ -77,6 +77,7 @@ from ..evaluation import episode_seed
 from ..launch import Launcher, default_models
 from ..policy_settings import is_policy_file, policy_settings
 from ..ros_environment import configure_ros_environment
+from ..score_learning import SCORES
 from ..stop_signals import Interrupted, StopRequested, StopSignals, signal_name
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
@@ -327,7 +328,9 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
 
     # The cell.
     conf: dict[str, Any] = {**base, "policy": str(start_policy or ""), "fixed_sequence": sequence}
+    operators: dict[str, Any] = {}
     if learn:
+        operators["pick_success_versions"] = str(out / "learn" / SCORES)  # the learned score, when the pipeline has it
         conf.update({"learn": True, "learn_dir": str(out / "learn"),
                      "learn_start": "policy" if start_policy else start})
         if learn_every is not None:
@@ -336,7 +339,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
             conf["learn_margin"] = float(learn_margin)
     else:
         conf["episode_store"] = str(out / STORE_NAME)
-    specs = service_specs(models_dir, settings.pipeline, frames, rgb_only, conf)
+    specs = service_specs(models_dir, settings.pipeline, frames, rgb_only, conf, operators)
     specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
     start_version = policy_version(start_policy) if start_policy else \
         "fixed:" + "+".join(sequence) if start == "fixed" else start  # as the episode store names the agent

@@ -68,6 +68,9 @@ Parameters:
                     newest stored episodes of its replay check (40)
   policy_version    (learn) pin a kept version at run time (`ros2 param set ... policy_version v0002`);
                     "" = the newest promoted; an unknown version is refused with the kept ones
+  score_version     (learn, a pipeline with pick_success) the same for the learned pick-success score:
+                    versions in `learn_dir`/pick_success/ (score_learning.py), followed by the
+                    operator nodes whose `pick_success_versions` names that folder
 Topics: `perception/policy_version` (std_msgs/String, transient local): the serving version after
 every change. Service `report_pick_outcome` (ReportPickOutcome): the robot's pick result for an
 estimate (EstimatePose's `estimate_id`), recorded on the episode's last step in the store; an
@@ -160,6 +163,7 @@ class ConfiguratorNode(Node):
         self.declare_parameter("learn_train_episodes", 200)
         self.declare_parameter("learn_check_episodes", 40)
         self.declare_parameter("policy_version", "")
+        self.declare_parameter("score_version", "")
         self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
@@ -216,11 +220,13 @@ class ConfiguratorNode(Node):
                 every=int(self.get_parameter("learn_every").value),
                 train_episodes=int(self.get_parameter("learn_train_episodes").value),
                 check_episodes=int(self.get_parameter("learn_check_episodes").value), pinned=pinned,
-                camera_qos=p["camera_qos"], use_depth=self.use_depth)
+                camera_qos=p["camera_qos"], use_depth=self.use_depth,
+                score_pinned=str(self.get_parameter("score_version").value or ""))
             self.learning.sync(self._swap)
             self.create_timer(0.5, self._learning_tick, callback_group=MutuallyExclusiveCallbackGroup())
-        elif pinned:
-            raise ValueError("policy_version is set but learn is false: versions exist only with online learning")
+        elif pinned or self.get_parameter("score_version").value:
+            raise ValueError("policy_version or score_version is set but learn is false: versions exist only with "
+                             "online learning")
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.version_pub = self.create_publisher(String, "perception/policy_version", version_qos()) \
             if self.learning is None else self.learning.pub
@@ -407,6 +413,16 @@ class ConfiguratorNode(Node):
                     return result
                 self.get_logger().info(f"policy_version set to {param.value or 'the newest'}: serving it from the "
                                        "next estimate")
+            elif param.name == "score_version":
+                if self.learning is None:
+                    return SetParametersResult(successful=False,
+                                               reason="score_version needs learn:=true (no versions without it)")
+                result = self.learning.check_score_pin(str(param.value or ""))
+                if not result.successful:
+                    self.get_logger().warning(f"score_version {param.value!r} refused: {result.reason}")
+                    return result
+                self.get_logger().info(f"score_version set to {param.value or 'the newest'}: the operator nodes "
+                                       "following the score versions serve it from their next scoring")
         return SetParametersResult(successful=True)
 
     def _on_pick_outcome(self, request: ReportPickOutcome.Request, response: ReportPickOutcome.Response

@@ -9,6 +9,9 @@
   and to `perception/ground_truth`; after each estimate its frame and the frame's ground truth
   (when replayed) are written to `<learn_dir>/frames/` by a saver thread (learn_frames.py), after
   the answer is on its way: the estimate never waits for the disk.
+- The pick-success score (a pipeline that scores pick_success): version 0 of
+  `<learn_dir>/pick_success/` is the pipeline's model (score_learning.py); `score_version` pins
+  one. The operator nodes follow that folder themselves (their `pick_success_versions`).
 - The learner (online_learning.run_learner) runs in a separate process (multiprocessing spawn,
   niced, one thread), reads the store and the frames, and promotes new versions. This node
   drains its results on a timer (one log line per candidate, online_learning.format_result) and
@@ -36,6 +39,7 @@ from ..env import PerceptionConfigEnv
 from ..learn_frames import FRAME_RING, save_frame
 from ..online_learning import FRAMES, POLICIES, LearnerSettings, format_result, run_learner
 from ..policy_versions import PolicyVersionError, PolicyVersions
+from ..score_learning import SCORES, format_score_result, initial_score_version, pick_success_block, score_versions
 from .camera_frames import CameraFrame, CameraFrames, stamp_text
 from .conversions import msg_to_pose
 from .request_fields import parse_stamp
@@ -78,7 +82,7 @@ class NodeLearning:
     def __init__(self, node: Node, env: PerceptionConfigEnv, learn_dir: str, *, start: str, policy: str,
                  fixed_sequence: list[str], pipeline: Any, models_dir: str, margin: float, every: int,
                  train_episodes: int, check_episodes: int, pinned: str, camera_qos: str, use_depth: bool,
-                 frame_ring: int = FRAME_RING) -> None:
+                 frame_ring: int = FRAME_RING, score_pinned: str = "") -> None:
         if not learn_dir:
             raise ValueError("learn is true but learn_dir is not set: give a folder for the learning state "
                              "(episodes.sqlite, frames/, policies/, learner.log)")
@@ -100,6 +104,15 @@ class NodeLearning:
             self.log.info(f"learn: version {made} written to {self.versions.folder} "
                           f"({'the policy ' + policy if policy else start})")
         self.versions.select(pinned or None)  # raises naming the kept versions when unknown
+        self.scores: PolicyVersions | None = None
+        made = initial_score_version(self.dir, env.pipeline)
+        if made is not None:
+            self.log.info(f"learn: pick_success version {made} written to {self.dir / SCORES} (the pipeline's model)")
+        if pick_success_block(env.pipeline) is not None:
+            self.scores = score_versions(self.dir)
+            self.scores.select(score_pinned or None)
+        elif score_pinned:
+            raise ValueError("score_version is set but the pipeline has no pick_success score")
         self.serving: str | None = None
         self._synced_stamp: tuple[int, int] | None = None
         self.frame_ring = int(frame_ring)
@@ -173,6 +186,16 @@ class NodeLearning:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
+    def check_score_pin(self, value: str) -> SetParametersResult:
+        """The `score_version` parameter: pin a kept score version ("" = the newest)."""
+        if self.scores is None:
+            return SetParametersResult(successful=False, reason="the pipeline has no pick_success score")
+        try:
+            self.scores.select(value or None)
+        except (PolicyVersionError, OSError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
     def drain(self) -> None:
         """The learner's results: one log line each (the cell simulation parses them)."""
         while True:
@@ -181,7 +204,8 @@ class NodeLearning:
             except (queue.Empty, OSError, ValueError, EOFError):
                 return
             if kind == "result":
-                line = format_result(payload)
+                line = format_score_result(payload) if payload.get("what") == "pick_success" else \
+                    format_result(payload)
                 (self.log.warning if payload["outcome"] == "failed" else self.log.info)(line)
 
     # -- frames ------------------------------------------------------------------------------------

@@ -17,6 +17,9 @@ blocks run in the service callback; their per-frame precomputations are kept per
 
   request_queue  requests that may wait while one is served (10); one more is answered at once
                  with success=false "busy: N requests queued (request_queue=M)"
+  pick_success_versions  a folder of pick-success score versions (online learning,
+                 `<learn_dir>/pick_success`; "" = none): the pipeline's pick_success scores follow
+                 its selected version, checked before each scoring (blocks/pick_success.py)
 
 Threads: a single-threaded executor takes every request as it arrives and sends every answer
 (rclpy's multi-threaded executor's thread hand-offs cost more per service call than they bring;
@@ -50,6 +53,7 @@ from rclpy.task import Future
 from std_msgs.msg import Header
 
 from ..blocks.base import DEPTH, GROUND_TRUTH, RGB, Block, BlockInput, BlockResult, Kind, create
+from ..blocks.pick_success import PickSuccess, follow_score_versions
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bop import ModelFolder
 from ..geometry import Pose
@@ -81,8 +85,15 @@ class OperatorNode(Node):
         self.declare_parameter("sync_tolerance", 0.0)
         self.declare_parameter("use_depth", True)
         self.declare_parameter("request_queue", 10)
+        self.declare_parameter("pick_success_versions", "")
 
         self.pipeline = load_pipeline(self.param("pipeline") or None)
+        self.score_versions = str(self.param("pick_success_versions"))
+        if self.score_versions:
+            following = follow_score_versions(self.pipeline, self.score_versions)
+            self.get_logger().info(f"pick_success follows the score versions in {self.score_versions}"
+                                   if following else "pick_success_versions is set but the pipeline has no "
+                                   "pick_success score: ignored")
         models_dir = self.param("models_dir")
         self.models = ModelFolder(models_dir) if models_dir else None
         self._models: dict[str, ObjectModel] = {}  # by object id, for the node's lifetime
@@ -267,6 +278,8 @@ class OperatorNode(Node):
             if noise_lambda is not None and "noise_lambda" in config:
                 config["noise_lambda"] = noise_lambda
             self._blocks[key] = type(base)(**config)
+            if self.score_versions and isinstance(self._blocks[key], PickSuccess):
+                self._blocks[key].follow_versions(self.score_versions)
             while len(self._blocks) > MAX_BLOCKS:  # e.g. one generator per distinct noise_lambda
                 self._blocks.popitem(last=False)
         return method, self._blocks[key]

@@ -98,15 +98,16 @@ def record_images(ds: BopDataset, keys: list[tuple[int, int]], bag: Path,
 
 
 def service_specs(models_dir: Path, pipeline: Any, frames: int, rgb_only: bool,
-                  configurator: dict[str, Any]) -> list[NodeSpec]:
-    """The four operator nodes and the configurator (with `configurator`'s extra parameters),
-    caching `frames` frames by stamp (a few more), on `pipeline` (None: the built-in one)."""
+                  configurator: dict[str, Any], operators: dict[str, Any] | None = None) -> list[NodeSpec]:
+    """The four operator nodes (with `operators`' extra parameters) and the configurator (with
+    `configurator`'s), caching `frames` frames by stamp (a few more), on `pipeline` (None: the
+    built-in one)."""
     common: dict[str, Any] = {"models_dir": str(Path(models_dir).resolve()), "cache_size": max(30, frames + 5)}
     if pipeline:
         common["pipeline"] = pipeline_reference(pipeline)
     if rgb_only:  # the operators assemble colour + camera_info frames; the configurator masks depth actions
         common["use_depth"] = False
-    specs = [NodeSpec(name, params=dict(common))
+    specs = [NodeSpec(name, params={**common, **(operators or {})})
              for name in ("generation_node", "refinement_node", "scoring_node", "pick_node")]
     specs.append(NodeSpec("configurator_node", params={**common, **configurator}))
     return specs
