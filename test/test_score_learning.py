@@ -275,3 +275,39 @@ def test_scoring_node_follows_the_score_versions(ros_node, data, tmp_path):
         assert "pick_success follows the score versions" in node.output()
     finally:
         assert node.stop() == 0, node.output()
+
+
+def test_the_configurator_writes_score_version_0_and_pins_score_versions(ros_node, data, tmp_path):
+    """learn:=true on a pipeline that scores pick_success: version 0 of the score is the pipeline's
+    model; the score_version parameter refuses an unknown version (naming the kept ones) and pins
+    a kept one in the index the operator nodes follow."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    from perception_config.score_learning import score_versions
+
+    learn_dir = tmp_path / "learn"
+    node = NodeProcess("configurator_node", {"models_dir": data["root"] / "models", "pipeline": data["pipeline"],
+                                             "publish_debug": "false", "learn": "true", "learn_dir": str(learn_dir)},
+                       tmp_path)
+    try:
+        client = ros_node.create_client(SetParameters, "configurator_node/set_parameters")
+        wait_for_service(ros_node, client, process=node)
+
+        def set_score_version(value: str):
+            req = SetParameters.Request(parameters=[Parameter(name="score_version", value=ParameterValue(
+                type=ParameterType.PARAMETER_STRING, string_value=value))])
+            return call(ros_node, client, req, timeout=10.0).results[0]
+
+        versions = score_versions(learn_dir)
+        assert [v["version"] for v in versions.list()] == ["v0000"]
+        assert versions.list()[0]["info"]["start"].endswith("pick_success.safetensors")
+        versions.promote(overconfident_model(tmp_path / "bad.safetensors"), {"test": "promoted"})
+        refused = set_score_version("v0042")
+        assert not refused.successful and "unknown pick_success version 'v0042'" in refused.reason
+        assert "kept: v0000, v0001" in refused.reason and versions.current() == "v0001"
+        assert set_score_version("v0000").successful and versions.current() == "v0000"
+        assert set_score_version("").successful and versions.current() == "v0001"
+        assert "pick_success version v0000 written" in node.output()
+    finally:
+        assert node.stop() == 0, node.output()
