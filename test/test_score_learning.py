@@ -6,7 +6,7 @@ Fast DDS), including a rollback.
 
 The estimates are recorded the way the configurator records them (an episode in the store with
 source "configurator", its frame in frames/), from the tiny synthetic dataset: each image is
-kept under two stamps (a cell sees its parts again), so that the score has frames to split.
+kept under three stamps (a cell sees its parts again), so that the score has frames to split.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def data(synthetic_dataset, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def recorded(data, tmp_path_factory):
-    """Every episode of the tiny dataset twice (two stamps per image), played by a random masked
+    """Every episode of the tiny dataset three times (three stamps per image), played by a random masked
     policy, stored as the configurator stores an estimate; frames with their ground truth."""
     from perception_config.agents import make_agent
     from perception_config.episode_loop import acting_seed, play_episode
@@ -57,7 +57,7 @@ def recorded(data, tmp_path_factory):
     agent = make_agent("random", env, seed=0)
     writer = StoreWriter(out / STORE_NAME, print)
     keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
-    for rep in range(2):
+    for rep in range(3):
         for j, ek in enumerate(env.source.episodes):
             stamp, seed = stamp_ns(rep * len(keys) + keys.index((ek.scene_id, ek.im_id))), 2000 + 100 * rep + j
             traj = play_episode(env, agent, {"episode": j, "lambda": 0.7, "episode_seed": seed}, acting_seed(seed))
@@ -105,7 +105,7 @@ def test_rows_of_kept_frames_are_labelled_by_ground_truth_or_by_the_robot(tmp_pa
     rows = load_step_rows(learn_dir / STORE_NAME)
     assert rows and all(r["episode_im_id"] is None and r["episode_frame_stamp_ns"] for r in rows)
     full = featurise(rows, with_rgb_only=False, progress=False, frames_dir=learn_dir / FRAMES, models_dir=models)
-    assert len({k for k in full.images}) == 8 and 0 < full.y.mean() < 1
+    assert len({k for k in full.images}) == 12 and 0 < full.y.mean() < 1
     assert np.isfinite(full.mssd_share).all(), "every row labelled by the ground truth"
 
     # frame 0 loses its ground truth; the robot reports every pick on it, each the opposite of
@@ -216,7 +216,7 @@ def test_fit_score_reads_a_configurators_learn_dir(tmp_path, data, recorded):
     assert main(["fit-score", "--store", str(learn_dir / "episodes.sqlite"), "--models", str(data["root"] / "models"),
                  "--epochs", "50", "--out", str(out), "--quiet"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert "--models" in metrics["source"]["command"] and sum(metrics["images"].values()) == 8
+    assert "--models" in metrics["source"]["command"] and sum(metrics["images"].values()) == 12
     assert (out / "pick_success.safetensors").is_file() and (out / "reliability.png").is_file()
 
 
