@@ -300,7 +300,10 @@ def test_the_configurator_writes_score_version_0_and_pins_score_versions(ros_nod
             return call(ros_node, client, req, timeout=10.0).results[0]
 
         versions = score_versions(learn_dir)
-        assert [v["version"] for v in versions.list()] == ["v0000"]
+        deadline = time.monotonic() + 60  # the parameter services come up before the node's learning state
+        while "learner process" not in node.output() and node.alive() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert [v["version"] for v in versions.list()] == ["v0000"], node.output()
         assert versions.list()[0]["info"]["start"].endswith("pick_success.safetensors")
         versions.promote(overconfident_model(tmp_path / "bad.safetensors"), {"test": "promoted"})
         refused = set_score_version("v0042")
