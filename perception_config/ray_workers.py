@@ -98,7 +98,7 @@ def play_chunk(recipe: EnvRecipe, snap: Snapshot, episodes: Sequence[tuple[dict[
 
 
 # -- the driver side --------------------------------------------------------------------------
-def _loopback_only() -> None:
+def loopback_only() -> None:
     """A local Ray on 127.0.0.1 only. ray.init(_node_ip_address="127.0.0.1") is turned into the
     machine's address, and its gRPC servers listen on every interface; Ray's local-only mode (the
     one it runs on macOS and Windows, RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0) takes 127.0.0.1 as the
@@ -121,7 +121,7 @@ class RayRunner:
     def __init__(self, workers: int | None = None, address: str | None = None) -> None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report leaves the machine
         if not address:
-            _loopback_only()
+            loopback_only()
         import ray
 
         self._ray = ray
