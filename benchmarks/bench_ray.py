@@ -1,0 +1,120 @@
+"""Episodes per second with 1 and N Ray workers: training (pg batches, the ES population) and the
+evaluation sweep, back to back in one run so that the ratio sees the same machine load.
+
+    python benchmarks/bench_ray.py [--dataset data/default] [--episodes 400] [--agents pg,es]
+        [--workers 1,2] [--eval-episodes 6] [--lambdas 0.3,0.7] [--out benchmarks/results/ray.json]
+
+For each agent, `perception-config train` (cost-table mode, the same seed) with each number of
+workers: wall seconds and episodes/s of the whole call. A local Ray is started once before the
+runs with more than one worker and reused by them (its start-up, a few seconds, is reported
+apart); the workers' first tasks (importing the package, building the env) are inside the
+timed calls. With 1 worker nothing of Ray runs. Then `evaluate` of the first trained policy with
+the baselines (oracle, fixed pipelines, random) at `--lambdas`, the same way. Every run's
+history / results must be the same bits for every number of workers (checked and reported:
+`same_results`). The machine's load average is recorded before and after each run.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import hashlib  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.evaluation import evaluate  # noqa: E402
+from perception_config.settings import EnvSettings  # noqa: E402
+from perception_config.training import train  # noqa: E402
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", type=Path, default=REPO / "data" / "default")
+    ap.add_argument("--episodes", type=int, default=400, help="training episodes per run")
+    ap.add_argument("--agents", default="pg,es")
+    ap.add_argument("--workers", default="1,2", help="comma-separated numbers of workers")
+    ap.add_argument("--eval-episodes", type=int, default=6, help="evaluation episodes per lambda (0: no evaluation)")
+    ap.add_argument("--lambdas", default="0.3,0.7")
+    ap.add_argument("--runs", type=Path, default=REPO / "runs" / "bench-ray")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "ray.json")
+    a = ap.parse_args(argv)
+    workers = [int(w) for w in a.workers.split(",")]
+    settings = EnvSettings(time_mode="cost_table")
+    report: dict = {"dataset": str(a.dataset), "episodes": a.episodes, "cpus": os.cpu_count(),
+                    "time_mode": "cost_table", "train": {}, "evaluate": {}}
+
+    runner = None
+    if any(w > 1 for w in workers):
+        from perception_config.ray_workers import RayRunner
+
+        t0 = time.perf_counter()
+        runner = RayRunner(max(workers))
+        report["ray_start_seconds"] = round(time.perf_counter() - t0, 2)
+    try:
+        policy = None
+        for agent in a.agents.split(","):
+            rows = {}
+            for w in workers:
+                out = a.runs / f"{agent}-w{w}"
+                load0, t0 = _load(), time.perf_counter()
+                path = train(a.dataset, agent, out, a.episodes, settings=settings, seed=0, workers=w,
+                             overwrite=True, progress=False)
+                dt = time.perf_counter() - t0
+                rows[w] = {"seconds": round(dt, 2), "episodes_per_second": round(a.episodes / dt, 2),
+                           "load_before": load0, "load_after": _load(), "history": _digest(out / "history.csv")}
+                print(f"train {agent} workers={w}: {dt:.1f} s, {a.episodes / dt:.2f} episodes/s "
+                      f"(load {load0} -> {_load()})", flush=True)
+                policy = policy or path
+            base = rows[workers[0]]["seconds"]
+            report["train"][agent] = {
+                "runs": rows, "speedup": {w: round(base / r["seconds"], 2) for w, r in rows.items()},
+                "same_results": len({r["history"] for r in rows.values()}) == 1}
+        if a.eval_episodes and policy is not None:
+            lams = [float(x) for x in a.lambdas.split(",")]
+            rows = {}
+            for w in workers:
+                out = a.runs / f"eval-w{w}"
+                load0, t0 = _load(), time.perf_counter()
+                res = evaluate(a.dataset, [str(policy)], lams, out, episodes_per_lambda=a.eval_episodes,
+                               time_mode="cost_table", plots=False, progress=False, workers=w)
+                dt = time.perf_counter() - t0
+                n = len(json.loads(res.read_text())) * a.eval_episodes
+                rows[w] = {"seconds": round(dt, 2), "episodes": n, "episodes_per_second": round(n / dt, 2),
+                           "load_before": load0, "load_after": _load(), "results": _digest(res)}
+                print(f"evaluate workers={w}: {n} episodes in {dt:.1f} s, {n / dt:.2f} episodes/s "
+                      f"(load {load0} -> {_load()})", flush=True)
+            base = rows[workers[0]]["seconds"]
+            report["evaluate"] = {"runs": rows, "speedup": {w: round(base / r["seconds"], 2) for w, r in rows.items()},
+                                  "same_results": len({r["results"] for r in rows.values()}) == 1}
+    finally:
+        if runner is not None:
+            runner.close()
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(a.out, json.dumps(report, indent=1) + "\n")
+    summary = {f"train {k}": v["speedup"] for k, v in report["train"].items()}
+    if report["evaluate"]:
+        summary["evaluate"] = report["evaluate"]["speedup"]
+    print(json.dumps(summary))
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
