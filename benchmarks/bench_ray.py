@@ -1,17 +1,20 @@
 """Episodes per second with 1 and N Ray workers: training (pg batches, the ES population) and the
 evaluation sweep, back to back in one run so that the ratio sees the same machine load.
 
-    python benchmarks/bench_ray.py [--dataset data/default] [--episodes 400] [--agents pg,es]
-        [--workers 1,2] [--eval-episodes 6] [--lambdas 0.3,0.7] [--out benchmarks/results/ray.json]
+    python benchmarks/bench_ray.py [--dataset data/default] [--episodes 320] [--agents pg,es]
+        [--workers 1,2] [--repeats 2] [--eval-episodes 6] [--lambdas 0.3,0.7]
+        [--out benchmarks/results/ray.json]
 
-For each agent, `perception-config train` (cost-table mode, the same seed) with each number of
-workers: wall seconds and episodes/s of the whole call. A local Ray is started once before the
-runs with more than one worker and reused by them (its start-up, a few seconds, is reported
-apart); the workers' first tasks (importing the package, building the env) are inside the
-timed calls. With 1 worker nothing of Ray runs. Then `evaluate` of the first trained policy with
-the baselines (oracle, fixed pipelines, random) at `--lambdas`, the same way. Every run's
-history / results must be the same bits for every number of workers (checked and reported:
-`same_results`). The machine's load average is recorded before and after each run.
+For each agent, `train` (cost-table mode, the same seed) with each number of workers, the
+configurations interleaved `--repeats` times (1, 2, 1, 2: a change of the machine's load hits
+both). Per run: the wall seconds of the whole call and the steady-state episodes/s after the
+first round (the first round includes the workers' start: importing the package and building
+their env, several seconds on a loaded 2-core machine; a long training pays it once). A local
+Ray is started once before the runs and reused by those with more than one worker (its start-up
+is reported apart); with 1 worker nothing of Ray runs. Then `evaluate` of the first trained
+policy with the baselines (oracle, fixed pipelines, random) at `--lambdas`, the whole call
+timed. The histories / results of every number of workers must be the same bits (checked:
+`same_results`). The load average is recorded before and after each run.
 """
 from __future__ import annotations
 
@@ -30,10 +33,23 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from perception_config import training  # noqa: E402
 from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.evaluation import evaluate  # noqa: E402
 from perception_config.settings import EnvSettings  # noqa: E402
-from perception_config.training import train  # noqa: E402
+
+ROUND_ENDS: list[float] = []  # perf_counter at the end of every round of the running train()
+_PLAY_ROUND = training.play_round
+
+
+def _timed_round(*args, **kw):
+    """training.play_round, noting when each round ends (for the steady-state rate)."""
+    out = _PLAY_ROUND(*args, **kw)
+    ROUND_ENDS.append(time.perf_counter())
+    return out
+
+
+training.play_round = _timed_round
 
 
 def _digest(path: Path) -> str:
@@ -47,7 +63,8 @@ def _load() -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=REPO / "data" / "default")
-    ap.add_argument("--episodes", type=int, default=400, help="training episodes per run")
+    ap.add_argument("--episodes", type=int, default=320, help="training episodes per run")
+    ap.add_argument("--repeats", type=int, default=2, help="runs of each number of workers, interleaved")
     ap.add_argument("--agents", default="pg,es")
     ap.add_argument("--workers", default="1,2", help="comma-separated numbers of workers")
     ap.add_argument("--eval-episodes", type=int, default=6, help="evaluation episodes per lambda (0: no evaluation)")
@@ -70,22 +87,35 @@ def main(argv: list[str] | None = None) -> int:
     try:
         policy = None
         for agent in a.agents.split(","):
-            rows = {}
-            for w in workers:
-                out = a.runs / f"{agent}-w{w}"
-                load0, t0 = _load(), time.perf_counter()
-                path = train(a.dataset, agent, out, a.episodes, settings=settings, seed=0, workers=w,
-                             overwrite=True, progress=False)
-                dt = time.perf_counter() - t0
-                rows[w] = {"seconds": round(dt, 2), "episodes_per_second": round(a.episodes / dt, 2),
-                           "load_before": load0, "load_after": _load(), "history": _digest(out / "history.csv")}
-                print(f"train {agent} workers={w}: {dt:.1f} s, {a.episodes / dt:.2f} episodes/s "
-                      f"(load {load0} -> {_load()})", flush=True)
-                policy = policy or path
-            base = rows[workers[0]]["seconds"]
+            rows: dict[int, list[dict]] = {w: [] for w in workers}
+            for rep in range(a.repeats):
+                for w in workers:
+                    out = a.runs / f"{agent}-w{w}-{rep}"
+                    ROUND_ENDS.clear()
+                    load0, t0 = _load(), time.perf_counter()
+                    path = training.train(a.dataset, agent, out, a.episodes, settings=settings, seed=0, workers=w,
+                                          overwrite=True, progress=False)
+                    dt = time.perf_counter() - t0
+                    per_round = a.episodes / len(ROUND_ENDS)
+                    steady = (a.episodes - per_round) / (ROUND_ENDS[-1] - ROUND_ENDS[0])
+                    rows[w].append({"seconds": round(dt, 2), "episodes_per_second": round(a.episodes / dt, 2),
+                                    "steady_episodes_per_second": round(steady, 2),
+                                    "first_round_seconds": round(ROUND_ENDS[0] - t0, 2),
+                                    "load_before": load0, "load_after": _load(),
+                                    "history": _digest(out / "history.csv")})
+                    print(f"train {agent} workers={w}: {dt:.1f} s, {a.episodes / dt:.2f} episodes/s, steady "
+                          f"{steady:.2f} episodes/s (first round {ROUND_ENDS[0] - t0:.1f} s; load {load0} -> "
+                          f"{_load()})", flush=True)
+                    policy = policy or path
+            base = rows[workers[0]]
             report["train"][agent] = {
-                "runs": rows, "speedup": {w: round(base / r["seconds"], 2) for w, r in rows.items()},
-                "same_results": len({r["history"] for r in rows.values()}) == 1}
+                "runs": rows,
+                "speedup_whole_run": {w: round(sum(r["seconds"] for r in base) / sum(r["seconds"] for r in rs), 2)
+                                      for w, rs in rows.items()},
+                "speedup_steady": {w: round(sum(r["steady_episodes_per_second"] for r in rs)
+                                            / sum(r["steady_episodes_per_second"] for r in base), 2)
+                                   for w, rs in rows.items()},
+                "same_results": len({r["history"] for rs in rows.values() for r in rs}) == 1}
         if a.eval_episodes and policy is not None:
             lams = [float(x) for x in a.lambdas.split(",")]
             rows = {}
@@ -108,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
             runner.close()
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(a.out, json.dumps(report, indent=1) + "\n")
-    summary = {f"train {k}": v["speedup"] for k, v in report["train"].items()}
+    summary = {f"train {k}": [v["speedup_whole_run"], v["speedup_steady"]] for k, v in report["train"].items()}
     if report["evaluate"]:
         summary["evaluate"] = report["evaluate"]["speedup"]
     print(json.dumps(summary))

@@ -76,7 +76,7 @@ from .metrics import (
 )
 from .open3d_threads import open3d_single_thread
 from .policy_settings import is_policy_file, policy_settings
-from .ray_workers import RayRunner, ray_wanted, rebuild, snapshot, worker_env
+from .ray_workers import RayRunner, chunks, ray_wanted, rebuild, snapshot, worker_env
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
 # Engineer pipelines evaluated as baselines; those naming actions the pipeline lacks are skipped.
@@ -598,18 +598,17 @@ def evaluation_chunk(recipe: EnvRecipe, agent: Any, lam: float,
 def _sweep_on_ray(recipe: EnvRecipe, agents: Sequence[EvalAgent], lams: Sequence[float],
                   plan: Sequence[tuple[int, int]], workers: int | None, address: str | None, bar: Any,
                   storer: Storer) -> Sweep:
-    """The sweep as Ray tasks: each (agent, lambda) in chunks, about four tasks per CPU in all."""
+    """The sweep as Ray tasks: each (agent, lambda)'s plan in pieces (ray_workers.chunks)."""
     from .agents.base import Agent
 
     with RayRunner(workers, address) as runner:
         recipe_ref = runner.put(recipe)
-        n_chunks = min(len(plan), max(1, math.ceil(4 * runner.cpus / (len(agents) * len(lams)))))
-        bounds = np.linspace(0, len(plan), n_chunks + 1).astype(int)
+        pieces = chunks(len(plan), len(agents) * len(lams), runner.cpus)
         calls, keys = [], []
         for ea in agents:
             ref = runner.put(snapshot(ea.agent) if isinstance(ea.agent, Agent) else ea.agent)
             for lam in lams:
-                for lo, hi in zip(bounds[:-1], bounds[1:]):
+                for lo, hi in pieces:
                     calls.append((recipe_ref, ref, lam, list(plan[lo:hi])))
                     keys.append((ea, lam))
 

@@ -24,6 +24,7 @@ with the worker's traceback.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import pickle
 import signal
@@ -38,6 +39,7 @@ from .open3d_threads import limit_open3d_threads
 
 TASK_RETRIES = 3  # runs of a task whose worker died, after the first
 WAIT_SECONDS = 0.2  # the driver waits in slices this long, so that a stop signal is handled at once
+TASKS_PER_CPU = 8  # a call is cut into at least this many tasks per CPU: the workers end a round together
 
 Snapshot = tuple[str, dict[str, Any], dict[str, Any], dict[str, Any], bool]
 
@@ -45,6 +47,18 @@ Snapshot = tuple[str, dict[str, Any], dict[str, Any], dict[str, Any], bool]
 def ray_wanted(workers: int | None, address: str | None) -> bool:
     """Ray only for more than one worker or a cluster address."""
     return bool(address) or (workers is not None and int(workers) > 1)
+
+
+def chunks(n: int, groups: int, cpus: int) -> list[tuple[int, int]]:
+    """[lo, hi) bounds cutting each of `groups` lists of `n` items (an actor's episodes, an
+    (agent, lambda)'s plan) into pieces, so that all groups give about TASKS_PER_CPU tasks per
+    CPU (one item per task at most). Small tasks balance the workers at the end of a round (an
+    episode takes 1 to max_ops operations); the pieces change nothing in the results."""
+    if n < 1:
+        return []
+    k = min(n, max(1, math.ceil(TASKS_PER_CPU * cpus / max(1, groups))))
+    bounds = [round(i * n / k) for i in range(k + 1)]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 # -- policies as data -------------------------------------------------------------------------

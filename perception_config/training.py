@@ -43,7 +43,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any, ContextManager
@@ -59,7 +58,7 @@ from .episode_loop import Trajectory, play_episode
 from .episode_store import STORE_NAME, StoreWriter, store_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .open3d_threads import open3d_single_thread
-from .ray_workers import RayRunner, play_chunk, ray_wanted, snapshot
+from .ray_workers import RayRunner, chunks, play_chunk, ray_wanted, snapshot
 from .settings import EnvSettings, settings_from_policy_meta
 from .stop_signals import Interrupted, StopRequested, StopSignals, signal_name
 
@@ -77,14 +76,11 @@ def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], ac
     if runner is None:
         return [[play_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
                 for i, actor in enumerate(actors)]
-    # Each actor's episodes in chunks, about two tasks per CPU: the workers stay busy (the chunks
-    # change nothing in the results: every episode carries its seeds).
-    n_chunks = min(len(episodes), max(1, math.ceil(2 * runner.cpus / len(actors))))
-    bounds = np.linspace(0, len(episodes), n_chunks + 1).astype(int)
+    pieces = chunks(len(episodes), len(actors), runner.cpus)  # every episode carries its seeds
     calls, owner = [], []
     for i, actor in enumerate(actors):
         snap = runner.put(snapshot(actor))
-        for lo, hi in zip(bounds[:-1], bounds[1:]):
+        for lo, hi in pieces:
             calls.append((recipe, snap, [(episodes[j], int(act_seeds[i, j])) for j in range(lo, hi)]))
             owner.append(i)
     out: list[list[Trajectory]] = [[] for _ in actors]
