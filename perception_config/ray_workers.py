@@ -112,6 +112,12 @@ def play_chunk(recipe: EnvRecipe, snap: Snapshot, episodes: Sequence[tuple[dict[
 
 
 # -- the driver side --------------------------------------------------------------------------
+def _is_loopback(address: str) -> bool:
+    """A cluster address on this machine's loopback ("127.0.0.1:6379", "localhost:6379", "[::1]:6379")."""
+    host = address.split("://")[-1].rsplit(":", 1)[0].strip("[]")
+    return host == "localhost" or host == "::1" or host.startswith("127.")
+
+
 def loopback_only() -> None:
     """A local Ray on 127.0.0.1 only. ray.init(_node_ip_address="127.0.0.1") is turned into the
     machine's address, and its gRPC servers listen on every interface; Ray's local-only mode (the
@@ -134,7 +140,7 @@ class RayRunner:
 
     def __init__(self, workers: int | None = None, address: str | None = None) -> None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report leaves the machine
-        if not address:
+        if not address or _is_loopback(address):  # else Ray would look for 127.0.0.1's GCS on the LAN address
             loopback_only()
         import ray
 
