@@ -14,7 +14,9 @@ Ray is started once before the runs and reused by those with more than one worke
 is reported apart); with 1 worker nothing of Ray runs. Then `evaluate` of the first trained
 policy with the baselines (oracle, fixed pipelines, random) at `--lambdas`, the whole call
 timed. The histories / results of every number of workers must be the same bits (checked:
-`same_results`). The load average is recorded before and after each run.
+`same_results`). The load average is recorded before and after each run, and the CPU seconds per episode of the
+whole process tree (the driver, Ray's processes and workers): what Ray costs on top of the
+episodes, whatever the load.
 """
 from __future__ import annotations
 
@@ -60,6 +62,32 @@ def _load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+def _tree_cpu() -> dict[int, float]:
+    """CPU seconds (user + system) of this process and its descendants (a local Ray's GCS,
+    raylet and workers), by pid, from /proc."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats, children = {}, {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                f = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(entry)] = (int(f[11]) + int(f[12])) / tick
+            children.setdefault(int(f[1]), []).append(int(entry))
+    out, todo = {}, [os.getpid()]
+    while todo:
+        pid = todo.pop()
+        if pid in stats:
+            out[pid] = stats[pid]
+        todo.extend(children.get(pid, ()))
+    return out
+
+
+def _cpu_since(before: dict[int, float]) -> float:
+    return sum(v - before.get(p, 0.0) for p, v in _tree_cpu().items())
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=REPO / "data" / "default")
@@ -92,20 +120,23 @@ def main(argv: list[str] | None = None) -> int:
                 for w in workers:
                     out = a.runs / f"{agent}-w{w}-{rep}"
                     ROUND_ENDS.clear()
+                    cpu0 = _tree_cpu()
                     load0, t0 = _load(), time.perf_counter()
                     path = training.train(a.dataset, agent, out, a.episodes, settings=settings, seed=0, workers=w,
                                           overwrite=True, progress=False)
                     dt = time.perf_counter() - t0
+                    cpu = _cpu_since(cpu0)
                     per_round = a.episodes / len(ROUND_ENDS)
                     steady = (a.episodes - per_round) / (ROUND_ENDS[-1] - ROUND_ENDS[0])
                     rows[w].append({"seconds": round(dt, 2), "episodes_per_second": round(a.episodes / dt, 2),
                                     "steady_episodes_per_second": round(steady, 2),
                                     "first_round_seconds": round(ROUND_ENDS[0] - t0, 2),
+                                    "cpu_seconds_per_episode": round(cpu / a.episodes, 4),
                                     "load_before": load0, "load_after": _load(),
                                     "history": _digest(out / "history.csv")})
                     print(f"train {agent} workers={w}: {dt:.1f} s, {a.episodes / dt:.2f} episodes/s, steady "
-                          f"{steady:.2f} episodes/s (first round {ROUND_ENDS[0] - t0:.1f} s; load {load0} -> "
-                          f"{_load()})", flush=True)
+                          f"{steady:.2f} episodes/s (first round {ROUND_ENDS[0] - t0:.1f} s; CPU "
+                          f"{cpu / a.episodes:.3f} s/episode; load {load0} -> {_load()})", flush=True)
                     policy = policy or path
             base = rows[workers[0]]
             report["train"][agent] = {
