@@ -6,7 +6,8 @@ otherwise the callers play in their own process and `ray` is never imported. `Ra
 starts a local Ray (N CPUs; its GCS, raylet, object manager and workers listen on 127.0.0.1
 only, no dashboard, no usage report, quiet logs) or joins a running cluster (`address`, e.g.
 "127.0.0.1:6379" of `ray start --head`, or "auto"), and runs a list of calls of a module-level
-function as tasks, results in call order. A process that already called `ray.init` is used as it is (and left running).
+function as tasks, results in call order. A process that already called `ray.init` is used as
+it is (and left running).
 
 Results do not depend on which worker plays which task: each task carries its policy snapshot
 and its episodes with their seeds (`play_episode` reseeds the env and the agent per episode),
