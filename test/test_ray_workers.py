@@ -92,8 +92,10 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
     assert (r1.parent / "episodes.jsonl").read_bytes() == (r2.parent / "episodes.jsonl").read_bytes()
     agents = {r["agent"] for r in json.loads(r2.read_text())}
     assert {"pg:pg1", "oracle", "random"} <= agents, agents
-    with EpisodeStore(r2.parent / STORE_NAME, readonly=True) as store:
-        assert store.count("episodes") == len(agents) * 2 * 3
+    query = "SELECT agent, episode_seed, noise_lambda, steps FROM episodes ORDER BY rowid"
+    with EpisodeStore(r1.parent / STORE_NAME, readonly=True) as s1, \
+            EpisodeStore(r2.parent / STORE_NAME, readonly=True) as s2:
+        assert s1.query(query) == s2.query(query) and len(s2.query(query)) == len(agents) * 2 * 3
 
 
 def _ray_task_pids(title: str) -> list[int]:
