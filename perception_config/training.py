@@ -196,6 +196,8 @@ def train(
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    if workers is not None and int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     name = agent if isinstance(agent, str) else agent.kind
     if name == "oracle":
         raise ValueError("the oracle is a hindsight search (a lower bound for evaluation), it cannot be trained")
@@ -263,8 +265,6 @@ def train(
         kw = {"seed": seed, **(agent_kwargs or {})}
         learner = make_agent(name, spec, **kw)
     learner.explore = True
-    if workers is not None and int(workers) < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
 
     policy_path = _policy_path(out, learner)
     out.mkdir(parents=True, exist_ok=True)
