@@ -274,7 +274,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
         time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
-        store_episodes=args.store_episodes,
+        store_episodes=args.store_episodes, workers=args.workers, ray_address=args.ray_address,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -307,8 +307,18 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--no-plots", action="store_true")
     ev.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")
+    _add_ray_args(ev, "the (agent, lambda) episodes")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_evaluate)
+
+
+def _add_ray_args(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help=f"play {what} as tasks on a local Ray with N worker processes (bound to 127.0.0.1, "
+                             "no dashboard); default and 1: in this process, without Ray")
+    parser.add_argument("--ray-address", default=None, metavar="ADDR",
+                        help="join a running Ray cluster instead (e.g. 127.0.0.1:6379 of `ray start --head`, or "
+                             "auto); the dataset path must exist on every node")
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -322,7 +332,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     policy = train(
         args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
-        split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
+        split_seed=args.split_seed, workers=args.workers, ray_address=args.ray_address, overwrite=args.overwrite,
         checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
     )
     print(f"policy: {policy}")
@@ -353,13 +363,13 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                     help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
-    tr.add_argument("--workers", type=int, default=None, help="processes playing episodes (default: 2 for pg/es)")
     tr.add_argument("--checkpoint-every", type=int, default=100, metavar="N",
                     help="write the checkpoint every N episodes (100); a stop signal always writes it")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
     tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")
+    _add_ray_args(tr, "each round's episodes (pg's batch, the ES population)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_cmd_train)
 

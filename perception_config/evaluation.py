@@ -36,6 +36,12 @@ Outputs in `out/`:
 - episodes.sqlite the episode store (episode_store.py): every episode played, appended as it ends
   (source "evaluate"; a second evaluation into the same folder adds to it); a store that fails
   is one log line on stderr, the evaluation goes on
+
+Parallel: `workers` N > 1 (or `ray_address`) plays the sweep as Ray tasks (ray_workers.py), each
+a chunk of one (agent, lambda)'s planned episodes; a worker rebuilds the agent from its snapshot
+(the oracle searches in the worker's env) and its env from the dataset path, the pipeline and the
+test image ids. Every episode carries its seeds, so the records are the same as in-process, in
+cost-table mode bit for bit (Open3D then runs on one thread here and in the workers).
 """
 from __future__ import annotations
 
@@ -50,8 +56,9 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from .agents.base import EnvRecipe
 from .atomic_file import atomic_write
-from .blocks.pipeline import Pipeline, load_pipeline
+from .blocks.pipeline import Pipeline, load_pipeline, pipeline_reference
 from .datasets.bop import BopDataset, BopResult, write_results_csv
 from .env import PerceptionConfigEnv, normalise_score
 from .episode_loop import Trajectory, acting_seed, play_episode
@@ -67,7 +74,9 @@ from .metrics import (
     pose_errors,
     recall,
 )
+from .open3d_threads import open3d_single_thread
 from .policy_settings import is_policy_file, policy_settings
+from .ray_workers import RayRunner, chunks, ray_wanted, rebuild, snapshot, worker_env
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
 # Engineer pipelines evaluated as baselines; those naming actions the pipeline lacks are skipped.
@@ -457,6 +466,8 @@ def evaluate(
     n_example_episodes: int = 2,
     use_depth: bool = True,
     store_episodes: bool = True,
+    workers: int | None = None,
+    ray_address: str | None = None,
     **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
@@ -471,9 +482,13 @@ def evaluate(
     evaluated as baselines (those naming actions the pipeline lacks are skipped; on RGB-only
     frames they skip the actions that cannot run). `use_depth=False` reads a dataset folder as
     RGB-only; every agent then chooses among the actions that can run (`info["action_mask"]`).
-    `store_episodes`: append every episode to out/episodes.sqlite.
+    `store_episodes`: append every episode to out/episodes.sqlite. `workers` N > 1 plays the
+    episodes as tasks on a local Ray with N workers, `ray_address` on a running cluster (module
+    docstring); neither (or N = 1): in this process, without Ray.
     """
     lams = _check_lambdas(lambdas)
+    if workers is not None and int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     out = Path(out)
     settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction, pipeline=pipeline,
                                **env_overrides)
@@ -505,16 +520,19 @@ def evaluate(
                                        dataset=str(ds.root), episode_seed=ep_seed)
 
     try:
+        if ray_wanted(workers, ray_address):
+            pipe_ref = settings.pipeline
+            if not isinstance(pipe_ref, Pipeline):
+                pipe_ref = pipeline_reference(pipe_ref)
+            recipe = EnvRecipe(str(Path(ds.root).resolve()), pipe_ref, tuple(test_keys), split, env_settings,
+                               use_depth=bool(getattr(ds, "use_depth", True)))
+            sweep = _sweep_on_ray(recipe, agents, lams, plan, workers, ray_address, bar, storer)
+        else:
+            with open3d_single_thread(env_settings.time_mode == "cost_table"):
+                sweep = _sweep_here(env, agents, lams, plan, bar, storer)
         for lam in lams:
             for ea in agents:
-                if bar is not None:
-                    bar.set_postfix_str(f"{ea.name} lambda={lam:g}")
-                eps = []
-                for index, ep_seed in plan:
-                    eps.append({"agent": ea.name, **episode_record(env, ea.agent, index, lam, ep_seed,
-                                                                   storer(ea, ep_seed))})
-                    if bar is not None:
-                        bar.update(1)
+                eps = [{"agent": ea.name, **rec} for rec in sweep[(ea.name, lam)]]
                 per_episode.extend(eps)
                 records.append({**summarise(ea.name, lam, eps), "kind": ea.kind})
     finally:
@@ -544,6 +562,78 @@ def evaluate(
     if plots:
         make_plots(out, records, per_episode, env, lams, plan, n_example_episodes)
     return out / "results.json"
+
+
+Sweep = dict[tuple[str, float], list[dict[str, Any]]]  # (agent, lambda) -> episode records, plan order
+Storer = Callable[[EvalAgent, int], Callable[[Trajectory], None] | None]
+
+
+def _sweep_here(env: PerceptionConfigEnv, agents: Sequence[EvalAgent], lams: Sequence[float],
+                plan: Sequence[tuple[int, int]], bar: Any, storer: Storer) -> Sweep:
+    """Every (agent, lambda)'s planned episodes in this process."""
+    out: Sweep = {}
+    for lam in lams:
+        for ea in agents:
+            if bar is not None:
+                bar.set_postfix_str(f"{ea.name} lambda={lam:g}")
+            eps = out.setdefault((ea.name, lam), [])
+            for index, ep_seed in plan:
+                eps.append(episode_record(env, ea.agent, index, lam, ep_seed, storer(ea, ep_seed)))
+                if bar is not None:
+                    bar.update(1)
+    return out
+
+
+def evaluation_chunk(recipe: EnvRecipe, agent: Any, lam: float,
+                     plan: Sequence[tuple[int, int]]) -> list[tuple[dict[str, Any], Trajectory]]:
+    """A Ray task: one agent (a `ray_workers.snapshot` or a picklable object with `act`) plays
+    planned episodes at one lambda in the worker's env; (record, trajectory) per episode."""
+    env, spec = worker_env(recipe)
+    player = rebuild(agent, spec, env) if isinstance(agent, tuple) else agent
+    trajs: list[Trajectory] = []
+    recs = [episode_record(env, player, index, lam, ep_seed, trajs.append) for index, ep_seed in plan]
+    return list(zip(recs, trajs))
+
+
+def _sweep_on_ray(recipe: EnvRecipe, agents: Sequence[EvalAgent], lams: Sequence[float],
+                  plan: Sequence[tuple[int, int]], workers: int | None, address: str | None, bar: Any,
+                  storer: Storer) -> Sweep:
+    """The sweep as Ray tasks: each (agent, lambda)'s plan in pieces (ray_workers.chunks)."""
+    from .agents.base import Agent
+
+    with RayRunner(workers, address) as runner:
+        recipe_ref = runner.put(recipe)
+        pieces = chunks(len(plan), len(agents) * len(lams), runner.cpus)
+        refs = [runner.put(snapshot(ea.agent) if isinstance(ea.agent, Agent) else ea.agent) for ea in agents]
+        calls, keys = [], []
+        for lam in lams:  # the in-process order
+            for ea, ref in zip(agents, refs):
+                for lo, hi in pieces:
+                    calls.append((recipe_ref, ref, lam, list(plan[lo:hi])))
+                    keys.append((ea, lam))
+
+        done: dict[int, list[tuple[dict[str, Any], Trajectory]]] = {}
+        stored = [0]  # the calls before this one are in the store: it gets the in-process order
+
+        def arrived(k: int, result: list[tuple[dict[str, Any], Trajectory]]) -> None:
+            done[k] = result
+            while stored[0] in done:
+                j = stored[0]
+                ea = keys[j][0]
+                for (_rec, traj), (_index, ep_seed) in zip(done.pop(j), calls[j][3]):
+                    store = storer(ea, ep_seed)
+                    if store is not None:
+                        store(traj)
+                stored[0] += 1
+            if bar is not None:
+                bar.set_postfix_str(f"{keys[k][0].name} lambda={keys[k][1]:g}")
+                bar.update(len(result))
+
+        results = runner.map(evaluation_chunk, calls, arrived)
+    out: Sweep = {}
+    for (ea, lam), result in zip(keys, results):
+        out.setdefault((ea.name, lam), []).extend(rec for rec, _traj in result)
+    return out
 
 
 def _mark_best_fixed(records: list[dict[str, Any]]) -> None:

@@ -4,10 +4,10 @@ The loop is the same for every agent; the algorithms live in the agent files. On
 1. `agent.actors()`: the policies to run (the pg/simple agent itself; the ES population);
 2. draw `agent.episodes_per_actor` episodes from the TRAIN split: an object of a train image,
    lambda ~ U(lambda_range), an episode seed; every actor plays the same episodes;
-3. play them, in this process or spread over `workers` spawned processes (training_workers.py:
-   each builds its own env from an `EnvRecipe`, torch with one thread, task k on worker
-   k mod n); actions are seeded per episode, so results do not depend on the number of
-   workers (except measured times, and per-frame caches: see training_workers.py);
+3. play them, in this process or as Ray tasks on `workers` processes or a cluster (`ray_address`;
+   ray_workers.py: each worker builds its own env from an `EnvRecipe`, torch with one thread);
+   env and actions are seeded per episode, so results do not depend on the number of workers
+   or on which worker played what (except measured times);
 4. `agent.update(trajectories)`: the algorithm's learning step.
 Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
 held out (stored in the policy metadata with the split seed and fraction, for evaluation).
@@ -25,15 +25,17 @@ population); a store that fails (full disk, locked, corrupt) is one log line and
 
 Stopping (stop_signals.py): SIGINT (Ctrl-C), SIGTERM and SIGHUP drop the round in flight (its
 episodes only: the trainer's rng goes back to the round's start, so a resumed run is the
-uninterrupted one), stop the workers (SIGTERM, SIGKILL after WORKER_STOP_TIMEOUT s), write the
+uninterrupted one), cancel the round's Ray tasks and stop the local Ray, write the
 checkpoint, policy, history and curve of the last completed round, then raise StopRequested
 (a KeyboardInterrupt carrying the signal; the CLI exits 128 + its number). A signal during a
 learning step or the save is only recorded: the step and the files are completed. A signal
 ignored when train() starts (SIGHUP under nohup) stays ignored.
 
-Reproducibility: in cost-table mode a seeded run repeats bit for bit (history and tensors) for
-the same number of workers: the blocks run without their wall-clock bounds (env.py), Open3D on
-one thread (its parallel ICP sums are not reproducible) and each worker gets the same tasks.
+Reproducibility: in cost-table mode a seeded run repeats bit for bit (history and tensors), for
+any number of workers: the blocks run without their wall-clock bounds (env.py), Open3D on one
+thread (its parallel ICP sums are not reproducible), and the per-frame caches hold nothing that
+depends on the episodes played before (ray_workers.py). Ray retries a task whose worker died
+with the same result; a run stopped or crashed resumes from its checkpoint on a new cluster.
 Rounds are whole: the episode count may overshoot `episodes` by less than one round.
 """
 from __future__ import annotations
@@ -41,8 +43,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
-import os
 import sys
 from pathlib import Path
 from typing import Any, ContextManager
@@ -58,35 +58,33 @@ from .episode_loop import Trajectory, play_episode
 from .episode_store import STORE_NAME, StoreWriter, store_episode
 from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from .open3d_threads import open3d_single_thread
+from .ray_workers import RayRunner, chunks, play_chunk, ray_wanted, snapshot
 from .settings import EnvSettings, settings_from_policy_meta
 from .stop_signals import Interrupted, StopRequested, StopSignals, signal_name
-from .training_workers import WorkerPool, snapshot
 
 POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
 CURVE = "learning_curve.png"
 HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
-WORKER_STOP_TIMEOUT = 5.0  # s a worker gets to leave before SIGTERM, then SIGKILL
 
 
 # -- playing a round --------------------------------------------------------------------------
 def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], act_seeds: np.ndarray,
-               pool: WorkerPool | None = None, workers: int = 1) -> list[list[Trajectory]]:
-    """Every actor plays every episode: trajectories[actor][episode] (in `pool` when given)."""
-    if pool is None:
+               runner: RayRunner | None = None, recipe: Any = None) -> list[list[Trajectory]]:
+    """Every actor plays every episode: trajectories[actor][episode]; in this process, or as Ray
+    tasks of `runner` whose workers build their env from `recipe` (a RayRunner.put reference)."""
+    if runner is None:
         return [[play_episode(env, actor, options, int(act_seeds[i, j])) for j, options in enumerate(episodes)]
                 for i, actor in enumerate(actors)]
-    # Split each actor's episodes into chunks so that the workers stay busy.
-    n_chunks = min(len(episodes), max(1, math.ceil(2 * workers / len(actors))))
-    bounds = np.linspace(0, len(episodes), n_chunks + 1).astype(int)
-    tasks, owner = [], []
+    pieces = chunks(len(episodes), len(actors), runner.cpus)  # every episode carries its seeds
+    calls, owner = [], []
     for i, actor in enumerate(actors):
-        snap = snapshot(actor)
-        for lo, hi in zip(bounds[:-1], bounds[1:]):
-            tasks.append((snap, [(episodes[j], int(act_seeds[i, j])) for j in range(lo, hi)]))
+        snap = runner.put(snapshot(actor))
+        for lo, hi in pieces:
+            calls.append((recipe, snap, [(episodes[j], int(act_seeds[i, j])) for j in range(lo, hi)]))
             owner.append(i)
     out: list[list[Trajectory]] = [[] for _ in actors]
-    for i, trajs in zip(owner, pool.run(tasks)):
+    for i, trajs in zip(owner, runner.map(play_chunk, calls)):
         out[i].extend(trajs)
     return out
 
@@ -169,6 +167,7 @@ def train(
     test_fraction: float = DEFAULT_TEST_FRACTION,
     split_seed: int = DEFAULT_SPLIT_SEED,
     workers: int | None = None,
+    ray_address: str | None = None,
     checkpoint_every: int = 100,
     resume: bool = False,
     overwrite: bool = False,
@@ -180,23 +179,25 @@ def train(
     a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
 
     Returns the policy file. `settings`: the environment's (default `EnvSettings()`; its
-    lambda_range is the training distribution of lambda). `split`: the dataset's BOP split
-    folder, whose image ids are divided by (`test_fraction`, `split_seed`). `workers`:
-    processes playing episodes (default: 2 for pg and es on a machine with 2+ cores, else
-    in-process). `resume=True` continues a run from out/checkpoint.safetensors up to
-    `episodes` in total, with the checkpoint's agent hyperparameters (`agent_kwargs` are
-    ignored); the dataset, split, pipeline and env settings must be the same (lambda_range may
-    change); without it an existing run in `out` is an error unless `overwrite`. A stop signal
-    writes everything of the last completed round and raises StopRequested (module docstring).
-    `use_depth=False` reads the dataset as RGB-only (its depth ignored; an RGB-only dataset is
-    RGB-only anyway): the actions that need depth are masked. `store_episodes`: append every
-    episode to out/episodes.sqlite (module docstring).
+    lambda_range is the training distribution of lambda). `split`: the dataset's BOP split folder,
+    whose image ids are divided by (`test_fraction`, `split_seed`). `workers`: N > 1 plays the
+    episodes as tasks on a local Ray with N workers; `ray_address` joins a running Ray cluster
+    instead; neither (or N = 1): in this process, without Ray. `resume=True` continues a run from
+    out/checkpoint.safetensors up to `episodes` in total, with the checkpoint's agent
+    hyperparameters (`agent_kwargs` are ignored); the dataset, split, pipeline and env settings
+    must be the same (lambda_range may change); without it an existing run in `out` is an error
+    unless `overwrite`. A stop signal writes everything of the last completed round and raises
+    StopRequested (module docstring). `use_depth=False` reads the dataset as RGB-only (its depth
+    ignored; an RGB-only dataset is RGB-only anyway): the actions that need depth are masked.
+    `store_episodes`: append every episode to out/episodes.sqlite (module docstring).
     """
     settings = settings or EnvSettings()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    if workers is not None and int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     name = agent if isinstance(agent, str) else agent.kind
     if name == "oracle":
         raise ValueError("the oracle is a hindsight search (a lower bound for evaluation), it cannot be trained")
@@ -264,9 +265,6 @@ def train(
         kw = {"seed": seed, **(agent_kwargs or {})}
         learner = make_agent(name, spec, **kw)
     learner.explore = True
-    if workers is None:  # batch learners play their rounds in parallel; simple learns per episode
-        workers = min(2, os.cpu_count() or 1) if name in ("pg", "es") else 1
-    workers = max(1, int(workers))
 
     policy_path = _policy_path(out, learner)
     out.mkdir(parents=True, exist_ok=True)
@@ -300,15 +298,15 @@ def train(
                 store_episode(writer, t, source="train", agent=name, policy_version=version,
                               dataset=recipe.dataset, episode_seed=opt["episode_seed"])
 
-    pool = None
+    # Ray first: ray.init installs its own SIGTERM handler, which the stop signals then replace.
+    runner = RayRunner(workers, ray_address) if ray_wanted(workers, ray_address) and done < episodes else None
+    recipe_ref = runner.put(recipe) if runner is not None else None
     stops = StopSignals()
     lo, hi = settings.lambda_range
     last_ckpt = done
     bar = tqdm(total=episodes, initial=min(done, episodes), disable=not progress, unit="ep", desc=f"train {name}")
     with stops.installed(), _reproducible_threads(settings):
         try:
-            if workers > 1 and done < episodes:
-                pool = WorkerPool(workers, recipe)
             while done < episodes and not stops.received:
                 round_start = rng.bit_generator.state  # a dropped round is drawn again on resume
                 actors = learner.actors()
@@ -318,7 +316,7 @@ def train(
                 act_seeds = rng.integers(2**31, size=(len(actors), k))
                 try:
                     with stops.interruptible():  # only the episodes are dropped by a signal
-                        trajectories = play_round(env, actors, options, act_seeds, pool, workers)
+                        trajectories = play_round(env, actors, options, act_seeds, runner, recipe_ref)
                 except Interrupted:
                     rng.bit_generator.state = round_start
                     break
@@ -327,8 +325,6 @@ def train(
                     if stops.received:  # a worker ended by a signal to the whole process group
                         break
                     if done > last_ckpt:  # keep the rounds since the last checkpoint, then fail
-                        _stop_workers(pool, now=True)
-                        pool = None
                         _save_quietly(save_checkpoint)
                     raise
                 # A learning step is never half done: signals from here on are only recorded.
@@ -351,7 +347,8 @@ def train(
                     last_ckpt = done
         finally:
             _quietly(bar.close)
-            _stop_workers(pool, now=bool(stops.received))
+            if runner is not None:
+                runner.close()
             if writer is not None:
                 writer.close()
                 if progress:
@@ -381,11 +378,6 @@ def _save_quietly(save: Any) -> None:
         save()
     except Exception:  # noqa: BLE001  (the error being raised is the one to report)
         pass
-
-
-def _stop_workers(pool: WorkerPool | None, now: bool) -> None:
-    if pool is not None:
-        pool.close(timeout=WORKER_STOP_TIMEOUT, now=now)
 
 
 def _reproducible_threads(settings: EnvSettings) -> ContextManager[None]:

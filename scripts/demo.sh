@@ -9,7 +9,8 @@
 #      estimate every object with estimate_pose and compare with the same episodes in-process.
 # Environment: DEMO_EPISODES (training episodes, default 1500), DEMO_EVAL_EPISODES (episodes
 # per lambda, default 12), DEMO_REPLAY_IMAGES (images replayed through ROS, default 8),
-# PERCEPTION_CONFIG_DATA (dataset folder, default data/default).
+# PERCEPTION_CONFIG_DATA (dataset folder, default data/default), DEMO_WORKERS (Ray workers for
+# training and evaluation, default 2 on a machine with 2+ cores; 1 = in-process, without Ray).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup_env.sh"
@@ -19,6 +20,7 @@ OUT="$ROOT/outputs/demo"
 RUN="$ROOT/runs/demo-pg"
 mkdir -p "$OUT"
 start=$(date +%s)
+WORKERS="${DEMO_WORKERS:-$(( $(nproc) >= 2 ? 2 : 1 ))}"
 
 if [ ! -f "$DATA/models/models_info.json" ]; then  # the generator renames a finished dataset into place
   say "1/4 synthesising the default dataset into $DATA"
@@ -29,11 +31,12 @@ fi
 perception-config show --dataset "$DATA" --out "$OUT/frame.png"
 
 say "2/4 training the policy-gradient agent (${DEMO_EPISODES:-1500} episodes, measured time)"
-perception-config train --dataset "$DATA" --agent pg --out "$RUN" --episodes "${DEMO_EPISODES:-1500}" --overwrite
+perception-config train --dataset "$DATA" --agent pg --out "$RUN" --episodes "${DEMO_EPISODES:-1500}" --overwrite \
+  --workers "$WORKERS"
 
 say "3/4 evaluating over lambda = 0.1 .. 1.0 on the test images"
 perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/evaluation" \
-  --episodes "${DEMO_EVAL_EPISODES:-12}"
+  --episodes "${DEMO_EVAL_EPISODES:-12}" --workers "$WORKERS"
 
 say "4/4 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
 perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \

@@ -74,11 +74,11 @@ def test_image_gradients_of_a_vertical_step():
     assert image_gradients(frame, cache)[0] is mag  # cached per frame
 
 
-def test_tensor_cache_reuses_a_containing_crop_and_reports_empty_edges():
+def test_tensor_cache_reuses_the_same_crop_and_reports_empty_edges():
     model, pose = box_model(), default_pose()
     frame = synthetic_frame([model], [pose], seed=0)
     cache: dict = {}
-    args = dict(margin=40, reuse_margin=20, n_bins=60, penalty=0.5, max_distance=30.0, low=40.0, high=100.0)
+    args = dict(margin=40, n_bins=60, penalty=0.5, max_distance=30.0, low=40.0, high=100.0)
     dct, crop, n = TensorCache.get(frame, cache, (300, 200, 60, 50), **args)
     assert n > 0 and dct.shape == (60, crop[3], crop[2])
     assert crop[0] <= 260 and crop[1] <= 160 and crop[0] + crop[2] >= 400 and crop[1] + crop[3] >= 290
@@ -86,6 +86,11 @@ def test_tensor_cache_reuses_a_containing_crop_and_reports_empty_edges():
     assert dct2 is dct and crop2 == crop
     dct3, crop3, _ = TensorCache.get(frame, cache, (40, 40, 60, 50), **args)  # elsewhere
     assert dct3 is not dct and crop3 != crop
+    # A box inside the first crop but with a crop of its own gets its own tensor, the one a
+    # fresh cache builds: what a call returns does not depend on what was asked before.
+    dct5, crop5, _ = TensorCache.get(frame, cache, (330, 220, 20, 20), **args)
+    fresh, crop6, _ = TensorCache.get(frame, {}, (330, 220, 20, 20), **args)
+    assert crop5 == crop6 != crop and dct5 is not dct and np.array_equal(dct5, fresh)
     frame.rgb[:] = 90
     flat = Frame(rgb=frame.rgb.copy(), depth=frame.depth, K=frame.K)
     dct4, _, n4 = TensorCache.get(flat, cache, (300, 200, 60, 50), **args)

@@ -311,7 +311,7 @@ def test_the_configurators_store_call_never_raises(played, tmp_path):
 def test_training_and_evaluation_write_their_stores(tmp_path_factory, tmp_path):
     settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
     run = tmp_path / "run"
-    policy = train(tiny_dataset(tmp_path_factory), "pg", run, 8, settings=settings, seed=0, workers=2,
+    policy = train(tiny_dataset(tmp_path_factory), "pg", run, 8, settings=settings, seed=0, workers=1,
                    progress=False, agent_kwargs={"batch_episodes": 8}, pipeline=pipeline_file(tmp_path_factory))
     with EpisodeStore(run / STORE_NAME, readonly=True) as store:
         rows = store.query("SELECT source, agent, policy_version, episode_seed, steps, noise_lambda FROM episodes")

@@ -19,6 +19,7 @@ IMPORT_TO_DIST = {
     "numpy": "numpy", "scipy": "scipy", "tqdm": "tqdm", "matplotlib": "matplotlib", "mcap": "mcap",
     "rosbags": "rosbags", "trimesh": "trimesh", "gymnasium": "gymnasium", "torch": "torch",
     "safetensors": "safetensors", "zstandard": "zstandard", "lz4": "lz4", "pyarrow": "pyarrow",
+    "ray": "ray",
 }
 # Top-level modules that are ROS 2 packages: declared in package.xml, provided by the ROS prefix.
 ROS_PACKAGES = {"rclpy", "std_msgs", "geometry_msgs", "sensor_msgs", "builtin_interfaces", "rcl_interfaces",

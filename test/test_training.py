@@ -1,5 +1,5 @@
-"""Training: the pg agent learns, checkpoints resume exactly, Ctrl-C keeps the work, ES runs
-its generation in worker processes, the learning curve is a PNG."""
+"""Training: the pg agent learns, checkpoints resume exactly, Ctrl-C keeps the work, the
+learning curve is a PNG. (On Ray workers: test_ray_workers.py, test_ray_cluster.py.)"""
 from __future__ import annotations
 
 import os
@@ -102,19 +102,6 @@ def test_ctrl_c_keeps_the_last_completed_round(tmp_path_factory, tmp_path, monke
     _train(tmp_path_factory, out, episodes=24, resume=True)
     meta, _ = read_file(out / CHECKPOINT)
     assert meta["trainer"]["episodes_done"] == 24
-
-
-def test_es_runs_a_generation_in_two_worker_processes(tmp_path_factory, tmp_path):
-    kw = {"population": 4, "episodes_per_generation": 2}
-    path = _train(tmp_path_factory, tmp_path / "es2", agent="es", episodes=8, agent_kwargs=kw, workers=2)
-    meta, tensors = read_file(tmp_path / "es2" / CHECKPOINT)
-    assert meta["train_state"]["generation"] == 1 and meta["trainer"]["episodes_done"] == 8
-    assert sum(k.startswith("train/pop.") for k in tensors) == 4 * 6
-    # The same generation in this process gives the same results: workers change nothing.
-    _train(tmp_path_factory, tmp_path / "es1", agent="es", episodes=8, agent_kwargs=kw, workers=1)
-    _, tensors1 = read_file(tmp_path / "es1" / CHECKPOINT)
-    np.testing.assert_allclose(tensors["history/return"], tensors1["history/return"])
-    assert load_agent(path, make_env(tmp_path_factory, max_ops=5)).kind == "es"
 
 
 def test_pg_learns_a_clear_best_action(tmp_path_factory, tmp_path):

@@ -215,7 +215,7 @@ class ChamferMatching(Block):
         if c["directional"]:
             box = projected_box(inp.model, pose0, K, frame.width, frame.height)
             margin = int(c["crop_margin"])
-            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
+            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, int(c["n_bins"]), c["penalty"],
                                            max(30.0, float(c["max_distance"]), float(c["wide_max_distance"])),
                                            c["canny_low"], c["canny_high"])
             if dct is None:
@@ -388,7 +388,7 @@ class ChamferIcp(Block):
         if c["directional"]:
             box = projected_box(inp.model, pose0, K, frame.width, frame.height)
             margin = int(c["crop_margin"])
-            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
+            dct, crop, _ = TensorCache.get(frame, inp.cache, box, margin, int(c["n_bins"]), c["penalty"],
                                            tcap, c["canny_low"], c["canny_high"])
             if dct is None:
                 return BlockResult.fail("no image edges around the hypothesis")

@@ -36,8 +36,8 @@ For real photographs (blurred outlines, clutter, occlusion; the edge cost's mini
   margin 0 and the region term, 98 % with 0.02).
 
 The tensor is built on a crop around the hypothesis's projected box (+ `crop_margin`) and kept
-in the per-frame cache (vision.edges.TensorCache): a later call whose box lies inside a cached
-crop pays only the optimisation. D2CO pairs well with depth refinement or ICP.
+in the per-frame cache (vision.edges.TensorCache): a later call whose box gets the same crop
+(snapped to a 32 px grid) pays only the optimisation. D2CO pairs well with depth refinement or ICP.
 """
 from __future__ import annotations
 
@@ -116,7 +116,7 @@ class D2CO(Block):
         if why:
             return BlockResult.fail(why)
         margin = int(c["crop_margin"])
-        dct, crop, n_edges = TensorCache.get(frame, inp.cache, box, margin, margin // 2, int(c["n_bins"]), c["penalty"],
+        dct, crop, n_edges = TensorCache.get(frame, inp.cache, box, margin, int(c["n_bins"]), c["penalty"],
                                              c["max_distance"], c["canny_low"], c["canny_high"], c["blur_px"])
         if dct is None or n_edges == 0:
             return BlockResult.fail("no image edges around the hypothesis")

@@ -198,15 +198,20 @@ def sample_tensor(
 class TensorCache:
     """Directional chamfer tensors of one frame, by crop and parameters, in BlockInput.cache.
 
-    A request is served by any cached tensor whose crop contains the requested box plus
-    `reuse_margin` px, so the repeated calls of a refinement episode (the hypothesis moves a
-    few pixels) build the tensor once; otherwise a tensor is built on the box plus `margin`."""
+    The crop is the box plus `margin` px with its corners snapped outwards to a grid of ALIGN px,
+    so the repeated calls of a refinement episode (the hypothesis moves a few pixels) mostly get
+    the same crop and build its tensor once. A tensor is reused only for exactly its own crop:
+    it is a function of (frame, crop, parameters) alone, never of which boxes were asked for
+    before. (Serving a request from any larger cached crop made the values near the crop border,
+    and so a refinement, depend on the episodes a process had played before: results then
+    depended on which worker played which episode.)"""
 
     KEY = "edges:dct"
     SIZE = 6  # tensors kept per frame (a 224x224x60 tensor is 12 MB)
+    ALIGN = 32  # px: the crop grid
 
     @staticmethod
-    def get(frame: Frame, cache: dict | None, box: Box, margin: int, reuse_margin: int, n_bins: int,
+    def get(frame: Frame, cache: dict | None, box: Box, margin: int, n_bins: int,
             penalty: float, max_distance: float, low: float, high: float,
             blur: float = 1.0) -> tuple[np.ndarray, Box, int]:
         """(tensor, crop box, edge pixels in the crop); `blur` is canny_edges's."""
@@ -214,14 +219,10 @@ class TensorCache:
         entries = cache.setdefault(TensorCache.KEY, []) if cache is not None else []
         if entries and entries[0][0] is not frame.rgb:  # a new frame in an old cache
             entries.clear()
-        x, y, w, h = box
-        need = (max(0, x - reuse_margin), max(0, y - reuse_margin),
-                min(frame.width, x + w + reuse_margin), min(frame.height, y + h + reuse_margin))
-        for _rgb, p, crop, dct, n_edges in reversed(entries):
-            cx, cy, cw, ch = crop
-            if p == params and cx <= need[0] and cy <= need[1] and cx + cw >= need[2] and cy + ch >= need[3]:
+        crop = crop_box(frame, box, margin, align=TensorCache.ALIGN)
+        for _rgb, p, c, dct, n_edges in reversed(entries):
+            if p == params and c == crop:
                 return dct, crop, n_edges
-        crop = crop_box(frame, box, margin, align=8)
         edges, direction = canny_edges(frame, cache, low, high, blur)
         cx, cy, cw, ch = crop
         e = edges[cy:cy + ch, cx:cx + cw]

@@ -1,0 +1,128 @@
+"""A Ray cluster of two nodes on this machine (ray.cluster_utils.Cluster, each node its own
+raylet, object store and workers, on 127.0.0.1): `train` and `evaluate` join it by address
+(`--ray-address`), play on both nodes and give the in-process bits; a run checkpointed on one
+cluster resumes on a new one (the whole cluster restarted) into the uninterrupted run."""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perception_config.agents.policy_io import read_file
+from perception_config.evaluation import evaluate
+from perception_config.settings import EnvSettings
+from perception_config.training import CHECKPOINT, train
+from rl_helpers import pipeline_file, tiny_dataset
+
+FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
+
+
+def _start_cluster(nodes: int = 2):
+    """`nodes` nodes of one CPU each on this machine."""
+    from perception_config.ray_workers import loopback_only
+
+    loopback_only()  # the nodes on 127.0.0.1, as a local --workers run
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    for _ in range(nodes - 1):
+        cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    return cluster
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """{"cluster": the running Cluster}; a test may replace it (restart), teardown stops the last."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    holder = {"cluster": _start_cluster()}
+    yield holder
+    holder["cluster"].shutdown()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The same training in this process, without Ray."""
+    out = tmp_path_factory.mktemp("ref") / "run"
+    _train(tmp_path_factory, out, episodes=16)
+    return out
+
+
+def _train(tmp_path_factory, out: Path, episodes: int, address: str | None = None, **kw) -> Path:
+    return train(tiny_dataset(tmp_path_factory), "pg", out, episodes, settings=FAST, seed=5, ray_address=address,
+                 pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs={"batch_episodes": 8},
+                 checkpoint_every=8, **kw)
+
+
+def _same_run(a: Path, b: Path) -> None:
+    assert (a / "history.csv").read_bytes() == (b / "history.csv").read_bytes()
+    _, ta = read_file(a / CHECKPOINT)
+    _, tb = read_file(b / CHECKPOINT)
+    assert sorted(ta) == sorted(tb)
+    for k in ta:
+        np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)
+
+
+class _Watcher:
+    """Records the parents (raylets) of the processes seen running a task of the given title."""
+
+    def __init__(self, title: str) -> None:
+        self.title, self.parents = title.encode(), set()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            for entry in os.listdir("/proc"):
+                if entry.isdigit():
+                    try:
+                        if Path(f"/proc/{entry}/cmdline").read_bytes().startswith(self.title):
+                            stat = Path(f"/proc/{entry}/stat").read_text()
+                            self.parents.add(int(stat.rsplit(")", 1)[1].split()[1]))
+                    except OSError:
+                        continue
+            time.sleep(0.01)
+
+    def __enter__(self) -> "_Watcher":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def _raylets(cluster) -> set[int]:
+    from ray._private import ray_constants
+
+    return {node.all_processes[ray_constants.PROCESS_TYPE_RAYLET][0].process.pid
+            for node in [cluster.head_node, *cluster.worker_nodes]}
+
+
+def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_factory, tmp_path):
+    c = cluster["cluster"]
+    with _Watcher("ray::play_chunk") as seen:
+        policy = _train(tmp_path_factory, tmp_path / "run", episodes=16, address=c.address)
+    _same_run(tmp_path / "run", reference)
+    assert seen.parents == _raylets(c) and len(seen.parents) == 2  # workers of both nodes played
+    kw = dict(episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5,
+              progress=False, plots=False)
+    here = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev1", **kw)
+    there = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev2", ray_address=c.address,
+                     **kw)
+    assert here.read_bytes() == there.read_bytes()
+    assert (here.parent / "episodes.jsonl").read_bytes() == (there.parent / "episodes.jsonl").read_bytes()
+    assert (there.parent / "fig5.png").exists() is False  # plots=False: nothing else differs
+
+
+def test_resume_after_the_whole_cluster_restarted(cluster, reference, tmp_path_factory, tmp_path):
+    out = tmp_path / "run"
+    _train(tmp_path_factory, out, episodes=8, address=cluster["cluster"].address)
+    cluster["cluster"].shutdown()
+    cluster["cluster"] = _start_cluster(nodes=1)  # a new cluster (one node: quicker): new processes and address
+    _train(tmp_path_factory, out, episodes=16, address=cluster["cluster"].address, resume=True)
+    _same_run(out, reference)
