@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 # Light imports only (numpy): each command imports the rest it needs.
-from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
 from .settings import TIME_MODES, EnvSettings
 from .stop_signals import StopRequested
 
@@ -309,6 +309,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, overwrite=args.overwrite,
         checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
+        validation_fraction=args.validation_fraction, validate_every=args.validate_every,
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
@@ -341,6 +342,12 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--workers", type=int, default=None, help="processes playing episodes (default: 2 for pg/es)")
     tr.add_argument("--checkpoint-every", type=int, default=100, metavar="N",
                     help="write the checkpoint every N episodes (100); a stop signal always writes it")
+    tr.add_argument("--validation-fraction", type=float, default=0.0, metavar="F",
+                    help="hold out this share of the train images (seeded by --split-seed; the test images are "
+                         "untouched), check the greedy policy on them every --validate-every episodes and at the "
+                         "end, and ship the one with the lowest mean cost (0: the last policy; default 0)")
+    tr.add_argument("--validate-every", type=int, default=DEFAULT_VALIDATE_EVERY, metavar="K",
+                    help=f"episodes between two validation checks ({DEFAULT_VALIDATE_EVERY})")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
     tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",

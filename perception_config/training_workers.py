@@ -39,7 +39,8 @@ def snapshot(agent: Agent) -> tuple[str, dict[str, Any], dict[str, Any], dict[st
     return agent.kind, agent.hparams(), agent.tensors(), agent.state(), agent.explore
 
 
-def _rebuild(snap: tuple, spec: EnvSpec) -> Agent:
+def rebuild(snap: tuple, spec: EnvSpec) -> Agent:
+    """The agent a `snapshot` describes (a copy: training state such as optimizers not included)."""
     kind, hparams, tensors, state, explore = snap
     agent = AGENTS[kind](spec, **hparams)
     agent.set_tensors(tensors)
@@ -87,7 +88,7 @@ def _worker_main(conn: Connection, recipe: EnvRecipe, parent_pid: int) -> None:
         else:
             try:
                 snap, episodes = task
-                agent = _rebuild(snap, spec)
+                agent = rebuild(snap, spec)
                 reply = (True, [play_episode(env, agent, options, seed) for options, seed in episodes])
             except Exception:  # noqa: BLE001  (the parent raises it with the worker's traceback)
                 reply = (False, "a training worker failed:\n" + traceback.format_exc())
