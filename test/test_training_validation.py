@@ -37,7 +37,7 @@ def _rows(path):
 
 def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_factory, tmp_path):
     out = tmp_path / "run"
-    path = _train(tmp_path_factory, out, episodes=40)
+    path = _train(tmp_path_factory, out, episodes=32)
     meta, tensors = read_file(path)
     extra = meta["extra"]
     train_keys = {tuple(k) for k in extra["train_image_keys"]}
@@ -51,14 +51,14 @@ def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_
         played = {tuple(r) for r in con.execute("SELECT DISTINCT scene_id, im_id FROM episodes WHERE source='train'")}
     assert played and played <= train_keys
 
-    # Checks at 8, 16, 24, 32, 40 (every 8 episodes and the end); the selected one has the lowest cost.
+    # Checks at 8, 16, 24, 32 (every 8 episodes and the end); the selected one has the lowest cost.
     rows = _rows(out / VALIDATION_CSV)
-    assert [int(r["episode"]) for r in rows] == [8, 16, 24, 32, 40]
+    assert [int(r["episode"]) for r in rows] == [8, 16, 24, 32]
     costs = [float(r["cost"]) for r in rows]
     best = max(i for i, c in enumerate(costs) if c == min(costs))  # ties: the later policy
     sel = extra["selected"]
     assert sel["episode"] == int(rows[best]["episode"]) and sel["validation"]["cost"] == pytest.approx(costs[best])
-    assert extra["episodes"] == 40 and sel["last"]["episode"] == 40
+    assert extra["episodes"] == 32 and sel["last"]["episode"] == 32
 
     # The shipped policy really scores the selected cost: replay the validation episodes with it.
     env = make_env(tmp_path_factory, max_ops=5, lambda_range=(0.2, 0.8))
@@ -73,14 +73,14 @@ def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_
     for k, v in tensors.items():
         np.testing.assert_array_equal(ck[TENSOR_PREFIX + k], v)
     assert ck_meta["trainer"]["validation"]["best"]["episode"] == sel["episode"]
-    if sel["episode"] != 40:
+    if sel["episode"] != 32:
         assert any(not np.array_equal(ck[k], v) for k, v in tensors.items())
 
 
 def test_resumed_run_selects_as_the_uninterrupted_one(tmp_path_factory, tmp_path):
-    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=32)
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24)
     _train(tmp_path_factory, tmp_path / "split", episodes=16)
-    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True)
     a_meta, a = read_file(straight)
     b_meta, b = read_file(resumed)
     assert a_meta["extra"]["selected"] == b_meta["extra"]["selected"]
@@ -90,9 +90,9 @@ def test_resumed_run_selects_as_the_uninterrupted_one(tmp_path_factory, tmp_path
     assert _rows(tmp_path / "straight" / VALIDATION_CSV) == _rows(tmp_path / "split" / VALIDATION_CSV)
     # The held-out images are part of the run: another fraction cannot resume it.
     with pytest.raises(PolicyError, match="validation_fraction"):
-        _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, validation_fraction=0.5)
+        _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, validation_fraction=0.5)
     with pytest.raises(PolicyError, match="validation_fraction"):
-        _train(tmp_path_factory, tmp_path / "split", episodes=40, resume=True, validation_fraction=0.0)
+        _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, validation_fraction=0.0)
 
 
 def test_validation_split_lambdas_and_bad_input():
@@ -146,13 +146,13 @@ def test_pg_learning_rate_half_life_and_resume(tmp_path_factory, tmp_path):
     assert agent.current_lr() == pytest.approx(0.04 * 0.5 ** 2)
     with pytest.raises(ValueError, match="lr_half_life"):
         make_agent("pg", env, lr_half_life=-1)
-    # Through training: the run resumed at 16 ends with the learning rate of the straight run.
-    kw = {"agent_kwargs": {"batch_episodes": 8, "lr": 0.05, "lr_half_life": 16}, "validation_fraction": 0.0}
-    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=32, **kw)
-    _train(tmp_path_factory, tmp_path / "split", episodes=16, **kw)
-    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, **kw)
+    # Through training: the run resumed at 8 ends with the learning rate of the straight run.
+    kw = {"agent_kwargs": {"batch_episodes": 8, "lr": 0.05, "lr_half_life": 8}, "validation_fraction": 0.0}
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24, **kw)
+    _train(tmp_path_factory, tmp_path / "split", episodes=8, **kw)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True, **kw)
     a_meta, a = read_file(straight)
     _, b = read_file(resumed)
-    assert a_meta["hparams"]["lr_half_life"] == 16
+    assert a_meta["hparams"]["lr_half_life"] == 8
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
