@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
@@ -10,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 # Light imports only (numpy): each command imports the rest it needs.
-from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
 from .settings import TIME_MODES, EnvSettings
 from .stop_signals import StopRequested
 
@@ -334,10 +335,32 @@ def _cmd_train(args: argparse.Namespace) -> int:
         pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
         split_seed=args.split_seed, workers=args.workers, ray_address=args.ray_address, overwrite=args.overwrite,
         checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
+        validation_fraction=args.validation_fraction, validate_every=args.validate_every,
+        agent_kwargs=agent_params(args.agent, args.agent_param),
     )
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
     return 0
+
+
+def agent_params(agent: str, items: list[str] | None) -> dict[str, Any]:
+    """`--agent-param KEY=VALUE` options as the agent's hyper-parameters: VALUE read as JSON
+    (numbers, lists, strings without quotes too), checked against the agent's bounds."""
+    from .agents import AGENTS
+    from .agents.hparams import check_hparams
+
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--agent-param {item!r}: expected KEY=VALUE, e.g. entropy_coef=0.05")
+        try:
+            out[key.strip()] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key.strip()] = text
+    if out and agent in AGENTS:
+        check_hparams(agent, AGENTS[agent].HPARAM_BOUNDS, out)
+    return out
 
 
 def _add_train_parser(sub: argparse._SubParsersAction) -> None:
@@ -365,6 +388,15 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
     tr.add_argument("--checkpoint-every", type=int, default=100, metavar="N",
                     help="write the checkpoint every N episodes (100); a stop signal always writes it")
+    tr.add_argument("--validation-fraction", type=float, default=0.0, metavar="F",
+                    help="hold out this share of the train images (seeded by --split-seed; the test images are "
+                         "untouched), check the greedy policy on them every --validate-every episodes and at the "
+                         "end, and ship the one with the lowest mean cost (0: the last policy; default 0)")
+    tr.add_argument("--validate-every", type=int, default=DEFAULT_VALIDATE_EVERY, metavar="K",
+                    help=f"episodes between two validation checks ({DEFAULT_VALIDATE_EVERY})")
+    tr.add_argument("--agent-param", action="append", metavar="KEY=VALUE",
+                    help="an agent hyper-parameter (repeatable), e.g. pg's entropy_coef=0.05 lr_half_life=2000 "
+                         "(checked against the agent's bounds; ignored by --resume, which keeps the checkpoint's)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
     tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",

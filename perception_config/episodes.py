@@ -19,6 +19,7 @@ from .scene import Frame
 ImageKey = tuple[int, int]  # scene_id, im_id
 DEFAULT_TEST_FRACTION = 0.3  # share of the image ids held out for evaluation
 DEFAULT_SPLIT_SEED = 0
+DEFAULT_VALIDATE_EVERY = 250  # training episodes between two validation checks (validation.py)
 
 
 def split_image_keys(keys: list[ImageKey], test_fraction: float = DEFAULT_TEST_FRACTION,

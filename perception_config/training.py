@@ -12,6 +12,13 @@ The loop is the same for every agent; the algorithms live in the agent files. On
 Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
 held out (stored in the policy metadata with the split seed and fraction, for evaluation).
 
+Validation-based selection (validation.py), with `validation_fraction` > 0: that share of the
+train ids is held out of training too; every `validate_every` episodes, and at the end, the
+greedy policy plays the same validation episodes, and policy.safetensors is the one with the
+lowest mean validation cost (its episode and figures in the metadata's `extra.selected`), the
+checkpoint keeps the latest state (and the selected weights, so a resumed run selects the
+same), validation.csv and the learning curve show every check.
+
 The environment's settings are one `EnvSettings` (settings.py), recorded in the policy's
 metadata (`extra.env_settings`) and restored wherever the policy is run.
 
@@ -56,14 +63,17 @@ from .blocks.pipeline import pipeline_reference
 from .datasets.bop import BopDataset
 from .episode_loop import Trajectory, play_episode
 from .episode_store import STORE_NAME, StoreWriter, store_episode
-from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
+from .episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY, split_image_keys
 from .open3d_threads import open3d_single_thread
 from .ray_workers import RayRunner, chunks, play_chunk, ray_wanted, snapshot
 from .settings import EnvSettings, settings_from_policy_meta
 from .stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from .validation import SELECTION, Selection, default_lambdas, split_validation, validate, validation_episodes
+from .validation import write_csv as write_validation_csv
 
 POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
+VALIDATION_CSV = "validation.csv"
 CURVE = "learning_curve.png"
 HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
 
@@ -103,8 +113,11 @@ def moving_average(x: np.ndarray, window: int) -> np.ndarray:
         return np.where(cnt > 0, (s[idx] - s[lo]) / np.maximum(cnt, 1), np.nan)
 
 
-def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title: str = "") -> Path:
-    """Return, time to success and success rate (moving averages) per episode, as a PNG."""
+def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title: str = "",
+                        validation: list[dict[str, Any]] | None = None, selected: int | None = None) -> Path:
+    """Return, time to success and success rate (moving averages) per episode, as a PNG; with
+    `validation` (validation.py records) the greedy policy's validation figures as a second
+    line per panel, `selected` (an episode) marked."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -126,6 +139,22 @@ def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title:
     axes[2].set_ylim(-0.02, 1.02)
     axes[2].set_ylabel("rate")
     axes[2].set_xlabel("episode")
+    if validation:
+        v_ep = np.array([r["episode"] for r in validation])
+        tts = np.array([np.nan if r.get("time_to_success") is None else r["time_to_success"] for r in validation])
+        axes[0].plot(v_ep, [-r["cost"] for r in validation], "o-", color="tab:red", ms=3,
+                     label="validation, greedy (- mean cost)")
+        axes[1].plot(v_ep, tts, "o-", color="tab:red", ms=3, label="validation, greedy")
+        axes[2].plot(v_ep, [r["success"] for r in validation], "o--", ms=3, color="tab:purple",
+                     label="validation success (greedy)")
+        axes[2].plot(v_ep, [r["first_pick"] for r in validation], "o--", ms=3, color="tab:brown",
+                     label="validation first pick (greedy)")
+        if selected is not None:
+            for ax in axes:
+                ax.axvline(selected, color="tab:red", ls=":", lw=1)
+            axes[0].plot([], [], color="tab:red", ls=":", label=f"selected (episode {selected})")
+        axes[0].legend(loc="lower right")
+        axes[1].legend(loc="upper right")
     axes[2].legend(loc="lower right")
     for ax in axes:
         ax.grid(alpha=0.3)
@@ -174,6 +203,9 @@ def train(
     progress: bool = True,
     use_depth: bool = True,
     store_episodes: bool = True,
+    validation_fraction: float = 0.0,
+    validate_every: int = DEFAULT_VALIDATE_EVERY,
+    validation_lambdas: tuple[float, ...] | None = None,
 ) -> Path:
     """Train `agent` ("pg", "es", "simple"; "random"/"fixed" just play) on the train split of
     a BOP dataset and write the policy, checkpoint, history and learning curve to `out`.
@@ -190,6 +222,10 @@ def train(
     StopRequested (module docstring). `use_depth=False` reads the dataset as RGB-only (its depth
     ignored; an RGB-only dataset is RGB-only anyway): the actions that need depth are masked.
     `store_episodes`: append every episode to out/episodes.sqlite (module docstring).
+    `validation_fraction` > 0: hold out that share of the train images and ship the policy with
+    the lowest mean validation cost, checked every `validate_every` episodes and at the end at
+    `validation_lambdas` (default: the ends of lambda_range and 0.5; validation.py); 0 ships the
+    last policy.
     """
     settings = settings or EnvSettings()
     if episodes < 1:
@@ -198,6 +234,10 @@ def train(
         raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
     if workers is not None and int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if not 0.0 <= validation_fraction < 1.0:
+        raise ValueError(f"validation_fraction must be in [0, 1), got {validation_fraction}")
+    if validate_every < 1:
+        raise ValueError(f"validate_every must be >= 1, got {validate_every}")
     name = agent if isinstance(agent, str) else agent.kind
     if name == "oracle":
         raise ValueError("the oracle is a hindsight search (a lower bound for evaluation), it cannot be trained")
@@ -214,30 +254,51 @@ def train(
     # The split: train on the train image ids only.
     ds = BopDataset(Path(dataset), split=split, use_depth=use_depth)
     train_keys, test_keys = split_image_keys(ds.image_keys(), test_fraction, split_seed)
+    val_keys: list[tuple[int, int]] = []
+    if validation_fraction > 0:
+        train_keys, val_keys = split_validation(train_keys, validation_fraction, split_seed)
+    # One environment over the train and validation images; training draws only train episodes.
     recipe = EnvRecipe(str(Path(dataset).resolve()), pipeline_reference(pipeline),
-                       tuple(train_keys), split, settings, use_depth=bool(use_depth))
+                       tuple(sorted(train_keys + val_keys)), split, settings, use_depth=bool(use_depth))
     env = recipe.make()
     spec = EnvSpec.from_env(env)
+    val_set = set(val_keys)
+    in_val = [(ek.scene_id, ek.im_id) in val_set for ek in env.source.episodes]
+    train_idx = [i for i, v in enumerate(in_val) if not v]
+    if not train_idx:
+        raise ValueError("no training episodes left after holding out the validation images: "
+                         "lower validation_fraction")
+    val_lambdas = tuple(float(x) for x in (validation_lambdas or default_lambdas(settings)))
+    val_options = validation_episodes([i for i, v in enumerate(in_val) if v], val_lambdas, split_seed) \
+        if val_keys else []
+    if val_keys and not val_options:
+        raise ValueError(f"the validation images {val_keys} hold no usable episodes: raise validation_fraction")
     training_info = {
         "dataset": recipe.dataset, "bop_split": split, "split_seed": int(split_seed),
         "test_fraction": float(test_fraction),
         "train_image_keys": [list(k) for k in train_keys], "test_image_keys": [list(k) for k in test_keys],
-        "train_episodes_available": len(env.source), "env_settings": settings.to_json(), "pipeline": recipe.pipeline,
-        "seed": int(seed), "use_depth": bool(use_depth),
+        "train_episodes_available": len(train_idx), "env_settings": settings.to_json(), "pipeline": recipe.pipeline,
+        "seed": int(seed), "use_depth": bool(use_depth), "validation_fraction": float(validation_fraction),
     }
+    if val_keys:
+        training_info.update(validation_image_keys=[list(k) for k in val_keys], validation_lambdas=list(val_lambdas),
+                             validation_episodes=len(val_options), validate_every=int(validate_every))
 
     history: dict[str, list[float]] = {k: [] for k in HISTORY_FIELDS}
     rng = np.random.default_rng(seed)
     done = 0
+    selection = Selection()
     if resume:
         meta, tensors = read_file(ckpt_path)
         check_compatible(meta, spec, ckpt_path)
         if meta["agent"] != name:
             raise PolicyError(f"checkpoint {ckpt_path} is a {meta['agent']!r} run, not {name!r}")
         saved = meta.get("extra", {})
-        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "use_depth"):
-            now = json.loads(json.dumps(training_info[key]))
-            if saved.get(key, True if key == "use_depth" else None) != now:  # runs before use_depth: RGB-D
+        defaults = {"use_depth": True, "validation_fraction": 0.0}  # runs from before these keys
+        for key in ("split_seed", "test_fraction", "dataset", "bop_split", "pipeline", "use_depth",
+                    "validation_fraction", "validation_lambdas"):
+            now = json.loads(json.dumps(training_info.get(key)))
+            if saved.get(key, defaults.get(key)) != now:
                 raise PolicyError(f"checkpoint {ckpt_path} was trained with {key}={saved.get(key)!r}, "
                                   f"this run has {now!r}: resume with the same settings")
         try:
@@ -256,6 +317,7 @@ def train(
         rng.bit_generator.state = trainer["rng"]
         for k in HISTORY_FIELDS:
             history[k] = np.asarray(tensors.get(f"history/{k}", np.zeros(0))).tolist()
+        selection = Selection.from_checkpoint(tensors, trainer.get("validation"))
     elif isinstance(agent, Agent):
         if agent.spec.action_names != spec.action_names or agent.spec.observation_layout != spec.observation_layout:
             raise ValueError("the agent was built for a different action set or observation layout "
@@ -278,15 +340,36 @@ def train(
         meta = agent_meta(learner, {**training_info, "episodes": done})
         meta["train_state"] = state
         meta["trainer"] = {"episodes_done": done, "rng": rng.bit_generator.state}
+        if val_options:
+            best_tensors, meta["trainer"]["validation"] = selection.to_checkpoint()
+            tensors.update(best_tensors)
         write_file(ckpt_path, meta, tensors)
 
     def save_outputs(interrupted: bool) -> None:
-        save_agent(learner, policy_path, {**training_info, "episodes": done, "interrupted": interrupted})
+        extra = {**training_info, "episodes": done, "interrupted": interrupted}
+        shipped, selected = learner, None
+        if val_options and selection.best is not None:
+            shipped, selected = selection.best_agent(spec, learner), int(selection.best["episode"])
+            extra["selected"] = {"episode": selected, "by": SELECTION, "validation": selection.best,
+                                 "last": selection.history[-1]}
+        save_agent(shipped, policy_path, extra)
         _write_history_csv(arrays(), out / "history.csv")
+        if val_options:
+            write_validation_csv(selection.history, out / VALIDATION_CSV)
         if done:
-            plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}")
+            plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}",
+                                validation=selection.history if val_options else None, selected=selected)
 
     from tqdm import tqdm
+
+    def play_greedy(actor: Agent, options: list[dict[str, Any]], act_seeds: np.ndarray) -> list[Trajectory]:
+        return play_round(env, [actor], options, act_seeds[None, :], runner, recipe_ref)[0]
+
+    def validation_due() -> bool:
+        """Every `validate_every` episodes (the first round past each multiple) and at the end."""
+        if not val_options or selection.last_episode == done:
+            return False
+        return done >= episodes or done // validate_every > max(selection.last_episode, 0) // validate_every
 
     writer = StoreWriter(out / STORE_NAME, lambda line: _quietly(print, line, file=sys.stderr, flush=True)) \
         if store_episodes else None
@@ -299,7 +382,8 @@ def train(
                               dataset=recipe.dataset, episode_seed=opt["episode_seed"])
 
     # Ray first: ray.init installs its own SIGTERM handler, which the stop signals then replace.
-    runner = RayRunner(workers, ray_address) if ray_wanted(workers, ray_address) and done < episodes else None
+    runner = RayRunner(workers, ray_address) \
+        if ray_wanted(workers, ray_address) and (done < episodes or validation_due()) else None
     recipe_ref = runner.put(recipe) if runner is not None else None
     stops = StopSignals()
     lo, hi = settings.lambda_range
@@ -307,12 +391,32 @@ def train(
     bar = tqdm(total=episodes, initial=min(done, episodes), disable=not progress, unit="ep", desc=f"train {name}")
     with stops.installed(), _reproducible_threads(settings):
         try:
-            while done < episodes and not stops.received:
+            while not stops.received:
+                if validation_due():  # before the next round: a check a signal dropped runs on resume
+                    try:
+                        with stops.interruptible():
+                            record = validate(learner, val_options, play_greedy, done)
+                    except Interrupted:
+                        break
+                    except Exception:
+                        if stops.received:
+                            break
+                        if done > last_ckpt:
+                            _save_quietly(save_checkpoint)
+                        raise
+                    best = selection.offer(record, learner)
+                    if progress:
+                        _quietly(bar.write, f"validation at {done} episodes: mean cost {record['cost']:.3f} s, "
+                                            f"success {record['success']:.3f}, first pick {record['first_pick']:.3f}"
+                                            + (" (best so far)" if best else ""))
+                if done >= episodes:
+                    break
                 round_start = rng.bit_generator.state  # a dropped round is drawn again on resume
                 actors = learner.actors()
                 k = learner.episodes_per_actor
-                options = [{"episode": int(rng.integers(len(env.source))), "lambda": float(rng.uniform(lo, hi)),
-                            "episode_seed": int(rng.integers(2**31))} for _ in range(k)]
+                options = [{"episode": train_idx[int(rng.integers(len(train_idx)))],
+                            "lambda": float(rng.uniform(lo, hi)), "episode_seed": int(rng.integers(2**31))}
+                           for _ in range(k)]
                 act_seeds = rng.integers(2**31, size=(len(actors), k))
                 try:
                     with stops.interruptible():  # only the episodes are dropped by a signal

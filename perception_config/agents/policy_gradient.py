@@ -12,6 +12,10 @@ One update per batch of `batch_episodes` complete episodes (sampled with the cur
     A_t   = G_t - b(s_t), then normalised over the batch   (advantage)
     loss  = -mean_t[ log pi(a_t | s_t) A_t ] - entropy_coef * mean_t[ H(pi(. | s_t)) ]
     Adam step on the policy; Adam step on the value network's MSE (value baseline).
+Learning rate: constant by default; `lr_half_life` = H > 0 halves the policy's every H training
+episodes (lr * 0.5^(episodes learned / H), episodes learned = updates x batch_episodes): late
+updates then move the policy less, so it settles instead of jumping between neighbours (the
+value network keeps its rate: it has to track the changing policy).
 Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
 Action mask (`info["action_mask"]`): the logits of the actions that cannot run are -inf, when
 acting and in the update's log pi and entropy (the masks of every step are in the trajectory),
@@ -73,7 +77,7 @@ class PolicyGradientAgent(Agent):
     HPARAM_BOUNDS = {"hidden": Int(1, MAX_HIDDEN), "lr": Float(0.0, 10.0), "value_lr": Float(0.0, 10.0),
                      "gamma": Float(0.0, 1.0), "batch_episodes": Int(1, 10_000), "entropy_coef": Float(0.0, 100.0),
                      "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
-                     "grad_clip": Float(0.0, 1e6), "seed": SEED}
+                     "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9), "seed": SEED}
 
     @classmethod
     def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
@@ -83,7 +87,8 @@ class PolicyGradientAgent(Agent):
 
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
-                 baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, seed: int = 0) -> None:
+                 baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, lr_half_life: float = 0.0,
+                 seed: int = 0) -> None:
         super().__init__(spec, seed)
         if baseline not in ("value", "mean"):
             raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
@@ -94,6 +99,9 @@ class PolicyGradientAgent(Agent):
         self.hidden, self.lr, self.value_lr, self.gamma = int(hidden), float(lr), float(value_lr), float(gamma)
         self.batch_episodes, self.entropy_coef = int(batch_episodes), float(entropy_coef)
         self.baseline, self.mean_decay, self.grad_clip = baseline, float(mean_decay), float(grad_clip)
+        if lr_half_life < 0:
+            raise ValueError(f"lr_half_life must be >= 0 (0: a constant learning rate), got {lr_half_life}")
+        self.lr_half_life = float(lr_half_life)
         gen = torch.Generator().manual_seed(int(seed))
         self.policy = PolicyNet(spec.obs_dim, spec.n_actions, self.hidden)
         self.value = PolicyNet(spec.obs_dim, 1, self.hidden)
@@ -122,6 +130,12 @@ class PolicyGradientAgent(Agent):
         return int(np.argmax(p))
 
     # -- learning -------------------------------------------------------------------------
+    def current_lr(self) -> float:
+        """The policy's learning rate for the next update (module docstring: `lr_half_life`)."""
+        if self.lr_half_life <= 0:
+            return self.lr
+        return self.lr * 0.5 ** (self.updates * self.batch_episodes / self.lr_half_life)
+
     @property
     def episodes_per_actor(self) -> int:
         return self.batch_episodes
@@ -173,6 +187,9 @@ class PolicyGradientAgent(Agent):
         else:
             entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
         loss = -(logp * advantages).mean() - self.entropy_coef * entropy
+        if self.lr_half_life > 0:
+            for group in self.optimizer.param_groups:
+                group["lr"] = self.current_lr()
         self.optimizer.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
@@ -185,7 +202,7 @@ class PolicyGradientAgent(Agent):
         return {"hidden": self.hidden, "lr": self.lr, "value_lr": self.value_lr, "gamma": self.gamma,
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
                 "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
-                "seed": self.seed}
+                "lr_half_life": self.lr_half_life, "seed": self.seed}
 
     def tensors(self) -> dict[str, np.ndarray]:
         return {f"policy.{k}": v.detach().numpy().copy() for k, v in self.policy.state_dict().items()}

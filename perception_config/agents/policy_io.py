@@ -259,7 +259,7 @@ def build_agent(meta: dict[str, Any], tensors: dict[str, np.ndarray], spec: EnvS
         raise PolicyError(f"policy {path} is for agent {kind!r}"[:200] + f"; known agents: {sorted(AGENTS)}")
     cls = AGENTS[kind]
     hparams = meta.get("hparams", {})
-    policy_tensors = {k: v for k, v in tensors.items() if not k.startswith(("train/", "history/"))}
+    policy_tensors = {k: v for k, v in tensors.items() if not k.startswith(("train/", "history/", "validation/"))}
     try:
         check_hparams(kind, cls.HPARAM_BOUNDS, hparams)
     except ValueError as exc:

@@ -1,0 +1,172 @@
+"""Validation-based policy selection (validation.py, training.py): the shipped policy is the
+validation-best one, the validation images are disjoint from the training and test images,
+and a resumed run selects exactly as the uninterrupted one."""
+from __future__ import annotations
+
+import csv
+import sqlite3
+
+import numpy as np
+import pytest
+
+from perception_config import cli
+from perception_config.agents import load_agent, make_agent
+from perception_config.agents.policy_io import PolicyError, read_file
+from perception_config.episode_loop import acting_seed, play_episode
+from perception_config.settings import EnvSettings
+from perception_config.training import CHECKPOINT, VALIDATION_CSV, train
+from perception_config.validation import TENSOR_PREFIX, default_lambdas, split_validation, validation_episodes
+from rl_helpers import make_env, pipeline_file, tiny_dataset
+
+# A short lambda range with expensive refinements: the untrained policy is poor, so the checks differ.
+FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
+VAL = {"validation_fraction": 0.34, "validate_every": 8}  # 1 of the tiny dataset's 3 train images
+
+
+def _train(tmp_path_factory, out, episodes=32, **kw):
+    args = {"workers": 1, "progress": False, "checkpoint_every": 8, "agent_kwargs": {"batch_episodes": 8, "lr": 0.05},
+            "seed": 3, **VAL, **kw}
+    return train(tiny_dataset(tmp_path_factory), "pg", out, episodes, settings=FAST,
+                 pipeline=pipeline_file(tmp_path_factory), **args)
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_factory, tmp_path):
+    out = tmp_path / "run"
+    path = _train(tmp_path_factory, out, episodes=32)
+    meta, tensors = read_file(path)
+    extra = meta["extra"]
+    train_keys = {tuple(k) for k in extra["train_image_keys"]}
+    val_keys = {tuple(k) for k in extra["validation_image_keys"]}
+    test_keys = {tuple(k) for k in extra["test_image_keys"]}
+    assert train_keys and val_keys and test_keys
+    assert not (train_keys & val_keys or train_keys & test_keys or val_keys & test_keys)
+    assert len(train_keys | val_keys | test_keys) == 4 and extra["validation_lambdas"] == [0.2, 0.5, 0.8]
+    # No training episode was drawn from a validation image (the run's episode store has them all).
+    with sqlite3.connect(out / "episodes.sqlite") as con:
+        played = {tuple(r) for r in con.execute("SELECT DISTINCT scene_id, im_id FROM episodes WHERE source='train'")}
+    assert played and played <= train_keys
+
+    # Checks at 8, 16, 24, 32 (every 8 episodes and the end); the selected one has the lowest cost.
+    rows = _rows(out / VALIDATION_CSV)
+    assert [int(r["episode"]) for r in rows] == [8, 16, 24, 32]
+    costs = [float(r["cost"]) for r in rows]
+    best = max(i for i, c in enumerate(costs) if c == min(costs))  # ties: the later policy
+    sel = extra["selected"]
+    assert sel["episode"] == int(rows[best]["episode"]) and sel["validation"]["cost"] == pytest.approx(costs[best])
+    assert extra["episodes"] == 32 and sel["last"]["episode"] == 32
+
+    # The shipped policy really scores the selected cost: replay the validation episodes with it.
+    env = make_env(tmp_path_factory, max_ops=5, lambda_range=(0.2, 0.8))
+    val_index = [i for i, ek in enumerate(env.source.episodes) if (ek.scene_id, ek.im_id) in val_keys]
+    options = validation_episodes(val_index, extra["validation_lambdas"], extra["split_seed"])
+    assert len(options) == extra["validation_episodes"] == sel["validation"]["episodes"]
+    agent = load_agent(path, env)
+    replay = np.mean([play_episode(env, agent, o, acting_seed(o["episode_seed"])).cost for o in options])
+    assert replay == pytest.approx(sel["validation"]["cost"], rel=1e-9)
+    # The checkpoint keeps the latest policy (to resume) beside the selected weights.
+    ck_meta, ck = read_file(out / CHECKPOINT)
+    for k, v in tensors.items():
+        np.testing.assert_array_equal(ck[TENSOR_PREFIX + k], v)
+    assert ck_meta["trainer"]["validation"]["best"]["episode"] == sel["episode"]
+    if sel["episode"] != 32:
+        assert any(not np.array_equal(ck[k], v) for k, v in tensors.items())
+
+
+def test_resumed_run_selects_as_the_uninterrupted_one(tmp_path_factory, tmp_path):
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24)
+    _train(tmp_path_factory, tmp_path / "split", episodes=16)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True)
+    a_meta, a = read_file(straight)
+    b_meta, b = read_file(resumed)
+    assert a_meta["extra"]["selected"] == b_meta["extra"]["selected"]
+    for k in a:
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
+    # The check at the end of the first part (16) is a regular one: the histories are the same.
+    assert _rows(tmp_path / "straight" / VALIDATION_CSV) == _rows(tmp_path / "split" / VALIDATION_CSV)
+    # The held-out images are part of the run: another fraction cannot resume it.
+    with pytest.raises(PolicyError, match="validation_fraction"):
+        _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, validation_fraction=0.5)
+    with pytest.raises(PolicyError, match="validation_fraction"):
+        _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, validation_fraction=0.0)
+
+
+def test_validation_split_lambdas_and_bad_input():
+    keys = [(1, i) for i in range(10)]
+    fit, val = split_validation(keys, 0.2, 0)
+    assert len(val) == 2 and not set(fit) & set(val) and set(fit) | set(val) == set(keys)
+    assert split_validation(keys, 0.2, 0) == (fit, val) and split_validation(keys, 0.2, 1) != (fit, val)
+    assert default_lambdas(EnvSettings()) == (0.1, 0.5, 1.0)
+    assert default_lambdas(EnvSettings(lambda_range=(0.0, 0.2))) == (0.0, 0.1, 0.2)
+    opts = validation_episodes([3, 5], (0.1, 0.5), 0)
+    assert [(o["episode"], o["lambda"]) for o in opts] == [(3, 0.1), (3, 0.5), (5, 0.1), (5, 0.5)]
+    assert opts == validation_episodes([3, 5], (0.1, 0.5), 0)
+    with pytest.raises(ValueError, match="at least 2 train images"):
+        split_validation([(1, 1)], 0.5, 0)
+    with pytest.raises(ValueError, match="validation_fraction"):
+        train("nowhere", "pg", "nowhere", 8, validation_fraction=1.0)
+    with pytest.raises(ValueError, match="validate_every"):
+        train("nowhere", "pg", "nowhere", 8, validation_fraction=0.2, validate_every=0)
+
+
+def test_cli_train_flags(tmp_path_factory, tmp_path, capsys):
+    out = tmp_path / "cli"
+    code = cli.main(["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out), "--episodes", "16",
+                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+                     "--workers", "1", "--quiet", "--validation-fraction", "0.34", "--validate-every", "8"])
+    assert code == 0
+    meta, _ = read_file(out / "policy.safetensors")
+    assert meta["extra"]["validation_fraction"] == 0.34 and meta["extra"]["validate_every"] == 8
+    assert [int(r["episode"]) for r in _rows(out / VALIDATION_CSV)] == [8, 16]
+    out0 = tmp_path / "off"
+    assert cli.main(["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out0), "--episodes", "8",
+                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+                     "--workers", "1", "--quiet", "--validation-fraction", "0"]) == 0
+    meta, _ = read_file(out0 / "policy.safetensors")
+    assert "selected" not in meta["extra"] and not (out0 / VALIDATION_CSV).exists()
+
+
+def test_pg_learning_rate_half_life_and_resume(tmp_path_factory, tmp_path):
+    """lr_half_life halves the policy's learning rate every H episodes learned; a resumed run
+    continues the schedule (the update count is in the checkpoint); 0 keeps it constant."""
+    env = make_env(tmp_path_factory, max_ops=5, lambda_range=(0.2, 0.8))
+    agent = make_agent("pg", env, batch_episodes=4, lr=0.04, lr_half_life=8)
+    constant = make_agent("pg", env, batch_episodes=4, lr=0.04)
+    for k in range(4):
+        trajs = [play_episode(env, agent, {"episode": i % len(env.source), "lambda": 0.5, "episode_seed": 10 * k + i},
+                              act_seed=i) for i in range(4)]
+        agent.update([trajs])
+        constant.update([trajs])
+        assert agent.optimizer.param_groups[0]["lr"] == pytest.approx(0.04 * 0.5 ** (4 * k / 8))
+        assert constant.optimizer.param_groups[0]["lr"] == 0.04
+    assert agent.current_lr() == pytest.approx(0.04 * 0.5 ** 2)
+    with pytest.raises(ValueError, match="lr_half_life"):
+        make_agent("pg", env, lr_half_life=-1)
+    # Through training: the run resumed at 8 ends with the learning rate of the straight run.
+    kw = {"agent_kwargs": {"batch_episodes": 8, "lr": 0.05, "lr_half_life": 8}, "validation_fraction": 0.0}
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24, **kw)
+    _train(tmp_path_factory, tmp_path / "split", episodes=8, **kw)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True, **kw)
+    a_meta, a = read_file(straight)
+    _, b = read_file(resumed)
+    assert a_meta["hparams"]["lr_half_life"] == 8
+    for k in a:
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
+
+
+def test_agent_params_from_the_command_line_are_checked_against_the_agents_bounds():
+    from perception_config.cli import agent_params
+
+    assert agent_params("pg", ["entropy_coef=0.05", "lr_half_life=2000"]) == {"entropy_coef": 0.05,
+                                                                             "lr_half_life": 2000}
+    assert agent_params("pg", None) == {}
+    for bad, says in ((["foo=1"], "unknown hyper-parameters \\['foo'\\] for agent 'pg'"),
+                      (["entropy_coef=x"], "entropy_coef must be a finite number"),
+                      (["lr_half_life=-1"], "lr_half_life"),
+                      (["novalue"], "expected KEY=VALUE")):
+        with pytest.raises(ValueError, match=says):
+            agent_params("pg", bad)
