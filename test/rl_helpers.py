@@ -71,3 +71,18 @@ def make_env(tmp_path_factory: pytest.TempPathFactory, text: str = PIPELINE, nam
 
     kw.setdefault("time_mode", "cost_table")
     return PerceptionConfigEnv(tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory, text, name), **kw)
+
+
+def same_run(a: Path, b: Path) -> None:
+    """Two training run folders with the same history and checkpoint, bit for bit."""
+    import numpy as np
+
+    from perception_config.agents.policy_io import read_file
+    from perception_config.training import CHECKPOINT
+
+    assert (a / "history.csv").read_bytes() == (b / "history.csv").read_bytes()
+    _, ta = read_file(a / CHECKPOINT)
+    _, tb = read_file(b / CHECKPOINT)
+    assert sorted(ta) == sorted(tb)
+    for k in ta:
+        np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)

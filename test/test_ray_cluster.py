@@ -9,14 +9,12 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from perception_config.agents.policy_io import read_file
 from perception_config.evaluation import evaluate
 from perception_config.settings import EnvSettings
-from perception_config.training import CHECKPOINT, train
-from rl_helpers import pipeline_file, tiny_dataset
+from perception_config.training import train
+from rl_helpers import pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
@@ -56,15 +54,6 @@ def _train(tmp_path_factory, out: Path, episodes: int, address: str | None = Non
     return train(tiny_dataset(tmp_path_factory), "pg", out, episodes, settings=FAST, seed=5, ray_address=address,
                  pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs={"batch_episodes": 8},
                  checkpoint_every=8, **kw)
-
-
-def _same_run(a: Path, b: Path) -> None:
-    assert (a / "history.csv").read_bytes() == (b / "history.csv").read_bytes()
-    _, ta = read_file(a / CHECKPOINT)
-    _, tb = read_file(b / CHECKPOINT)
-    assert sorted(ta) == sorted(tb)
-    for k in ta:
-        np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)
 
 
 class _Watcher:
@@ -107,7 +96,7 @@ def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_f
     c = cluster["cluster"]
     with _Watcher("ray::play_chunk") as seen:
         policy = _train(tmp_path_factory, tmp_path / "run", episodes=16, address=c.address)
-    _same_run(tmp_path / "run", reference)
+    same_run(tmp_path / "run", reference)
     assert seen.parents == _raylets(c) and len(seen.parents) == 2  # workers of both nodes played
     kw = dict(episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5,
               progress=False, plots=False)
@@ -125,4 +114,4 @@ def test_resume_after_the_whole_cluster_restarted(cluster, reference, tmp_path_f
     cluster["cluster"].shutdown()
     cluster["cluster"] = _start_cluster(nodes=1)  # a new cluster (one node: quicker): new processes and address
     _train(tmp_path_factory, out, episodes=16, address=cluster["cluster"].address, resume=True)
-    _same_run(out, reference)
+    same_run(out, reference)

@@ -14,7 +14,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from perception_config.agents import EnvRecipe
@@ -23,7 +22,7 @@ from perception_config.episode_store import STORE_NAME, EpisodeStore
 from perception_config.evaluation import evaluate
 from perception_config.settings import EnvSettings
 from perception_config.training import CHECKPOINT, train
-from rl_helpers import pipeline_file, tiny_dataset
+from rl_helpers import pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,16 +52,6 @@ def _train(tmp_path_factory, out: Path, workers: int, agent: str = "pg", episode
                  pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs=agent_kwargs, **kw)
 
 
-def _same_run(a: Path, b: Path) -> None:
-    """Two run folders with the same history and the same policy, bit for bit."""
-    assert (a / "history.csv").read_bytes() == (b / "history.csv").read_bytes()
-    _, ta = read_file(a / CHECKPOINT)
-    _, tb = read_file(b / CHECKPOINT)
-    assert sorted(ta) == sorted(tb)
-    for k in ta:
-        np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)
-
-
 def _evaluate(tmp_path_factory, out: Path, policy: Path, workers: int) -> Path:
     return evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.3, 0.7], out, episodes_per_lambda=3,
                     pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5, progress=False,
@@ -73,11 +62,11 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
     # pg: rounds of 8 episodes in tasks over the workers.
     policy = pg_in_process / "policy.safetensors"
     _train(tmp_path_factory, tmp_path / "pg2", workers=2)
-    _same_run(pg_in_process, tmp_path / "pg2")
+    same_run(pg_in_process, tmp_path / "pg2")
     # ES: the population's individuals as tasks.
     _train(tmp_path_factory, tmp_path / "es1", workers=1, agent="es", episodes=8)
     _train(tmp_path_factory, tmp_path / "es2", workers=2, agent="es", episodes=8)
-    _same_run(tmp_path / "es1", tmp_path / "es2")
+    same_run(tmp_path / "es1", tmp_path / "es2")
     meta, tensors = read_file(tmp_path / "es2" / CHECKPOINT)
     assert meta["train_state"]["generation"] == 1 and sum(k.startswith("train/pop.") for k in tensors) == 4 * 6
     # The store is written by the driver, once per episode, in the same order.
@@ -133,7 +122,7 @@ def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg
         stop.set()
         thread.join()
     assert killed, "no worker was seen playing a task"
-    _same_run(tmp_path / "killed", pg_in_process)
+    same_run(tmp_path / "killed", pg_in_process)
 
 
 def test_a_failing_task_raises_with_its_traceback(local_ray, tmp_path_factory):
