@@ -401,28 +401,24 @@ class ConfiguratorNode(Node):
         except Exception as exc:  # noqa: BLE001  (the node keeps serving whatever the learner sent)
             self.get_logger().error(f"learn: {exc!r}; the current version keeps serving")
 
+    # the version pins at run time: parameter -> (NodeLearning's check, when the pinned version serves)
+    VERSION_PINS = {"policy_version": ("check_pin", "serving it from the next estimate"),
+                    "score_version": ("check_score_pin", "the operator nodes following the score versions serve "
+                                                         "it from their next scoring")}
+
     def _on_set_parameters(self, params) -> SetParametersResult:
         for param in params:
-            if param.name == "policy_version":
-                if self.learning is None:
-                    return SetParametersResult(successful=False,
-                                               reason="policy_version needs learn:=true (no versions without it)")
-                result = self.learning.check_pin(str(param.value or ""))
-                if not result.successful:
-                    self.get_logger().warning(f"policy_version {param.value!r} refused: {result.reason}")
-                    return result
-                self.get_logger().info(f"policy_version set to {param.value or 'the newest'}: serving it from the "
-                                       "next estimate")
-            elif param.name == "score_version":
-                if self.learning is None:
-                    return SetParametersResult(successful=False,
-                                               reason="score_version needs learn:=true (no versions without it)")
-                result = self.learning.check_score_pin(str(param.value or ""))
-                if not result.successful:
-                    self.get_logger().warning(f"score_version {param.value!r} refused: {result.reason}")
-                    return result
-                self.get_logger().info(f"score_version set to {param.value or 'the newest'}: the operator nodes "
-                                       "following the score versions serve it from their next scoring")
+            if param.name not in self.VERSION_PINS:
+                continue
+            check, when = self.VERSION_PINS[param.name]
+            if self.learning is None:
+                return SetParametersResult(successful=False,
+                                           reason=f"{param.name} needs learn:=true (no versions without it)")
+            result = getattr(self.learning, check)(str(param.value or ""))
+            if not result.successful:
+                self.get_logger().warning(f"{param.name} {param.value!r} refused: {result.reason}")
+                return result
+            self.get_logger().info(f"{param.name} set to {param.value or 'the newest'}: {when}")
         return SetParametersResult(successful=True)
 
     def _on_pick_outcome(self, request: ReportPickOutcome.Request, response: ReportPickOutcome.Response
