@@ -36,14 +36,16 @@ PICK_MSSD_SHARE = float(next(p.default for p in SimulatedPick.params if p.name =
 DEFAULT_COLLECT_LAMBDAS = (0.1, 0.3, 0.5, 0.7, 1.0)
 
 
-def load_step_rows(store_path: str | Path) -> list[dict[str, Any]]:
-    """Every step row with a pose from the episode store at `store_path`."""
+def load_step_rows(store_path: str | Path, busy_timeout: float | None = None) -> list[dict[str, Any]]:
+    """Every step row with a pose from the episode store at `store_path` (`busy_timeout`: seconds
+    to wait for a writer's lock, the store's default when None)."""
     path = Path(store_path)
     if not path.is_file():
         raise FileNotFoundError(f"episode store {path} does not exist")
     from .episode_store import EpisodeStore
 
-    with EpisodeStore(path, readonly=True) as store:
+    kw = {} if busy_timeout is None else {"busy_timeout": busy_timeout}
+    with EpisodeStore(path, readonly=True, **kw) as store:
         return [row for row in store.iter_steps() if row.get("pose") is not None]
 
 

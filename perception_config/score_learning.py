@@ -38,8 +38,8 @@ from typing import Any, Callable
 import numpy as np
 
 from .blocks.pick_success import PickSuccess, load_model, resolve_model_path
-from .episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
-from .pick_success_data import featurise
+from .episode_store import STORE_NAME, EpisodeStoreError
+from .pick_success_data import featurise, load_step_rows
 from .pick_success_fit import fit_model, score_metrics, split_images
 from .pick_success_model import MODEL_FILE, PickSuccessModelError
 from .policy_versions import PolicyVersionError, PolicyVersions
@@ -82,8 +82,7 @@ def initial_score_version(learn_dir: str | Path, pipeline: Any) -> str | None:
 def labelled_rows(learn_dir: Path, models_dir: str | Path) -> Any:
     """The FeatureTable of the stored hypotheses that carry a label (module docstring)."""
     try:
-        with EpisodeStore(learn_dir / STORE_NAME, readonly=True, busy_timeout=2.0) as store:
-            rows = [r for r in store.iter_steps() if r.get("pose") is not None]
+        rows = load_step_rows(learn_dir / STORE_NAME, busy_timeout=2.0)
     except (sqlite3.Error, OSError, EpisodeStoreError) as exc:
         raise ScoreLearnError(f"episode store {learn_dir / STORE_NAME} cannot be read: {exc}") from None
     if not rows:
