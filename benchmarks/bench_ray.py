@@ -1,9 +1,13 @@
 """Episodes per second with 1 and N Ray workers: training (pg batches, the ES population) and the
 evaluation sweep, back to back in one run so that the ratio sees the same machine load.
 
-    python benchmarks/bench_ray.py [--dataset data/default] [--episodes 320] [--agents pg,es]
-        [--workers 1,2] [--repeats 2] [--eval-episodes 6] [--lambdas 0.3,0.7]
-        [--out benchmarks/results/ray.json]
+    python benchmarks/bench_ray.py [--dataset data/default] [--episodes 320]
+        [--agents pg,pg:batch_episodes=32,es] [--workers 1,2] [--repeats 2] [--eval-episodes 6]
+        [--lambdas 0.3,0.7] [--out benchmarks/results/ray.json]
+
+An agent is a kind with optional hyper-parameters, `kind:KEY=VALUE:KEY=VALUE` (as `train
+--agent-param`): pg's rounds are its `batch_episodes` (default 8), and each round ends with its
+slowest worker, so the ratio depends on the batch.
 
 For each agent, `train` (cost-table mode, the same seed) with each number of workers, the
 configurations interleaved `--repeats` times (1, 2, 1, 2: a change of the machine's load hits
@@ -14,9 +18,9 @@ Ray is started once before the runs and reused by those with more than one worke
 is reported apart); with 1 worker nothing of Ray runs. Then `evaluate` of the first trained
 policy with the baselines (oracle, fixed pipelines, random) at `--lambdas`, the whole call
 timed. The histories / results of every number of workers must be the same bits (checked:
-`same_results`). The load average is recorded before and after each run, and the CPU seconds per episode of the
-whole process tree (the driver, Ray's processes and workers): what Ray costs on top of the
-episodes, whatever the load.
+`same_results`). The load average is recorded before and after each run, and the CPU seconds
+per episode of the whole process tree (the driver, Ray's processes and workers): what Ray costs
+on top of the episodes, whatever the load.
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ if str(REPO) not in sys.path:
 
 from perception_config import training  # noqa: E402
 from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.cli import agent_params  # noqa: E402
 from perception_config.evaluation import evaluate  # noqa: E402
 from perception_config.settings import EnvSettings  # noqa: E402
 
@@ -93,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", type=Path, default=REPO / "data" / "default")
     ap.add_argument("--episodes", type=int, default=320, help="training episodes per run")
     ap.add_argument("--repeats", type=int, default=2, help="runs of each number of workers, interleaved")
-    ap.add_argument("--agents", default="pg,es")
+    ap.add_argument("--agents", default="pg,pg:batch_episodes=32,es",
+                    help="comma-separated kind[:KEY=VALUE...] (hyper-parameters as train --agent-param)")
     ap.add_argument("--workers", default="1,2", help="comma-separated numbers of workers")
     ap.add_argument("--eval-episodes", type=int, default=6, help="evaluation episodes per lambda (0: no evaluation)")
     ap.add_argument("--lambdas", default="0.3,0.7")
@@ -115,15 +121,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         policy = None
         for agent in a.agents.split(","):
+            kind, *params = agent.split(":")
+            kwargs = agent_params(kind, params)
             rows: dict[int, list[dict]] = {w: [] for w in workers}
             for rep in range(a.repeats):
                 for w in workers:
-                    out = a.runs / f"{agent}-w{w}-{rep}"
+                    out = a.runs / f"{agent.replace(':', '-')}-w{w}-{rep}"
                     ROUND_ENDS.clear()
                     cpu0 = _tree_cpu()
                     load0, t0 = _load(), time.perf_counter()
-                    path = training.train(a.dataset, agent, out, a.episodes, settings=settings, seed=0, workers=w,
-                                          overwrite=True, progress=False)
+                    path = training.train(a.dataset, kind, out, a.episodes, settings=settings, seed=0, workers=w,
+                                          agent_kwargs=kwargs, overwrite=True, progress=False)
                     dt = time.perf_counter() - t0
                     cpu = _cpu_since(cpu0)
                     per_round = a.episodes / len(ROUND_ENDS)

@@ -4,7 +4,8 @@ population, the evaluation sweep).
 `ray_wanted(workers, address)`: Ray is used only with `--workers N` (N > 1) or `--ray-address`;
 otherwise the callers play in their own process and `ray` is never imported. `RayRunner`
 starts a local Ray (N CPUs; its GCS, raylet, object manager and workers listen on 127.0.0.1
-only, no dashboard, no usage report, quiet logs) or joins a running cluster (`address`, e.g.
+only, no dashboard, no usage report, quiet logs, no task events: they cost the GCS and the
+workers CPU per task, and only the dashboard reads them) or joins a running cluster (`address`, e.g.
 "127.0.0.1:6379" of `ray start --head`, or "auto"), and runs a list of calls of a module-level
 function as tasks, results in call order. A process that already called `ray.init` is used as
 it is (and left running).
@@ -170,8 +171,8 @@ class RayRunner:
 
     def _remote(self, func: Callable[..., Any]) -> Any:
         if func not in self._remotes:
-            self._remotes[func] = self._ray.remote(num_cpus=1, max_retries=TASK_RETRIES,
-                                                   retry_exceptions=False)(func)
+            self._remotes[func] = self._ray.remote(num_cpus=1, max_retries=TASK_RETRIES, retry_exceptions=False,
+                                                   enable_task_events=False)(func)
         return self._remotes[func]
 
     def map(self, func: Callable[..., Any], calls: Sequence[tuple[Any, ...]],
