@@ -86,3 +86,30 @@ def same_run(a: Path, b: Path) -> None:
     assert sorted(ta) == sorted(tb)
     for k in ta:
         np.testing.assert_array_equal(ta[k], tb[k], err_msg=k)
+
+
+def own_ray_task_processes(title: str) -> dict[int, int]:
+    """{pid: parent pid} of the processes titled Ray's `ray::<task>` (the workers running that
+    task now) that descend from this test process: its local Ray or cluster_utils cluster, never
+    another Ray on the machine (a user's training, a concurrent test run)."""
+    import os
+
+    parents, titles = {}, {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                cmd = Path(f"/proc/{entry}/cmdline").read_bytes()
+            except OSError:
+                continue
+            parents[int(entry)] = int(stat.rsplit(")", 1)[1].split()[1])
+            titles[int(entry)] = cmd
+    me, out = os.getpid(), {}
+    for pid, cmd in titles.items():
+        if cmd.startswith(title.encode()):
+            up = parents.get(pid, 0)
+            while up > 1 and up != me:
+                up = parents.get(up, 0)
+            if up == me:
+                out[pid] = parents[pid]
+    return out

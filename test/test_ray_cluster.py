@@ -14,7 +14,7 @@ import pytest
 from perception_config.evaluation import evaluate
 from perception_config.settings import EnvSettings
 from perception_config.training import train
-from rl_helpers import pipeline_file, same_run, tiny_dataset
+from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
@@ -60,20 +60,13 @@ class _Watcher:
     """Records the parents (raylets) of the processes seen running a task of the given title."""
 
     def __init__(self, title: str) -> None:
-        self.title, self.parents = title.encode(), set()
+        self.title, self.parents = title, set()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            for entry in os.listdir("/proc"):
-                if entry.isdigit():
-                    try:
-                        if Path(f"/proc/{entry}/cmdline").read_bytes().startswith(self.title):
-                            stat = Path(f"/proc/{entry}/stat").read_text()
-                            self.parents.add(int(stat.rsplit(")", 1)[1].split()[1]))
-                    except OSError:
-                        continue
+            self.parents.update(own_ray_task_processes(self.title).values())
             time.sleep(0.01)
 
     def __enter__(self) -> "_Watcher":

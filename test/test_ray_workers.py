@@ -22,7 +22,7 @@ from perception_config.episode_store import STORE_NAME, EpisodeStore
 from perception_config.evaluation import evaluate
 from perception_config.settings import EnvSettings
 from perception_config.training import CHECKPOINT, train
-from rl_helpers import pipeline_file, same_run, tiny_dataset
+from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,20 +87,6 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
         assert s1.query(query) == s2.query(query) and len(s2.query(query)) == len(agents) * 2 * 3
 
 
-def _ray_task_pids(title: str) -> list[int]:
-    """Processes whose title is Ray's `ray::<task>`: the workers running that task now."""
-    out = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                cmd = Path(f"/proc/{entry}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if cmd.startswith(title.encode()):
-                out.append(int(entry))
-    return out
-
-
 def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg_in_process, tmp_path_factory,
                                                                    tmp_path):
     killed: list[int] = []
@@ -108,7 +94,7 @@ def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg
 
     def killer() -> None:  # SIGKILL the first worker seen playing episodes, once
         while not stop.is_set() and not killed:
-            for pid in _ray_task_pids("ray::play_chunk"):
+            for pid in own_ray_task_processes("ray::play_chunk"):
                 os.kill(pid, signal.SIGKILL)
                 killed.append(pid)
                 break
