@@ -401,7 +401,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
     tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")
-    _add_ray_args(tr, "each round's episodes (pg's batch, the ES population)")
+    _add_ray_args(tr, "each round's episodes (pg's batch, the ES population; a round waits for its slowest "
+                      "episode, so give pg batch_episodes >= 16 N)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_cmd_train)
 
