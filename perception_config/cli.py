@@ -402,7 +402,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")
     _add_ray_args(tr, "each round's episodes (pg's batch, the ES population; a round waits for its slowest "
-                      "episode, so give pg batch_episodes >= 16 N)")
+                      "episode, so give pg batch_episodes >= 4 N)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_cmd_train)
 
