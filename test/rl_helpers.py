@@ -108,7 +108,9 @@ def own_ray_task_processes(title: str) -> dict[int, int]:
     for pid, cmd in titles.items():
         if cmd.startswith(title.encode()):
             up = parents.get(pid, 0)
-            while up > 1 and up != me:
+            for _ in range(64):  # bounded: a snapshot of /proc taken while processes come and go
+                if up <= 1 or up == me:
+                    break
                 up = parents.get(up, 0)
             if up == me:
                 out[pid] = parents[pid]
