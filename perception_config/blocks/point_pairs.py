@@ -1,0 +1,173 @@
+"""`ppf`: a ground-truth-free generator from the depth image and the model: point pair feature
+voting (vision/ppf.py), then render-and-compare verification and ICP of the best pose clusters.
+It returns its ranked candidates (best first, a confidence each) in `info["ranked"]`.
+
+Steps: (1) the frame's segmentation (shared with `global_registration` through the frame's
+cache) keeps the points of object-like regions whose size fits the model (`min_extent` ..
+`max_extent` diameters: the table, bin walls and the far background go); (2) those points,
+down-sampled to `sampling_rel` diameters, vote with every `ref_step`-th of them as reference
+against the model's point pair table (built once per model and parameter set, cached on disk);
+(3) the reference points' poses are clustered (0.1 d, 30 deg) and the `n_clusters` strongest
+are pre-verified by rendering (`verify`: depth agreement, free-space violations, coverage of
+their regions); (4) the best `n_polish` are polished by coarse-to-fine ICP against the observed
+points under them and verified again; the distinct results, best first, are the candidates.
+Confidence = the verification score clipped to [0, 1].
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..geometry import Pose
+from ..render import render_box
+from ..vision.features import model_features
+from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
+from ..vision.verification import icp_polish, icp_target, verify
+from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
+from .generation import _segmentation
+
+_SCORE_NAMES = ("gen_verification",)
+
+
+def _distinct(pose: Pose, kept: list[Pose], centre: np.ndarray, dist: float, angle: float) -> bool:
+    """Whether `pose` differs from every kept pose by more than `dist` (model centre) or `angle`."""
+    c = pose.transform(centre[None])[0]
+    for k in kept:
+        if np.linalg.norm(k.transform(centre[None])[0] - c) < dist:
+            cos = (np.trace(k.R.T @ pose.R) - 1.0) / 2.0
+            if cos > math.cos(angle):
+                return False
+    return True
+
+
+@register
+class PointPairFeatures(Block):
+    """Point pair feature voting with render-and-compare verification (see the module docstring)."""
+
+    kind = Kind.GENERATION
+    name = "ppf"
+    default_cost = 0.5
+    inputs = (DEPTH, MODEL)
+    score_names = _SCORE_NAMES
+    params = (
+        Param("sampling_rel", 0.05, 0.02, 0.2, doc="model and scene sampling as a share of the diameter"),
+        Param("n_angle", 30, 8, 90, doc="angle bins of the point pair feature (over 180 deg)"),
+        Param("ref_step", 5, 1, 100, doc="every n-th scene point is a voting reference"),
+        Param("min_extent", 0.15, 0.0, 1.0, doc="smallest region kept, as a share of the diameter"),
+        Param("max_extent", 3.0, 0.5, 20.0, doc="largest region kept (touching objects merge), in diameters"),
+        Param("min_sampling", 0.003, 0.0, 0.05, doc="metres: the sampling is never finer (sensor noise)"),
+        Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
+        Param("n_clusters", 16, 1, 200, doc="strongest pose clusters pre-verified by rendering"),
+        Param("n_polish", 6, 1, 50, doc="pre-verified candidates polished by ICP and verified again"),
+        Param("flip_variants", True,
+              doc="also verify each pose cluster flipped by 180 deg about the model's principal axes"),
+        Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
+        Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
+        Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
+        Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
+        Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between candidates)"),
+    )
+
+    def run(self, inp: BlockInput) -> BlockResult:
+        c = self.config
+        start = time.perf_counter()
+        deadline = self.deadline(inp, start)
+        model, frame = inp.model, inp.frame
+        d = model.diameter
+        try:
+            table, source = ppf_model(model, max(c["sampling_rel"], c["min_sampling"] / d), c["n_angle"])
+        except ValueError as exc:
+            return BlockResult.fail(f"ppf: the model cannot be prepared: {exc}")
+        t_prep = time.perf_counter() - start
+        seg = _segmentation(inp, c["plane_distance"])
+        if seg.n_valid < 50:
+            return BlockResult.fail(f"ppf: only {seg.n_valid} valid depth pixels")
+        voxel = table.dist_step
+        key = f"ppf:scene:{voxel:.5f}:{c['min_extent']:.3f}:{c['max_extent']:.3f}:{c['plane_distance']:.4f}"
+        scene = inp.cache.get(key)
+        if scene is None:
+            P = seg.points.reshape(-1, 3)
+            label = seg.labels[-1].ravel() if seg.labels else np.full(len(P), -1)
+            extent = np.array([cl.extent for cl in seg.clusters] + [0.0])[label]
+            keep = (label >= 0) & (extent >= c["min_extent"] * d) & (extent <= c["max_extent"] * d)
+            scene = scene_cloud(P[keep], voxel)
+            inp.cache[key] = scene
+        if len(scene.points) < 10:
+            return BlockResult.fail(f"ppf: no object-like region of {c['min_extent']:.2f}-{c['max_extent']:.1f} "
+                                    f"diameters ({d * 1000:.0f} mm) above the support surfaces")
+        t_scene = time.perf_counter()
+        R, t, votes = vote(table, scene, c["ref_step"])
+        centre = model.points.mean(axis=0)
+        leaders = cluster_poses(R, t, votes, centre, 0.1 * d, math.radians(30.0), c["n_clusters"])
+        t_vote = time.perf_counter()
+        flips = model_features(model, voxel).flips if c["flip_variants"] else []
+        poses = []
+        for _, Rk, tk in leaders:  # each leader and its 180 deg flips about the principal axes
+            poses.append(Pose(Rk, tk))
+            poses.extend(Pose(Rk @ F, Rk @ (centre - F @ centre) + tk) for F in flips)
+        pre = []
+        for k, pose in enumerate(poses):
+            if time.perf_counter() >= deadline:
+                break
+            if not pose.is_valid():
+                continue
+            r = render_box(model, pose, frame.K, frame.width, frame.height)
+            score = verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, r, seg, 0.5)[0]
+            if math.isfinite(score):
+                pre.append((score, k, pose, r))
+        pre.sort(key=lambda q: (-q[0], q[1]))
+        icp_dists = (max(3.0 * voxel, 0.006), max(1.2 * voxel, 0.003), max(0.5 * voxel, 0.002))
+        polished: list[tuple[float, Pose, dict[str, float]]] = []
+        for _, _, pose, r in pre[: c["n_polish"]]:
+            if time.perf_counter() >= deadline:
+                break
+            source_label = _dominant_label(seg, r)
+            if source_label < 0:
+                continue
+            target = icp_target(seg, pose, model, r, source_label)
+            if len(target.points) >= 10:
+                pose, _, _ = icp_polish(model, pose, target, icp_dists, c["icp_iterations"])
+            score, details = verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, seg=seg, explain_weight=0.5)
+            if math.isfinite(score):
+                polished.append((float(score), pose, details))
+        polished.sort(key=lambda q: -q[0])
+        ranked: list[tuple[float, Pose]] = []
+        for score, pose, _ in polished:
+            if _distinct(pose, [p for _, p in ranked], centre, 0.1 * d, math.radians(15.0)):
+                ranked.append((float(min(max(score, 0.0), 1.0)), pose))
+            if len(ranked) >= c["top_k"]:
+                break
+        now = time.perf_counter()
+        info = {"ranked": ranked, "table": source, "scene_points": len(scene.points), "pose_clusters": len(leaders),
+                "verified": len(pre), "polished": len(polished),
+                "seconds": {"prepare": t_prep, "scene": t_scene - start - t_prep, "vote": t_vote - t_scene,
+                            "verify": now - t_vote}}
+        if not ranked:
+            return BlockResult(ok=False, info=info, reason="ppf: no candidate could be verified "
+                               f"(scene points {len(scene.points)}, pose clusters {len(leaders)})")
+        best_score, best = polished[0][0], ranked[0][1]
+        scores = {"gen_verification": best_score}
+        if best_score < c["min_verification"]:
+            return BlockResult(ok=False, scores=scores, info=info, reason=(
+                f"ppf: best candidate verifies at {best_score:.2f} < min_verification {c['min_verification']}"))
+        return BlockResult(ok=True, pose=best, scores=scores, info=info)
+
+
+def _dominant_label(seg, r) -> int:
+    """The region (coarse level) that most of the rendered silhouette lies on, or -1."""
+    if r.empty or not seg.labels:
+        return -1
+    rs, cs = r.crop_slices()
+    under = seg.labels[-1][rs, cs][r.mask >= 0]
+    under = under[under >= 0]
+    if not len(under):
+        under = seg.labels[0][rs, cs][r.mask >= 0]
+        under = under[under >= 0]
+        if not len(under):
+            return -1
+    return int(np.bincount(under).argmax())
+
+
+__all__ = ["PointPairFeatures"]
