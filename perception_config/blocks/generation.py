@@ -51,7 +51,7 @@ from ..vision.features import (
     point_cloud,
     ransac_candidates,
 )
-from ..vision.segmentation import Cluster, Segmentation, segment_scene
+from ..vision.segmentation import Cluster, frame_segmentation
 from ..vision.verification import icp_polish, icp_target, verify
 from .base import DEPTH, GROUND_TRUTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -106,17 +106,6 @@ class SimulatedInit(Block):
 
 MAX_CORRESPONDENCES = 1200  # putative matches per cluster (the compatibility matrix is N^2)
 MAX_SCORE_POINTS = 300  # cluster points each RANSAC hypothesis is scored on
-
-
-def _segmentation(inp: BlockInput, plane_distance: float) -> Segmentation:
-    """The frame's segmentation, computed once per frame and parameter set (deterministic:
-    the plane RANSAC has its own fixed seed so every caller sees the same clusters)."""
-    key = f"gen:segmentation:{plane_distance:.4f}"
-    seg = inp.cache.get(key)
-    if seg is None:
-        seg = segment_scene(inp.frame, np.random.default_rng(0), plane_distance)
-        inp.cache[key] = seg
-    return seg
 
 
 @register
@@ -181,7 +170,7 @@ class GlobalRegistration(Block):
         deadline = self.deadline(inp, start)
         model, frame = inp.model, inp.frame
         diameter = model.diameter
-        seg = _segmentation(inp, c["plane_distance"])
+        seg = frame_segmentation(inp.frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"global_registration: only {seg.n_valid} valid depth pixels")
         lo, hi = c["min_extent"] * diameter, c["max_extent"] * diameter

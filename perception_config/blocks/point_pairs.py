@@ -24,9 +24,9 @@ from ..geometry import Pose
 from ..render import render_box
 from ..vision.features import model_features
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
+from ..vision.segmentation import frame_segmentation
 from ..vision.verification import icp_polish, icp_target, verify
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
-from .generation import _segmentation
 
 _SCORE_NAMES = ("gen_verification",)
 
@@ -81,7 +81,7 @@ class PointPairFeatures(Block):
         except ValueError as exc:
             return BlockResult.fail(f"ppf: the model cannot be prepared: {exc}")
         t_prep = time.perf_counter() - start
-        seg = _segmentation(inp, c["plane_distance"])
+        seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"ppf: only {seg.n_valid} valid depth pixels")
         voxel = table.dist_step

@@ -1,10 +1,10 @@
 """generation_node: serves `generate_hypothesis` (GenerateHypothesis.srv), a first pose hypothesis.
 
 Methods: the pipeline's generator, its generation actions (e.g. `regenerate`) and the
-registered generators (`simulated_init`, `global_registration`). `simulated_init` perturbs the
+registered generators (`simulated_init`, `global_registration`, `ppf`). `simulated_init` perturbs the
 ground truth replayed on `perception/ground_truth` (ObjectPoses) by the lambda noise model, as
-in the paper's systematic evaluation; it needs no camera frame. `global_registration` finds the
-object in the camera frame named by `frame.stamp` (zero = the latest).
+in the paper's systematic evaluation; it needs no camera frame. `global_registration` and `ppf` find
+the object in the camera frame named by `frame.stamp` (zero = the latest).
 
 Parameters (besides those of every operator node, see operator_node.py):
   default_method  generator used when a request's method is empty (the pipeline's generator)

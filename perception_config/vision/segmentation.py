@@ -201,6 +201,19 @@ def segment_scene(
     return Segmentation(plane, share, clusters, n_valid, P, normals, levels, valid & ~keep)
 
 
+def frame_segmentation(frame: Frame, cache: dict | None, plane_distance: float = 0.008) -> Segmentation:
+    """The frame's segmentation, computed once per frame and `plane_distance` and kept in the
+    frame's shared cache (BlockInput.cache) for every generator. Deterministic: the plane
+    RANSAC has its own fixed seed, so every caller sees the same regions."""
+    key = f"gen:segmentation:{plane_distance:.4f}"
+    seg = cache.get(key) if cache is not None else None
+    if seg is None:
+        seg = segment_scene(frame, np.random.default_rng(0), plane_distance)
+        if cache is not None:
+            cache[key] = seg
+    return seg
+
+
 def smooth_depth(depth: np.ndarray, size: int = 5) -> np.ndarray:
     """Box-filtered depth over fully valid windows (NaN where any pixel of the window is
     missing): removes quantisation noise before differentiating, without bleeding into holes."""

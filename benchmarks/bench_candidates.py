@@ -1,0 +1,168 @@
+"""Benchmark the ground-truth-free generators' ranked candidates on one core: how often a
+candidate within MSSD <= 0.1 d is the first (top-1) or among the first five (top-5), how often
+the first is a confident wrong answer, and how long a call takes once the model is prepared.
+
+    python benchmarks/bench_candidates.py [--generators ppf,global_registration] [--out FILE.json]
+
+Data: the real LM-O RGB-D frame (../shared/data/lmo, 8 objects, clutter; every object, and
+those with visib_fract >= 0.3) when present, and the synthetic default's test images
+(data/default, the seeded split of the learning study) with visib_fract >= 0.3. Success is
+symmetry-aware MSSD <= 0.1 x diameter (the simulated pick). Confident wrong: the first
+candidate's confidence >= --confident and MSSD > 0.3 d. `ppf` ranks its candidates itself;
+`global_registration` returns one pose, so its polished candidates (info["candidates"]) are
+ranked here by their verification score. Per-model preparation (ppf's point pair tables) is
+built into a fresh temporary cache first and timed apart: the query times are after caching.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/open3d start their thread pools
+
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.blocks.base import BlockInput, create  # noqa: E402
+from perception_config.metrics import pose_mssd  # noqa: E402
+
+LMO = REPO.parent / "shared" / "data" / "lmo"
+DEFAULT = REPO / "data" / "default"
+
+
+def frames_of(root: Path, test_split: bool) -> list:
+    import warnings
+
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.episodes import split_image_keys
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the LM-O annotations' SO(3) projection warning
+        ds = BopDataset(root, "test")
+        keys = ds.image_keys()
+        if test_split and len(keys) >= 2:
+            keys = split_image_keys(keys)[1]
+        return [ds.load_frame(s, i) for s, i in keys]
+
+
+def ranked(name: str, result) -> list[tuple[float, object]]:
+    if name == "ppf":
+        return list(result.info.get("ranked", []))
+    return sorted(result.info.get("candidates", []), key=lambda q: -q[0])[:5]
+
+
+def evaluate(name: str, frames: list, min_visib: float, confident: float) -> list[dict]:
+    block = create(name)
+    rows = []
+    for frame in frames:
+        cache: dict = {}
+        for o in frame.objects:
+            if o.gt is None or o.model is None or (o.visib_fract is not None and o.visib_fract < min_visib):
+                continue
+            r = block(BlockInput(frame=frame, model=o.model, rng=np.random.default_rng(0), cache=cache))
+            d = o.model.diameter
+            cands = ranked(name, r)
+            errors = [pose_mssd(p, o.gt, o.model) / d for _, p in cands]
+            first = next((k for k, e in enumerate(errors) if e <= 0.1), -1)
+            top_conf = float(cands[0][0]) if cands else 0.0
+            rows.append({
+                "scene_id": frame.scene_id, "im_id": frame.im_id, "obj_id": o.obj_id, "visib_fract": o.visib_fract,
+                "ok": r.ok, "rank": first, "top1_mssd_d": errors[0] if errors else None, "top1_confidence": top_conf,
+                "confident_wrong": bool(cands and top_conf >= confident and errors[0] > 0.3),
+                "seconds": r.elapsed, "reason": r.reason,
+            })
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    if not rows:
+        return {"queries": 0}
+    rank = np.array([r["rank"] for r in rows])
+    per_obj = {}
+    for obj in sorted({r["obj_id"] for r in rows}):
+        mine = [r for r in rows if r["obj_id"] == obj]
+        per_obj[str(obj)] = {"queries": len(mine), "top5": sum(0 <= r["rank"] < 5 for r in mine) / len(mine)}
+    return {"queries": len(rows), "top1": float(np.mean(rank == 0)), "top5": float(np.mean((rank >= 0) & (rank < 5))),
+            "confident_wrong": float(np.mean([r["confident_wrong"] for r in rows])),
+            "median_s": float(np.median([r["seconds"] for r in rows])),
+            "p90_s": float(np.percentile([r["seconds"] for r in rows], 90)), "per_object": per_obj}
+
+
+def prepare_tables(frames_sets: dict[str, list]) -> dict:
+    """Build ppf's tables into the (fresh) cache, then time reading them back from disk."""
+    from perception_config.blocks.point_pairs import PointPairFeatures
+    from perception_config.vision import ppf
+
+    models = {id(o.model): o.model for frames in frames_sets.values() for f in frames for o in f.objects if o.model}
+    c = PointPairFeatures().config
+    built, disk = [], []
+    for m in models.values():
+        rel = max(c["sampling_rel"], c["min_sampling"] / m.diameter)
+        t0 = time.perf_counter()
+        ppf.ppf_model(m, rel, c["n_angle"])
+        built.append(time.perf_counter() - t0)
+        ppf._MEMORY.clear()
+        t0 = time.perf_counter()
+        _, source = ppf.ppf_model(m, rel, c["n_angle"])
+        disk.append(time.perf_counter() - t0)
+        assert source == "disk", source
+    return {"models": len(models), "built_median_s": float(np.median(built)), "built_max_s": float(np.max(built)),
+            "from_disk_median_s": float(np.median(disk))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--generators", default="ppf,global_registration")
+    ap.add_argument("--confident", type=float, default=0.5, help="confidence counted as confident")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "candidates.json")
+    args = ap.parse_args(argv)
+
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    cache = tempfile.TemporaryDirectory(prefix="bench_candidates_cache_")
+    os.environ["PERCEPTION_CONFIG_CACHE"] = cache.name
+    sets: dict[str, tuple[list, float]] = {}
+    if (LMO / "models" / "models_info.json").exists():
+        lmo = frames_of(LMO, test_split=False)
+        sets["LM-O real frame, all objects"] = (lmo, 0.0)
+        sets["LM-O real frame, visib >= 0.3"] = (lmo, 0.3)
+    sets["synthetic default, test images, visib >= 0.3"] = (frames_of(DEFAULT, test_split=True), 0.3)
+    print(f"candidates benchmark, one core (OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}), "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    out: dict = {"machine": {"python": platform.python_version(), "open3d": o3d.__version__,
+                             "load_average": os.getloadavg()[0], "cpus": os.cpu_count()}, "results": []}
+    if "ppf" in args.generators:
+        out["ppf_tables"] = prepare_tables({k: v[0] for k, v in sets.items()})
+        t = out["ppf_tables"]
+        print(f"ppf tables: {t['models']} models, built in {t['built_median_s']:.2f} s median "
+              f"(max {t['built_max_s']:.2f}), read from disk in {t['from_disk_median_s'] * 1000:.0f} ms")
+    print(f"{'data':<46} {'generator':<20} {'queries':>7} {'top-1':>6} {'top-5':>6} {'conf.wrong':>10} "
+          f"{'median s':>8} {'p90 s':>6}")
+    for label, (frames, min_visib) in sets.items():
+        for name in [g for g in args.generators.split(",") if g]:
+            rows = evaluate(name, frames, min_visib, args.confident)
+            s = summary(rows)
+            out["results"].append({"data": label, "generator": name, "summary": s, "rows": rows})
+            print(f"{label:<46} {name:<20} {s['queries']:>7} {s['top1']:>6.0%} {s['top5']:>6.0%} "
+                  f"{s['confident_wrong']:>10.0%} {s['median_s']:>8.2f} {s['p90_s']:>6.2f}")
+            print(f"{'':<46} per object top-5: "
+                  + ", ".join(f"{k}: {v['top5']:.0%}" for k, v in s["per_object"].items()), flush=True)
+    atomic_write(args.out, json.dumps(out, indent=1, default=float))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
