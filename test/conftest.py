@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -16,6 +17,10 @@ from ros_helpers import pick_domain_id
 # The repo and ../shared are siblings: /work/main and /work/shared.
 LMO_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo"
 LMO_RGB_ROOT = LMO_ROOT.with_name("lmo-rgb")
+
+# Prepared per-model tables (the ppf generator's) go to a folder of this session, not the user's cache.
+_CACHE = tempfile.TemporaryDirectory(prefix="perception_config_test_cache_")
+os.environ["PERCEPTION_CONFIG_CACHE"] = _CACHE.name
 
 # ROS processes of this test session get a domain of their own (set before rclpy loads).
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
