@@ -23,6 +23,7 @@ from .features import point_cloud
 from .segmentation import Segmentation
 
 MAX_TARGET_POINTS = 8000
+TARGET_NORMAL_RADIUS = 0.005  # metres: normals fitted to the target's points when the image gives too few
 
 
 def icp_target(
@@ -34,7 +35,10 @@ def icp_target(
     rendered silhouette (fragments of the same object), inside a generous sphere around the
     model at `pose`. Neighbouring objects stay out: on flat parts they drag ICP sideways.
     Every pixel is used (sparser targets let point-to-plane slide on flat parts), thinned to
-    about 1.5 mm spacing beyond MAX_TARGET_POINTS."""
+    about 1.5 mm spacing beyond MAX_TARGET_POINTS. Normals are the segmentation's (from the
+    box-filtered depth) when at least 80 % of the points have one; otherwise (sensor dropout
+    leaves few complete filter windows: on the synthetic parts often under 10 %) they are fitted
+    to the points within TARGET_NORMAL_RADIUS, rather than dropping the points without one."""
     include = {source}
     if not rendering.empty:
         rs, cs = rendering.crop_slices()
@@ -52,8 +56,15 @@ def icp_target(
     nrm = seg.normals.reshape(-1, 3)[pix]
     centre = pose.transform(model.points.mean(axis=0)[None])[0]
     radius = margin * float(np.max(np.linalg.norm(model.points - model.points.mean(axis=0), axis=1)))
-    near = np.isfinite(nrm[:, 0]) & (np.sum((pts - centre) ** 2, axis=1) < radius**2)
-    pc = point_cloud(pts[near], nrm[near])
+    near = np.isfinite(pts[:, 2]) & (np.sum((pts - centre) ** 2, axis=1) < radius**2)
+    has_normal = np.isfinite(nrm[near, 0])
+    if len(has_normal) == 0 or has_normal.mean() >= 0.8:
+        pc = point_cloud(pts[near][has_normal], nrm[near][has_normal])
+    else:  # noisy depth with dropout leaves few complete windows for the image normals: fit them here
+        pc = point_cloud(pts[near])
+        if len(pc.points) >= 3:
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=TARGET_NORMAL_RADIUS, max_nn=30))
+            pc.orient_normals_towards_camera_location(np.zeros(3))
     if len(pc.points) > MAX_TARGET_POINTS:  # close-up views: thin out to about 1.5 mm spacing
         pc = pc.voxel_down_sample(0.0015)
         pc.normalize_normals()
