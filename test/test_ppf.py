@@ -124,7 +124,7 @@ def test_block_finds_a_part_standing_on_a_table_and_ranks_its_candidates(parts, 
     model = parts["elbow"]
     gt = default_pose(0.6)
     frame = synthetic_frame([model], [gt], background_z=0.75)
-    r = PointPairFeatures()(BlockInput(frame=frame, model=model, rng=np.random.default_rng(0)))
+    r = PointPairFeatures()(BlockInput(frame=frame, model=model, rng=np.random.default_rng(0), time_bounded=False))
     assert r.ok, r.reason
     ranked = r.info["ranked"]
     assert 1 <= len(ranked) <= 5
@@ -167,6 +167,7 @@ def test_real_lmo_frame_finds_most_objects(lmo_frame, cache_folder):
     found = 0
     cache: dict = {}
     for o in lmo_frame.objects:
-        r = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache))
+        # Not bounded by wall clock: the figure must not depend on the machine's load.
+        r = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache, time_bounded=False))
         found += any(pose_mssd(p, o.gt, o.model) / o.model.diameter <= 0.1 for _, p in r.info.get("ranked", []))
     assert found >= 4, found
