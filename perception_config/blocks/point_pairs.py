@@ -141,7 +141,8 @@ class PointPairFeatures(Block):
                 break
         now = time.perf_counter()
         info = {"ranked": ranked, "pre_verified": [(q[0], q[2]) for q in pre],
-                "polished": [(q[0], q[1]) for q in polished], "table": source, "scene_points": len(scene.points), "pose_clusters": len(leaders),
+                "polished": [(q[0], q[1]) for q in polished], "table": source,
+                "scene_points": len(scene.points), "pose_clusters": len(leaders),
                 "n_verified": len(pre), "n_polished": len(polished),
                 "seconds": {"prepare": t_prep, "scene": t_scene - start - t_prep, "vote": t_vote - t_scene,
                             "verify": now - t_vote}}
