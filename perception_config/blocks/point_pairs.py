@@ -60,7 +60,7 @@ class PointPairFeatures(Block):
         Param("min_sampling", 0.003, 0.0, 0.05, doc="metres: the sampling is never finer (sensor noise)"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("n_clusters", 16, 1, 200, doc="strongest pose clusters pre-verified by rendering"),
-        Param("n_polish", 10, 1, 50, doc="pre-verified candidates polished by ICP and verified again"),
+        Param("n_polish", 16, 1, 50, doc="pre-verified candidates polished by ICP and verified again"),
         Param("flip_variants", True,
               doc="also verify each pose cluster flipped by 180 deg about the model's principal axes"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
