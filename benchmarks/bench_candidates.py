@@ -8,10 +8,10 @@ Data: the real LM-O RGB-D frame (../shared/data/lmo, 8 objects, clutter; every o
 those with visib_fract >= 0.3) when present, and the synthetic default's test images
 (data/default, the seeded split of the learning study) with visib_fract >= 0.3. Success is
 symmetry-aware MSSD <= 0.1 x diameter (the simulated pick). Confident wrong: the first
-candidate's confidence >= --confident and MSSD > 0.3 d. `ppf` ranks its candidates itself;
-`global_registration` returns one pose, so its polished candidates (info["candidates"]) are
-ranked here by their verification score. Per-model preparation (ppf's point pair tables) is
-built into a fresh temporary cache first and timed apart: the query times are after caching.
+candidate's confidence >= --confident and MSSD > 0.3 d. Both generators rank their distinct
+candidates (BlockResult.candidates, by verification score). Per-model preparation (ppf's point
+pair tables) is built into a fresh temporary cache first and timed apart: the query times are
+after caching.
 """
 from __future__ import annotations
 
@@ -56,10 +56,6 @@ def frames_of(root: Path, test_split: bool) -> list:
         return [ds.load_frame(s, i) for s, i in keys]
 
 
-def ranked(name: str, result) -> list[tuple[float, object]]:
-    if name == "ppf":
-        return list(result.info.get("ranked", []))
-    return sorted(result.info.get("candidates", []), key=lambda q: -q[0])[:5]
 
 
 def evaluate(name: str, frames: list, min_visib: float, confident: float) -> list[dict]:
@@ -72,7 +68,7 @@ def evaluate(name: str, frames: list, min_visib: float, confident: float) -> lis
                 continue
             r = block(BlockInput(frame=frame, model=o.model, rng=np.random.default_rng(0), cache=cache))
             d = o.model.diameter
-            cands = ranked(name, r)
+            cands = r.candidates
             errors = [pose_mssd(p, o.gt, o.model) / d for _, p in cands]
             first = next((k for k, e in enumerate(errors) if e <= 0.1), -1)
             top_conf = float(cands[0][0]) if cands else 0.0

@@ -228,6 +228,15 @@ def test_global_registration_finds_the_right_object_among_others(parts):
     assert r.ok, r.reason
     assert add_share(r.pose, poses[0], models[0]) < 0.1
     assert r.info["clusters_tried"] >= 1 and r.info["candidates_verified"] >= 1
+    # Its ranked candidates: the pose first, confidences in [0, 1] falling, no two alike.
+    confidences = [c for c, _ in r.candidates]
+    assert r.candidates[0][1] is r.pose and 1 <= len(r.candidates) <= 5
+    assert confidences == sorted(confidences, reverse=True) and all(0.0 <= c <= 1.0 for c in confidences)
+    centre = models[0].points.mean(axis=0)
+    for i, (_, a) in enumerate(r.candidates):
+        for _, b in r.candidates[:i]:
+            apart = np.linalg.norm(a.transform(centre[None]) - b.transform(centre[None])) >= 0.1 * models[0].diameter
+            assert apart or rotation_angle(a.R, b.R) >= math.radians(15.0)
 
 
 def test_global_registration_on_the_real_lmo_frame(lmo_frame):
@@ -280,3 +289,17 @@ def test_global_registration_respects_its_time_budget(parts):
         # budget is checked between steps (one RANSAC batch or ICP, tens of ms).
         assert r.elapsed < budget + 1.0 and wall < budget + 1.2, (r.elapsed, r.info)
         assert r.info["seconds"] < budget + 0.5
+
+
+def test_ranked_candidates_keep_the_best_of_near_copies_and_clip_confidence():
+    from perception_config.vision.verification import ranked_candidates
+
+    model = box_model()
+    p = default_pose()
+    near = Pose(p.R, p.t + np.array([0.001, 0.0, 0.0]))  # 1 mm: the same candidate
+    far = Pose(p.R, p.t + np.array([0.05, 0.0, 0.0]))
+    turned = Pose(exp_so3([0.0, 0.0, 0.5]) @ p.R, p.t)  # 29 deg about the camera axis
+    out = ranked_candidates([(0.5, near), (1.4, p), (0.3, far), (-0.2, turned)], model, keep=5)
+    assert [c for c, _ in out] == [1.0, 0.3, 0.0]
+    assert out[0][1] is p and out[1][1] is far and out[2][1] is turned
+    assert len(ranked_candidates([(0.5, near), (1.4, p), (0.3, far)], model, keep=1)) == 1

@@ -126,7 +126,7 @@ def test_block_finds_a_part_standing_on_a_table_and_ranks_its_candidates(parts, 
     frame = synthetic_frame([model], [gt], background_z=0.75)
     r = PointPairFeatures()(BlockInput(frame=frame, model=model, rng=np.random.default_rng(0), time_bounded=False))
     assert r.ok, r.reason
-    ranked = r.info["ranked"]
+    ranked = r.candidates
     assert 1 <= len(ranked) <= 5
     confidences = [c for c, _ in ranked]
     assert confidences == sorted(confidences, reverse=True) and all(0.0 <= c <= 1.0 for c in confidences)
@@ -169,5 +169,5 @@ def test_real_lmo_frame_finds_most_objects(lmo_frame, cache_folder):
     for o in lmo_frame.objects:
         # Not bounded by wall clock: the figure must not depend on the machine's load.
         r = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache, time_bounded=False))
-        found += any(pose_mssd(p, o.gt, o.model) / o.model.diameter <= 0.1 for _, p in r.info.get("ranked", []))
+        found += any(pose_mssd(p, o.gt, o.model) / o.model.diameter <= 0.1 for _, p in r.candidates)
     assert found >= 4, found

@@ -111,7 +111,9 @@ class BlockInput:
 class BlockResult:
     """The outcome of one block call. `pose` is the new hypothesis (generation, refinement);
     `scores` the named scores (scoring, and refiners that measure something on the way);
-    `picked` the outcome of a pick."""
+    `picked` the outcome of a pick. `candidates`: a generator's ranked hypotheses, best first,
+    as (confidence in [0, 1], pose), distinct from each other; empty for a generator that
+    proposes one pose only (simulated_init)."""
 
     ok: bool
     pose: Pose | None = None
@@ -120,6 +122,7 @@ class BlockResult:
     reason: str = ""
     elapsed: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
+    candidates: list[tuple[float, Pose]] = field(default_factory=list)
 
     @staticmethod
     def fail(reason: str) -> "BlockResult":

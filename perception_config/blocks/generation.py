@@ -52,7 +52,7 @@ from ..vision.features import (
     ransac_candidates,
 )
 from ..vision.segmentation import Cluster, frame_segmentation
-from ..vision.verification import icp_polish, icp_target, verify
+from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, GROUND_TRUTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
 # --------------------------------------------------------------------------- simulated init
@@ -122,7 +122,8 @@ class GlobalRegistration(Block):
     parts) is rendered and pre-verified; the best `n_polish` are polished by `icp_polish`
     against the observed points of their cluster(s) and verified again (`verify`). The best
     candidate is returned when its score reaches `min_verification`; its verification terms
-    are the result's scores (`gen_verification`, ...). Everything stops at `max_seconds`,
+    are the result's scores (`gen_verification`, ...); the `top_k` best distinct polished
+    candidates are `BlockResult.candidates`. Everything stops at `max_seconds`,
     returning the best candidate so far. `info` reports the search (clusters tried,
     candidates verified, the list of (score, pose) of all polished candidates).
 
@@ -161,6 +162,7 @@ class GlobalRegistration(Block):
               doc="how much uncovered cluster area under the hypothesis lowers the verification"),
         Param("min_verification", 0.6, -1.0, 1.0,
               doc="below this verification score the block fails (calibration: see bench_generation)"),
+        Param("top_k", 5, 1, 50, doc="ranked candidates returned (BlockResult.candidates)"),
         Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between steps)"),
     )
 
@@ -245,11 +247,12 @@ class GlobalRegistration(Block):
                                f"({c['max_seconds']} s) or no feature match", info=info)
         score, pose, details = best
         scores = {"gen_verification": float(score), **{k: float(v) for k, v in details.items()}}
+        ranked = ranked_candidates(tried, model, c["top_k"])
         if score < c["min_verification"]:
-            return BlockResult(ok=False, pose=None, scores=scores, info=info, reason=(
+            return BlockResult(ok=False, pose=None, scores=scores, info=info, candidates=ranked, reason=(
                 f"global_registration: best candidate verifies at {score:.2f} "
                 f"< min_verification {c['min_verification']}"))
-        return BlockResult(ok=True, pose=pose, scores=scores, info=info)
+        return BlockResult(ok=True, pose=pose, scores=scores, info=info, candidates=ranked)
 
     def _cluster_hypotheses(
         self, cl: Cluster, model: ObjectModel, mf: ModelFeatures, voxel: float,

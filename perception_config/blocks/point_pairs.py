@@ -1,6 +1,6 @@
 """`ppf`: a ground-truth-free generator from the depth image and the model: point pair feature
 voting (vision/ppf.py), then render-and-compare verification and ICP of the best pose clusters.
-It returns its ranked candidates (best first, a confidence each) in `info["ranked"]`.
+It returns its ranked candidates (best first, a confidence each) in `BlockResult.candidates`.
 
 Steps: (1) the frame's segmentation (shared with `global_registration` through the frame's
 cache) keeps the points of object-like regions whose size fits the model (`min_extent` ..
@@ -25,21 +25,10 @@ from ..render import render_box
 from ..vision.features import model_features
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
 from ..vision.segmentation import frame_segmentation
-from ..vision.verification import icp_polish, icp_target, verify
+from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
 _SCORE_NAMES = ("gen_verification",)
-
-
-def _distinct(pose: Pose, kept: list[Pose], centre: np.ndarray, dist: float, angle: float) -> bool:
-    """Whether `pose` differs from every kept pose by more than `dist` (model centre) or `angle`."""
-    c = pose.transform(centre[None])[0]
-    for k in kept:
-        if np.linalg.norm(k.transform(centre[None])[0] - c) < dist:
-            cos = (np.trace(k.R.T @ pose.R) - 1.0) / 2.0
-            if cos > math.cos(angle):
-                return False
-    return True
 
 
 @register
@@ -67,13 +56,13 @@ class PointPairFeatures(Block):
         Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
         Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
         Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
-        Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between candidates)"),
+        Param("max_seconds", 2.0, 0.01, 120.0,
+              doc="time budget after the model's table is at hand (checked between candidates)"),
     )
 
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config
         start = time.perf_counter()
-        deadline = self.deadline(inp, start)
         model, frame = inp.model, inp.frame
         d = model.diameter
         try:
@@ -81,11 +70,17 @@ class PointPairFeatures(Block):
         except ValueError as exc:
             return BlockResult.fail(f"ppf: the model cannot be prepared: {exc}")
         t_prep = time.perf_counter() - start
+        # The budget starts after the preparation: a model's first call (table built, ~0.5-1 s,
+        # once per machine) searches as long as every later one.
+        deadline = self.deadline(inp, start + t_prep)
         seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"ppf: only {seg.n_valid} valid depth pixels")
         voxel = table.dist_step
-        key = f"ppf:scene:{voxel:.5f}:{c['min_extent']:.3f}:{c['max_extent']:.3f}:{c['plane_distance']:.4f}"
+        # The regions kept depend on the diameter, the sampling on the voxel: both name the cloud
+        # (two small models share the 3 mm floor of the sampling, not their regions).
+        key = (f"ppf:scene:{voxel:.5f}:{c['min_extent'] * d:.4f}:{c['max_extent'] * d:.4f}:"
+               f"{c['plane_distance']:.4f}")
         scene = inp.cache.get(key)
         if scene is None:
             P = seg.points.reshape(-1, 3)
@@ -133,14 +128,9 @@ class PointPairFeatures(Block):
             if math.isfinite(score):
                 polished.append((float(score), pose, details))
         polished.sort(key=lambda q: -q[0])
-        ranked: list[tuple[float, Pose]] = []
-        for score, pose, _ in polished:
-            if _distinct(pose, [p for _, p in ranked], centre, 0.1 * d, math.radians(15.0)):
-                ranked.append((float(min(max(score, 0.0), 1.0)), pose))
-            if len(ranked) >= c["top_k"]:
-                break
+        ranked = ranked_candidates([(q[0], q[1]) for q in polished], model, c["top_k"])
         now = time.perf_counter()
-        info = {"ranked": ranked, "pre_verified": [(q[0], q[2]) for q in pre],
+        info = {"pre_verified": [(q[0], q[2]) for q in pre],
                 "polished": [(q[0], q[1]) for q in polished], "table": source,
                 "scene_points": len(scene.points), "pose_clusters": len(leaders),
                 "n_verified": len(pre), "n_polished": len(polished),
@@ -152,9 +142,9 @@ class PointPairFeatures(Block):
         best_score, best = polished[0][0], ranked[0][1]
         scores = {"gen_verification": best_score}
         if best_score < c["min_verification"]:
-            return BlockResult(ok=False, scores=scores, info=info, reason=(
+            return BlockResult(ok=False, scores=scores, info=info, candidates=ranked, reason=(
                 f"ppf: best candidate verifies at {best_score:.2f} < min_verification {c['min_verification']}"))
-        return BlockResult(ok=True, pose=best, scores=scores, info=info)
+        return BlockResult(ok=True, pose=best, scores=scores, info=info, candidates=ranked)
 
 
 def _dominant_label(seg, r) -> int:

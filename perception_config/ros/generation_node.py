@@ -10,7 +10,8 @@ Parameters (besides those of every operator node, see operator_node.py):
   default_method  generator used when a request's method is empty (the pipeline's generator)
   default_lambda  noise level of simulated_init when a request's noise_lambda is negative (0.5)
 A request's seed makes simulated_init reproducible (0 = draw one); with `score` the hypothesis
-comes back scored by the pipeline's scoring set (the camera frame is then needed too).
+comes back scored by the pipeline's scoring set (the camera frame is then needed too). The
+ground-truth-free generators also answer their ranked candidates (`candidates`, `confidences`).
 """
 from __future__ import annotations
 
@@ -57,6 +58,8 @@ class GenerationNode(OperatorNode):
         if request.score:
             scores = self.score(stamp_to_nanoseconds(header.stamp), object_id, pose)[0]
         response.hypothesis = make_hypothesis(header, object_id, pose_msg, scores)
+        response.candidates = [make_hypothesis(header, object_id, answered_pose(p)[0]) for _, p in result.candidates]
+        response.confidences = [float(conf) for conf, _ in result.candidates]
 
 
 def main(args: list[str] | None = None) -> None:

@@ -6,6 +6,7 @@ generator's last steps, blocks/generation.py).
   samples (`visible_model_points`) against them.
 - `verify`: depth agreement, free-space violations, cluster coverage and hue agreement of a
   hypothesis's rendering with the frame.
+- `ranked_candidates`: verified hypotheses as a generator's ranked, distinct candidates.
 """
 from __future__ import annotations
 
@@ -212,3 +213,22 @@ def _colour_agreement(model: ObjectModel, pose: Pose, frame: Frame, r: Rendering
     if use.sum() < 10:
         return None
     return float(np.mean(colours_agree(ci[use], cm[use])))
+
+
+def ranked_candidates(verified: list[tuple[float, Pose]], model: ObjectModel, keep: int,
+                      dist_share: float = 0.1, angle_deg: float = 15.0) -> list[tuple[float, Pose]]:
+    """The best `keep` of (verification score, pose), best first, each differing from every
+    better one by at least `dist_share` diameters (model centre) or `angle_deg`; confidence =
+    the score clipped to [0, 1]. Near-copies (the same pose found from two clusters) would
+    waste a `next_candidate`."""
+    centre = model.points.mean(axis=0)
+    cos_max = math.cos(math.radians(angle_deg))
+    kept: list[tuple[float, Pose, np.ndarray]] = []
+    for score, pose in sorted(verified, key=lambda q: -q[0]):
+        c = pose.transform(centre[None])[0]
+        if all(np.linalg.norm(c - ck) >= dist_share * model.diameter
+               or (np.trace(pk.R.T @ pose.R) - 1.0) / 2.0 <= cos_max for _, pk, ck in kept):
+            kept.append((float(min(max(score, 0.0), 1.0)), pose, c))
+        if len(kept) >= keep:
+            break
+    return [(conf, pose) for conf, pose, _ in kept]
