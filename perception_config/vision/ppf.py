@@ -10,9 +10,9 @@ point is paired with its scene neighbours within the model's diameter; each scen
 for (model point, rotation alpha about the normal) of every model pair with the same feature;
 the peak per reference point is a pose. `cluster_poses` groups nearby poses and sums their votes.
 
-Vidal's refinements used here: votes go to the feature's neighbouring distance and angle bins
-too (noise moves a feature across a bin edge), and a scene pair votes for each (model point,
-alpha bin) only once.
+Not used: Vidal et al. 2018's vote spreading over the neighbouring bins of all four feature
+dimensions (16 lookups per pair) with one vote per scene pair and (model point, alpha): in numpy
+it took minutes per object (measured; README).
 
 The table lives in a compressed .npz named by a hash of the model's geometry, the parameters
 and the format version (`PPF_FORMAT`); one that cannot be read or does not match is rebuilt and
@@ -253,16 +253,8 @@ def scene_cloud(points: np.ndarray, voxel: float, normal_radius: float | None = 
     return SceneCloud(p, n, cKDTree(p) if len(p) else cKDTree(np.zeros((1, 3))))
 
 
-def _spread(q: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
-    """A bin and its nearer neighbour (Vidal: noise moves a feature across a bin edge)."""
-    b = np.minimum(q.astype(np.int64), top - 1)
-    frac = q - np.floor(q)
-    nb = np.clip(np.where(frac < 0.5, b - 1, b + 1), 0, top - 1)
-    return b, nb
-
-
 def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_000_000,
-         max_cells: int = 2_000_000, spread: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+         max_cells: int = 2_000_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hough voting: for every `ref_step`-th scene point the best (model point, alpha) and its
     votes. Returns (R (M, 3, 3), t (M, 3), votes (M,)) of the reference points' poses (model to
     camera). Reference points are processed in chunks of about `max_votes` votes."""
@@ -279,7 +271,7 @@ def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_0
     while lo < len(refs):
         # Chunk so the expanded votes stay bounded (an estimate: pairs x a typical fan-out of 8).
         hi, pairs = lo, 0
-        while hi < len(refs) and (hi == lo or (pairs * 8 * (8 if spread else 1) < max_votes
+        while hi < len(refs) and (hi == lo or (pairs * 8 < max_votes
                                                and (hi - lo) * n_model * n_alpha < max_cells)):
             pairs += len(nbrs[hi])
             hi += 1
@@ -291,17 +283,8 @@ def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_0
         P1, N1, P2, N2 = scene.points[r_idx], scene.normals[r_idx], scene.points[s_idx], scene.normals[s_idx]
         q = quantise(*pair_features(P1, N1, P2, N2), table.dist_step, table.n_angle)
         theta_s = angle_bin(pair_angle(rot_s[lo:hi][r_local], P1, P2), n_alpha)
-        if spread:
-            bins = [_spread(q[0], table.n_dist)] + [_spread(x, table.n_angle) for x in q[1:]]
-            keys = [feature_key(a, b, c, d, table.n_angle)
-                    for a in bins[0] for b in bins[1] for c in bins[2] for d in bins[3]]
-            key = np.concatenate(keys)
-            r_rep = np.tile(r_local, len(keys))
-            th_rep = np.tile(theta_s, len(keys))
-        else:
-            fd = np.minimum(q[0].astype(np.int64), table.n_dist - 1)
-            key = feature_key(fd, *[np.minimum(x.astype(np.int64), table.n_angle - 1) for x in q[1:]], table.n_angle)
-            r_rep, th_rep = r_local, theta_s
+        fd = np.minimum(q[0].astype(np.int64), table.n_dist - 1)
+        key = feature_key(fd, *[np.minimum(x.astype(np.int64), table.n_angle - 1) for x in q[1:]], table.n_angle)
         a, b = table.starts[key], table.starts[key + 1]
         cnt = b - a
         total = int(cnt.sum())
@@ -309,11 +292,8 @@ def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_0
         if total:
             offs = np.repeat(a - np.cumsum(cnt) + cnt, cnt) + np.arange(total)
             mi = table.pair_i[offs].astype(np.int64)
-            alpha = (np.repeat(th_rep, cnt) - table.pair_theta[offs]) % n_alpha
-            flat = (np.repeat(r_rep, cnt) * n_model + mi) * n_alpha + alpha
-            if spread:  # one vote per scene pair and (model point, alpha): Vidal's vote flag
-                pair_id = np.repeat(np.tile(np.arange(len(r_local)), len(keys)), cnt)
-                flat = np.unique(pair_id * (n_chunk * n_model * n_alpha) + flat) % (n_chunk * n_model * n_alpha)
+            alpha = (np.repeat(theta_s, cnt) - table.pair_theta[offs]) % n_alpha
+            flat = (np.repeat(r_local, cnt) * n_model + mi) * n_alpha + alpha
             acc = np.bincount(flat, minlength=n_chunk * n_model * n_alpha).reshape(n_chunk, n_model * n_alpha)
             best = acc.argmax(axis=1)
             votes = acc[np.arange(n_chunk), best]
