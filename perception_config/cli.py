@@ -647,9 +647,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         # A job stopped by a signal (StopRequested names it, e.g. train; otherwise 130): exit 128 +
-        # the signal number, the shell's convention (130 SIGINT, 143 SIGTERM, 129 SIGHUP).
-        code = exc.exit_code if isinstance(exc, StopRequested) else 130
+        # the signal number, the shell's convention (130 SIGINT, 143 SIGTERM, 129 SIGHUP). One more
+        # Ctrl-C while the StopRequested was on its way here raises over it: it still names the stop.
         _ignore_further_signals()
+        cause: BaseException | None = exc
+        while cause is not None and not isinstance(cause, StopRequested):
+            cause = cause.__context__
+        exc = cause if cause is not None else exc
+        code = exc.exit_code if isinstance(exc, StopRequested) else 130
         _say_quietly(f"perception-config {args.command}: {str(exc) or 'interrupted'}")
         return code
 

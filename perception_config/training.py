@@ -461,11 +461,11 @@ def train(
         interrupted = bool(stops.received)
         save_checkpoint()
         save_outputs(interrupted)
-    if interrupted:
-        signum = stops.received[0]
-        _quietly(print, f"stopped by {signal_name(signum)} after {done} episodes: wrote {policy_path}, "
-                        f"{out / 'history.csv'} and {ckpt_path}", flush=True)
-        raise StopRequested(signum, f"training stopped by {signal_name(signum)} after {done} episodes")
+        if interrupted:  # raised while the handlers still record signals: a further Ctrl-C cannot replace it
+            signum = stops.received[0]
+            _quietly(print, f"stopped by {signal_name(signum)} after {done} episodes: wrote {policy_path}, "
+                            f"{out / 'history.csv'} and {ckpt_path}", flush=True)
+            raise StopRequested(signum, f"training stopped by {signal_name(signum)} after {done} episodes")
     return policy_path
 
 
