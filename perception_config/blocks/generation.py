@@ -45,6 +45,7 @@ from ..vision.colour import colour_similarity
 from ..vision.features import (
     ModelFeatures,
     distance_field,
+    flipped,
     fpfh,
     model_features,
     normalise_features,
@@ -210,8 +211,7 @@ class GlobalRegistration(Block):
             for hyp, _ in hyps:
                 variants = [hyp]
                 if c["flip_variants"]:
-                    for F in mf.flips:  # rotate by pi about a principal axis through the centroid
-                        variants.append(Pose(hyp.R @ F, hyp.R @ (mf.centre - F @ mf.centre) + hyp.t))
+                    variants.extend(flipped(hyp, F, mf.centre) for F in mf.flips)
                 candidates.extend(v for v in variants if v.is_valid())
             # Cheap pre-verification of the raw candidates, then ICP on the most promising.
             pre = []

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..geometry import Pose
 from ..render import render_box
-from ..vision.features import model_features
+from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
 from ..vision.segmentation import frame_segmentation
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
@@ -97,11 +97,11 @@ class PointPairFeatures(Block):
         centre = model.points.mean(axis=0)
         leaders = cluster_poses(R, t, votes, centre, 0.1 * d, math.radians(30.0), c["n_clusters"])
         t_vote = time.perf_counter()
-        flips = model_features(model, voxel).flips if c["flip_variants"] else []
+        flips = principal_flips(model) if c["flip_variants"] else []
         poses = []
         for _, Rk, tk in leaders:  # each leader and its 180 deg flips about the principal axes
             poses.append(Pose(Rk, tk))
-            poses.extend(Pose(Rk @ F, Rk @ (centre - F @ centre) + tk) for F in flips)
+            poses.extend(flipped(poses[-1], F, centre) for F in flips)
         pre = []
         for k, pose in enumerate(poses):
             if time.perf_counter() >= deadline:

@@ -65,13 +65,23 @@ def model_features(model: ObjectModel, voxel: float) -> ModelFeatures:
     pc.normalize_normals()
     feats = fpfh(pc, voxel)
     pts = np.asarray(pc.points).copy()
-    centre = model.points.mean(axis=0)
-    axes = np.linalg.svd(model.points - centre, full_matrices=False)[2]
-    flips = [2.0 * np.outer(a, a) - np.eye(3) for a in axes]  # rotation by pi about axis a
-    mf = ModelFeatures(pts, np.asarray(pc.normals).copy(), feats, cKDTree(normalise_features(feats)), centre, flips)
+    mf = ModelFeatures(pts, np.asarray(pc.normals).copy(), feats, cKDTree(normalise_features(feats)),
+                       model.points.mean(axis=0), principal_flips(model))
     with MODEL_CACHE_LOCK:
         per[voxel] = mf
     return mf
+
+
+def principal_flips(model: ObjectModel) -> list[np.ndarray]:
+    """Rotations by pi about the model's principal axes (through the centroid of its samples):
+    the typical confusion of near-symmetric parts."""
+    axes = np.linalg.svd(model.points - model.points.mean(axis=0), full_matrices=False)[2]
+    return [2.0 * np.outer(a, a) - np.eye(3) for a in axes]
+
+
+def flipped(pose: Pose, flip: np.ndarray, centre: np.ndarray) -> Pose:
+    """`pose` turned by the model-frame rotation `flip` about the model point `centre`."""
+    return Pose(pose.R @ flip, pose.R @ (centre - flip @ centre) + pose.t)
 
 
 def normalise_features(f: np.ndarray) -> np.ndarray:
