@@ -276,6 +276,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
         time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
         store_episodes=args.store_episodes, workers=args.workers, ray_address=args.ray_address,
+        oracle_budget=args.oracle_budget,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -293,7 +294,7 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--episodes", type=int, default=None, help="episodes per lambda (default: every test episode)")
     ev.add_argument("--seed", type=int, default=0, help="episode seeds (the same for every agent)")
     ev.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML or shipped name (default, rgb, pick_success; default: the policy's, "
+                    help="pipeline YAML or shipped name (default, rgb, cell, pick_success; default: the policy's, "
                          "else default)")
     ev.add_argument("--split-seed", type=int, default=None,
                     help="train/test split seed (default: the policy's, else 0)")
@@ -305,6 +306,9 @@ def _add_evaluate_parser(sub: argparse._SubParsersAction) -> None:
                     help=f"operations per episode (default: the policy's, else {EnvSettings().max_ops})")
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
     ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
+    ev.add_argument("--oracle-budget", type=int, default=None, metavar="N",
+                    help="the oracle's operator calls per episode (default 2000; fewer where actions are "
+                         "generator searches, e.g. the cell pipeline)")
     ev.add_argument("--no-plots", action="store_true")
     ev.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")
@@ -380,7 +384,8 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                          f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--pipeline", type=Path, default=None,
-                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
+                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
+                         "(default: default)")
     tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
@@ -431,8 +436,10 @@ def _add_launch_parser(sub: argparse._SubParsersAction) -> None:
     la.add_argument("--models", type=Path, default=None, metavar="DIR",
                     help="BOP models folder "
                          "(default: data/default/models, else the procedural parts in data/parts_models)")
-    la.add_argument("--pipeline", type=Path, default=None, metavar="YAML",
-                    help="pipeline YAML (default: the built-in one)")
+    la.add_argument("--pipeline", type=Path, default=None, metavar="YAML|NAME",
+                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
+                         "(default: default; cell = the real-camera set-up without ground truth, README "
+                         "'A real robot cell')")
     la.add_argument("--policy", default=None, metavar="FILE|none",
                     help="configurator policy "
                          "(default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")
@@ -575,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_dataset_args(c)
         c.add_argument("--out", type=Path, required=True, help="JSON output file")
         c.add_argument("--pipeline", type=Path, default=None,
-                       help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success "
+                       help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
                             "(default: default)")
         c.add_argument("--frames", type=int, default=10, help="number of images to use")
         c.add_argument("--split", default="test")
@@ -590,7 +597,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_args(c)
     c.add_argument("--out", type=Path, required=True, help="folder for real.json and real.png, or a .json file")
     c.add_argument("--pipeline", type=Path, default=None,
-                   help="pipeline YAML, or a shipped pipeline by name: default, rgb, pick_success (default: default)")
+                   help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
+                        "(default: default)")
     c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
     c.add_argument("--seeds", type=int, default=5, help="perturbations per object and lambda")
     c.add_argument("--lambdas", default="0,0.1,0.3", help="starting noise levels of the refiners (0 = ground truth)")

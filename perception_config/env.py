@@ -7,13 +7,16 @@ dataset (the ROS configurator) each reset is given its episode: options={"episod
 Action space: Discrete(n) over the pipeline's actions, in the YAML's order (refiners with their
 presets, regenerate, pick).
 
-Observation space: Box(0, 1, (n_scores + 2 * 1 + n + 4,), float32)
+Observation space: Box(0, 1, (2 * n_scores + 1 + n + 4 [+ 2],), float32)
   - the scoring set's scores of the current hypothesis, each mapped to [0, 1] (the ranges
     the scoring blocks declare; a score without one through x / (1 + |x|)), plus a flag per score that it is
     missing (scoring failed, e.g. no hypothesis): [scores..., missing...]
   - progress: step / max_ops, one-hot of the last action (all zero at the start),
     pose change of the last step (translation / diameter, rotation / pi, both clipped to 1),
     1 if a pick already failed in this episode, 1 if the last action failed.
+  - only in a pipeline with a `next_candidate` action (+2): the ranked candidates of the last
+    generator call not yet taken (count / 5, clipped to 1) and the next one's confidence (0
+    when none is left).
 
 Action mask: reset's and every step's info carries `info["action_mask"]`, an np.int8 array of
 n (1 = the action can run on this episode's frame, 0 = it cannot). An action cannot run when
@@ -135,6 +138,9 @@ class PerceptionConfigEnv(gym.Env):
             + ["progress:step"] + [f"last_action:{a}" for a in self.action_names]
             + ["progress:dt", "progress:drot", "progress:pick_failed", "progress:last_failed"]
         )
+        self._candidate_features = any(a.block.takes_candidate for a in self.pipeline.actions)
+        if self._candidate_features:
+            self.observation_layout += ["candidates:left", "candidates:next_confidence"]
         self.observation_space = spaces.Box(0.0, 1.0, shape=(len(self.observation_layout),), dtype=np.float32)
         self.action_space = spaces.Discrete(n_act)
         self._n_scores = n_sc
@@ -198,6 +204,10 @@ class PerceptionConfigEnv(gym.Env):
             [min(1.0, self.pose_change[0]), min(1.0, self.pose_change[1] / math.pi),
              float(self.pick_failed), float(self.last_failed)],
         ]).astype(np.float32)
+        if self._candidate_features:
+            left = self.ops.candidates
+            next_conf = float(np.clip(left[0][0], 0.0, 1.0)) if left else 0.0
+            obs = np.concatenate([obs, np.array([min(1.0, len(left) / 5.0), next_conf], np.float32)])
         return obs
 
     def _info(self, outcome: StepOutcome, seconds: float) -> dict[str, Any]:

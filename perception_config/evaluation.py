@@ -84,6 +84,11 @@ DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
     ("icp_coarse", "icp_fine", "pick"),
     ("icp_coarse", "pick"),
     ("d2co", "icp_fine", "pick"),
+    # The cell pipeline's ground-truth-free engineer sequences: refine, pick, and on a failed
+    # pick the next ranked candidate (or a new global registration) and again.
+    ("icp_coarse", "icp_fine", "pick", "next_candidate"),
+    ("icp_fine", "pick", "next_candidate"),
+    ("icp_coarse", "icp_fine", "pick", "global_registration"),
 )
 RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, the simulated pick's tolerance
 MM = 1000.0
@@ -219,11 +224,12 @@ def _policy_name(path: Path, kind: str) -> str:
 
 def build_agents(
     env: PerceptionConfigEnv, policies: Sequence[Any], seed: int, include_baselines: bool = True,
-    sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES,
+    sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES, oracle_budget: int | None = None,
 ) -> list[EvalAgent]:
     """The agents to evaluate: policy files (checked against the env's action set), agent
     names, or (name, agent) pairs / objects with `act`; then the baselines (oracle, the fixed
-    pipelines, random) unless already given."""
+    pipelines, random) unless already given; `oracle_budget`: the oracle's operator calls per
+    episode (its `node_budget`; default 2000)."""
     from . import agents
 
     out: list[EvalAgent] = []
@@ -247,7 +253,8 @@ def build_agents(
         raise ValueError(f"two agents under evaluation have the same name: {names}")
     if include_baselines:
         if "oracle" not in names:
-            out.append(EvalAgent("oracle", "oracle", agents.make_agent("oracle", env=env, seed=seed)))
+            budget = {} if oracle_budget is None else {"node_budget": int(oracle_budget)}
+            out.append(EvalAgent("oracle", "oracle", agents.make_agent("oracle", env=env, seed=seed, **budget)))
         for seq in fixed_sequences(env.pipeline, sequences):
             name = "fixed:" + "+".join(seq)
             if name not in names:
@@ -468,6 +475,7 @@ def evaluate(
     store_episodes: bool = True,
     workers: int | None = None,
     ray_address: str | None = None,
+    oracle_budget: int | None = None,
     **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
@@ -484,7 +492,9 @@ def evaluate(
     RGB-only; every agent then chooses among the actions that can run (`info["action_mask"]`).
     `store_episodes`: append every episode to out/episodes.sqlite. `workers` N > 1 plays the
     episodes as tasks on a local Ray with N workers, `ray_address` on a running cluster (module
-    docstring); neither (or N = 1): in this process, without Ray.
+    docstring); neither (or N = 1): in this process, without Ray. `oracle_budget`: the oracle's
+    operator calls per episode (default 2000; with generators among the actions each call can
+    be a search of a second, so the cell pipeline's evaluation gives it fewer).
     """
     lams = _check_lambdas(lambdas)
     if workers is not None and int(workers) < 1:
@@ -500,7 +510,7 @@ def evaluate(
     env_settings = settings.env.replace(lambda_range=(0.0, LAMBDA_MAX))  # every lambda is set per episode
     source = EpisodeSource(ds, test_keys, min_visib_fract=env_settings.min_visib_fract)
     env = PerceptionConfigEnv(source, pipe, env_settings)
-    agents = build_agents(env, policies, seed, include_baselines, fixed)
+    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget)
     plan = episode_plan(len(source), episodes_per_lambda, seed)
 
     bar = None

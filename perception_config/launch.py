@@ -420,9 +420,21 @@ def parse_nodes(text: str) -> list[str]:
     return names
 
 
-def newest_policy(cwd: Path) -> Path | None:
-    """The most recently modified runs/*/policy.safetensors under `cwd`."""
-    candidates = [p for p in (cwd / "runs").glob("*/policy.safetensors") if p.is_file()]
+def newest_policy(cwd: Path, pipeline: str | None = None) -> Path | None:
+    """The most recently modified runs/*/policy.safetensors under `cwd` trained on `pipeline`
+    (as training records it: a shipped pipeline's name, a file's absolute path, None for the
+    default), so that `launch --pipeline cell` does not start the configurator with a policy of
+    another action set; unreadable files are passed over."""
+    from .agents.policy_io import policy_info
+
+    def trained_on(path: Path) -> str | None | bool:
+        try:
+            recorded = (policy_info(path).get("extra") or {}).get("pipeline")
+        except Exception:  # noqa: BLE001 - a broken file is not a candidate
+            return False
+        return None if recorded == "default" else recorded
+
+    candidates = [p for p in (cwd / "runs").glob("*/policy.safetensors") if p.is_file() and trained_on(p) == pipeline]
     return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
 
 
@@ -507,13 +519,16 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             say(f"models: {models_dir}")
             for s in model_specs:
                 set_param(s, "models_dir", str(models_dir), False)
-        if pipeline is not None:
-            from .blocks.pipeline import shipped_pipelines
+    pipeline_ref = None  # as a policy's training records it
+    if pipeline is not None:
+        from .blocks.pipeline import shipped_pipelines
 
-            shipped = not (cwd / Path(pipeline)).exists() and str(pipeline) in shipped_pipelines()
-            path = str(pipeline) if shipped else str(absolute(pipeline, "pipeline"))
-            for s in model_specs:
-                set_param(s, "pipeline", path, True)
+        shipped = not (cwd / Path(pipeline)).exists() and str(pipeline) in shipped_pipelines()
+        pipeline_ref = str(pipeline) if shipped else str(absolute(pipeline, "pipeline"))
+        if pipeline_ref == "default":
+            pipeline_ref = None
+        for s in model_specs:
+            set_param(s, "pipeline", str(pipeline) if shipped else pipeline_ref, True)
 
     if "configurator" in names:
         conf = specs[names.index("configurator")]
@@ -524,10 +539,12 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
         elif "policy" in params_file_sets(pfile, conf.name):
             say(f"policy: as set in {pfile}")
         else:
-            newest = newest_policy(cwd)
+            newest = newest_policy(cwd, pipeline_ref)
+            on = f"pipeline {pipeline}" if pipeline is not None else "the default pipeline"
             set_param(conf, "policy", str(newest) if newest else "", False)
-            say(f"policy: {newest} (the newest runs/*/policy.safetensors)" if newest
-                else "policy: none (no runs/*/policy.safetensors here): the configurator runs the fixed pipeline")
+            say(f"policy: {newest} (the newest runs/*/policy.safetensors trained on {on})" if newest
+                else f"policy: none (no runs/*/policy.safetensors trained on {on} here): the configurator runs "
+                     "the fixed pipeline")
 
     if "bag_replay" in names:
         replay = specs[names.index("bag_replay")]

@@ -9,13 +9,15 @@ backend.
 """
 from __future__ import annotations
 
+import copy
+import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
-from .blocks.base import BlockInput, BlockResult, Kind
+from .blocks.base import GROUND_TRUTH, Block, BlockInput, BlockResult, Kind
 from .blocks.pipeline import Pipeline
 from .geometry import Pose, as_transmitted
 from .models import ObjectModel
@@ -85,6 +87,60 @@ class FrameCaches:
         return cache
 
 
+def frame_fingerprint(frame: Frame, cache: dict[str, Any]) -> str:
+    """A digest of the frame's images and intrinsics (a sparse grid of pixels: cheap, and two
+    different camera frames do not share it), kept in the frame's cache."""
+    digest = cache.get("__fingerprint__")
+    if digest is None:
+        h = hashlib.blake2b(digest_size=16)
+        for img in (frame.rgb, frame.depth):
+            if img is not None:
+                h.update(np.ascontiguousarray(img[::7, ::5]).tobytes())
+                h.update(str(img.shape).encode())
+        h.update(np.asarray(frame.K, np.float64).tobytes())
+        digest = cache["__fingerprint__"] = h.hexdigest()
+    return digest
+
+
+class GeneratorMemo:
+    """Results of ground-truth-free generator calls, reused when the same call comes again.
+
+    A generator's result is a function of the frame, the model, its parameters and (when it
+    `uses_rng`) its seed; the hindsight oracle tries every action from many states, and training
+    meets the same (image, object) in many episodes, so a search of 0.5-2 s would be repeated
+    over and over. A reused result keeps the seconds the call took (`elapsed`): time is charged
+    as if it had run. Keyed by `frame_fingerprint`, the object, the block's name and parameters,
+    the seed (blocks that use it) and whether the call was time-bounded; an LRU of `size`."""
+
+    def __init__(self, size: int = 4096) -> None:
+        self._results: OrderedDict[tuple, BlockResult] = OrderedDict()
+        self._size = size
+        self.hits = 0
+
+    @staticmethod
+    def applies(block: Block) -> bool:
+        """Whether results of `block` are reused: generators that search the frame (not
+        simulated_init, which is cheap and reads the ground truth; not next_candidate)."""
+        return block.kind == Kind.GENERATION and GROUND_TRUTH not in block.inputs and not block.takes_candidate
+
+    def call(self, block: Block, inp: BlockInput, seed: int) -> BlockResult:
+        if inp.frame is None:
+            return block(inp)
+        key = (frame_fingerprint(inp.frame, inp.cache), inp.model.obj_id, float(inp.model.diameter), block.name,
+               tuple(sorted((k, repr(v)) for k, v in block.config.items())),
+               seed if block.uses_rng else None, inp.time_bounded)
+        hit = self._results.get(key)
+        if hit is not None:
+            self.hits += 1
+            self._results.move_to_end(key)
+            return copy.copy(hit)
+        result = block(inp)
+        self._results[key] = copy.copy(result)
+        while len(self._results) > self._size:
+            self._results.popitem(last=False)
+        return result
+
+
 @dataclass
 class StepOutcome:
     """What one operator call did: the block's result, the scoring after it, the total time."""
@@ -102,6 +158,8 @@ class Operators(Protocol):
     """The backend interface the environment drives."""
 
     pipeline: Pipeline
+    # the ranked candidates of the last generator call not yet taken, best first (next_candidate)
+    candidates: list[tuple[float, Pose]]
 
     def start(self, episode: Episode) -> StepOutcome:
         """Begin an episode: run the generator and the scoring; the hypothesis is set."""
@@ -122,6 +180,9 @@ class InProcessOperators:
     Per-frame precomputations (edge maps, point clouds) live in a small LRU keyed by the frame
     identity, so consecutive episodes on the same frame share them. `time_bounded=False` lifts
     the blocks' wall-clock bounds (`BlockInput.time_bounded`; the env's cost-table mode).
+    Ground-truth-free generator results are reused for the same call (`GeneratorMemo`).
+    After a generator call the candidates it ranked below its pose wait in `candidates` for
+    `next_candidate`; a failed generator call leaves none.
     """
 
     def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4, time_bounded: bool = True) -> None:
@@ -129,6 +190,8 @@ class InProcessOperators:
         self.time_bounded = bool(time_bounded)
         self._caches = FrameCaches(frame_cache_size)
         self._generators: dict[float, Any] = {}
+        self.memo = GeneratorMemo()
+        self.candidates: list[tuple[float, Pose]] = []
         self.episode: Episode | None = None
         self.pose: Pose | None = None
         self.scores: dict[str, float] = {}
@@ -142,12 +205,22 @@ class InProcessOperators:
         return BlockInput(
             frame=ep.frame, model=ep.model, pose=pose, ground_truth=ep.ground_truth,
             rng=self.rng if rng is None else rng, cache=self._caches.get(ep.frame), scores=dict(self.scores),
-            time_bounded=self.time_bounded,
+            time_bounded=self.time_bounded, candidates=list(self.candidates),
         )
 
     def _generate(self, block) -> BlockResult:
-        """A generator call with its own seed from the episode's stream (see `draw_seed`)."""
-        return block(self._input(self.pose, np.random.default_rng(draw_seed(self.rng))))
+        """A generator call with its own seed from the episode's stream (see `draw_seed`); its
+        ranked candidates below the pose become `candidates` (next_candidate takes them in turn)."""
+        if block.takes_candidate:  # draws no seed: it searches nothing
+            result = block(self._input(self.pose))
+            if result.ok:
+                self.candidates = self.candidates[1:]
+            return result
+        seed = draw_seed(self.rng)
+        inp = self._input(self.pose, np.random.default_rng(seed))
+        result = self.memo.call(block, inp, seed) if GeneratorMemo.applies(block) else block(inp)
+        self.candidates = [(c, as_transmitted(p)) for c, p in result.candidates[1:]] if result.ok else []
+        return result
 
     def _generator(self, noise_lambda: float):
         """The generator block with this episode's noise level, when it has one."""
@@ -182,7 +255,7 @@ class InProcessOperators:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
         self.refiner_rng = refiner_stream(episode.seed)
-        self.pose, self.scores = None, {}
+        self.pose, self.scores, self.candidates = None, {}, []
         result = self._generate(self._generator(episode.noise_lambda))
         return self._outcome("generate", result)
 
@@ -198,10 +271,12 @@ class InProcessOperators:
         return self._outcome(action, result)
 
     def snapshot(self) -> Any:
-        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state)
+        return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state,
+                list(self.candidates))
 
     def restore(self, state: Any) -> None:
-        self.pose, scores, rng_state, refiner_state = state
+        self.pose, scores, rng_state, refiner_state, candidates = state
+        self.candidates = list(candidates)
         self.scores = dict(scores)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = rng_state

@@ -262,13 +262,26 @@ def _p(spec: NodeSpec) -> dict[str, str]:
     return dict(cmd[i + 1].split(":=", 1) for i, a in enumerate(cmd) if a == "-p")
 
 
+def _policy(path, pipeline: str | None = None, age: float = 0.0):
+    """A policy file as training writes it (a fixed agent), recording the pipeline it was trained on."""
+    from perception_config.agents.policy_io import FORMAT, write_file
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    env = {"action_names": ["pick"], "action_kinds": ["pick"], "observation_layout": ["progress:step"], "max_ops": 5}
+    write_file(path, {"format": FORMAT, "version": 1, "agent": "fixed", "env": env,
+                      "extra": {"pipeline": pipeline}})
+    os.utime(path, (time.time() - age, time.time() - age))
+    return path
+
+
 def test_defaults_full_set_newest_policy_and_absolute_paths(tmp_path):
     models = _models(tmp_path / "data" / "default" / "models", 2)
     for run, age in (("old", 100), ("new", 10), ("older", 200)):
-        policy = tmp_path / "runs" / run / "policy.safetensors"
-        policy.parent.mkdir(parents=True)
-        policy.write_bytes(b"x")
-        os.utime(policy, (time.time() - age, time.time() - age))
+        _policy(tmp_path / "runs" / run / "policy.safetensors", age=age)
+    _policy(tmp_path / "runs" / "cell" / "policy.safetensors", "cell", age=1)  # newest, another pipeline
+    broken = tmp_path / "runs" / "broken" / "policy.safetensors"
+    broken.parent.mkdir()
+    broken.write_bytes(b"x")  # newest of all, unreadable: passed over
     (tmp_path / "replay.mcap").write_bytes(b"")
     said: list[str] = []
     specs = resolve_nodes(cwd=tmp_path, bag="replay.mcap", rate=2, say=said.append)
@@ -284,6 +297,12 @@ def test_defaults_full_set_newest_policy_and_absolute_paths(tmp_path):
     assert any("runs/new/policy.safetensors" in s for s in said), said
     assert _p(specs[5]) == {"bag": str((tmp_path / "replay.mcap").resolve()), "rate": "2.0"}
     assert specs[5].may_finish and not specs[0].may_finish
+    # --pipeline cell: the newest policy trained on that pipeline, and the pipeline to every node
+    specs = resolve_nodes(cwd=tmp_path, pipeline="cell", say=said.append)
+    assert _p(specs[4])["policy"] == str((tmp_path / "runs" / "cell" / "policy.safetensors").resolve())
+    assert all(_p(s)["pipeline"] == "cell" for s in specs[:5])
+    specs = resolve_nodes(cwd=tmp_path, pipeline="rgb", say=said.append)
+    assert _p(specs[4])["policy"] == "''" and "trained on pipeline rgb" in said[-1], said[-1]
 
 
 def test_defaults_no_policy_none_and_models_fallback(tmp_path):
@@ -297,9 +316,7 @@ def test_defaults_no_policy_none_and_models_fallback(tmp_path):
     assert (fallback / "models_info.json").is_file() and len(list(fallback.glob("obj_*.ply"))) == 6
     assert any("data/default/models not found" in s for s in said), said
 
-    policy = tmp_path / "runs" / "a" / "policy.safetensors"
-    policy.parent.mkdir(parents=True)
-    policy.write_bytes(b"x")
+    _policy(tmp_path / "runs" / "a" / "policy.safetensors")
     specs = resolve_nodes(["configurator"], cwd=tmp_path, policy="none", say=said.append)
     assert _p(specs[0])["policy"] == "''"
     with pytest.raises(FileNotFoundError, match="missing.safetensors"):

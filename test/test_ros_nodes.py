@@ -219,6 +219,70 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
     assert res.success and not res.picked and "pick_mssd" in res.message
 
 
+CANDIDATE_PIPELINE = """\
+generator: {block: ppf}
+actions:
+  - {name: icp_fine, block: icp_point_to_plane,
+     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
+  - {name: next_candidate, block: next_candidate}
+  - {name: pick, block: simulated_pick}
+scoring: [psi_d, psi_c, icp_fitness]
+"""
+
+
+def test_next_candidate_through_ros_takes_the_generators_ranked_candidates(ros_node, cell, data):
+    """The ROS backend keeps the ranked candidates generate_hypothesis answers and next_candidate
+    takes them in turn with no operator call but the scoring: the poses and scores of the
+    in-process backend on the same frame, and a clear failure once none is left."""
+    import yaml
+
+    from perception_config.blocks.base import create
+    from perception_config.blocks.pipeline import pipeline_from_dict
+    from perception_config.operators import Episode, InProcessOperators
+    from perception_config.ros.ros_operators import RosOperators
+
+    operator_clients(ros_node, cell)  # every service answers
+    pipe = pipeline_from_dict(yaml.safe_load(CANDIDATE_PIPELINE))
+    budget = create("ppf").config["max_seconds"]
+    ros = RosOperators(pipe, node_name="candidate_clients", timeout=30.0)
+    local = InProcessOperators(pipe)
+    compared = cut = 0
+    try:
+        for stamp, frame in cell["frames"].items():
+            for o in frame.objects:
+                ep = dict(model=o.model, ground_truth=o.gt, noise_lambda=0.0, seed=7, key=(0, 0, o.obj_id))
+                first = ros.start(Episode(frame=None, stamp_ns=stamp, **ep))
+                want = local.start(Episode(frame=frame, **ep))
+                if max(first.result.elapsed, want.result.elapsed) >= 0.9 * budget:
+                    cut += 1  # a search cut by its wall-clock budget is not comparable
+                    continue
+                assert first.result.ok == want.result.ok, (first.result.reason, want.result.reason)
+                assert len(ros.candidates) == len(local.candidates)
+                if len(local.candidates) < 1:
+                    continue
+                calls = len(ros.round_trips)
+                n = len(local.candidates)
+                for k in range(n):
+                    got, exp = ros.apply("next_candidate"), local.apply("next_candidate")
+                    assert got.result.ok and exp.result.ok
+                    assert np.linalg.norm(got.pose.t - exp.pose.t) < 1e-6
+                    assert rotation_angle(got.pose.R, exp.pose.R) < 1e-5
+                    for name, value in exp.scores.items():
+                        assert got.scores[name] == pytest.approx(value, abs=1e-6), name
+                    assert len(ros.candidates) == len(local.candidates) == n - k - 1
+                # each next_candidate cost one scoring call and nothing else
+                assert [w for w, *_ in list(ros.round_trips)[calls:]] == ["score"] * n
+                got, exp = ros.apply("next_candidate"), local.apply("next_candidate")
+                assert not got.result.ok and not exp.result.ok and "no candidate left" in got.result.reason
+                assert got.pose is ros.pose and np.allclose(got.pose.t, exp.pose.t, atol=1e-6)
+                compared += 1
+                if compared >= 2:
+                    return
+    finally:
+        ros.close()
+    assert compared >= 1 or cut > 0, "no object with two or more candidates on the published frames"
+
+
 def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data, request):
     """estimate_pose over every object of every published frame (fixed pipeline, lambda 0.5,
     seeded): the same operators chosen and the same pick outcomes as the env in-process."""

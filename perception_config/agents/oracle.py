@@ -16,7 +16,7 @@ Search: uniform-cost (Dijkstra) over action sequences, costs = the env's own acc
 - branch and bound: a node whose cost plus the cheapest pick already reaches `best` is not
   expanded; as nodes come off the queue cheapest first, the search ends when the next one
   does, and `best` is then optimal;
-- memo: a (pose, rng state) reached before at no higher cost and no deeper is pruned;
+- memo: a (pose, rng state, candidates left) reached before at no higher cost and no deeper is pruned;
 - actions that cannot run on the episode's frame (`env.action_mask()`: depth blocks on an
   RGB-only frame) are never tried;
 - depth is bounded by the env's remaining max_ops, work by `node_budget` operator calls.
@@ -126,7 +126,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
                 if c + min_pick >= best:
                     continue
                 rng = getattr(ops, "rng", None)
-                key = (new.R.tobytes(), new.t.tobytes(), repr(rng.bit_generator.state) if rng is not None else "")
+                key = (new.R.tobytes(), new.t.tobytes(), repr(rng.bit_generator.state) if rng is not None else "",
+                       len(getattr(ops, "candidates", ())))  # the ranked candidates still waiting
                 entries = seen.setdefault(key, [])
                 if any(c0 <= c and d0 <= depth + 1 for c0, d0 in entries):
                     continue  # reached before, cheaper and no deeper

@@ -105,6 +105,8 @@ class BlockInput:
     cache: dict[str, Any] = field(default_factory=dict)
     scores: dict[str, float] = field(default_factory=dict)  # scores of `pose`, when known
     time_bounded: bool = True  # whether `max_seconds` bounds the call (wall clock)
+    # the ranked candidates of the last generator call not yet taken, best first (next_candidate)
+    candidates: list[tuple[float, Pose]] = field(default_factory=list)
 
 
 @dataclass
@@ -146,6 +148,12 @@ class Block(ABC):
     # range is squashed by x / (1 + |x|). `lower_is_better`: scores where small means good.
     score_ranges: ClassVar[dict[str, tuple[float, float]]] = {}
     lower_is_better: ClassVar[tuple[str, ...]] = ()
+    # Generators: whether the result depends on `inp.rng` (False: the same frame, model and
+    # parameters give the same result, so a backend may reuse it).
+    uses_rng: ClassVar[bool] = True
+    # True for a block that takes the next of `inp.candidates` (next_candidate): the backends
+    # keep the last generator call's candidates and pass on those not yet taken.
+    takes_candidate: ClassVar[bool] = False
 
     def __init__(self, **overrides: Any) -> None:
         declared = {p.name: p for p in self.params}

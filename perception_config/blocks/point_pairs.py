@@ -39,6 +39,7 @@ class PointPairFeatures(Block):
     name = "ppf"
     default_cost = 0.5
     inputs = (DEPTH, MODEL)
+    uses_rng = False  # deterministic: the same frame, model and parameters give the same result
     score_names = _SCORE_NAMES
     params = (
         Param("sampling_rel", 0.05, 0.02, 0.2, doc="model and scene sampling as a share of the diameter"),

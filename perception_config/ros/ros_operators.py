@@ -14,6 +14,11 @@ instead of two); with `fused_scoring=False` every scoring is a score_hypothesis 
 scoring node. After a pick or a failed operator the hypothesis is unchanged, and so are its
 scores (scoring is deterministic): no call.
 
+Candidates: a generator's answer carries its ranked candidates (`candidates`, `confidences`); the
+ones below the answered pose wait here, and `next_candidate` takes the next of them in this
+process, with no call but the scoring of the new hypothesis (the node answers them as it
+answers poses, so they travel on unconverted).
+
 Time: `StepOutcome.elapsed` is the wall time of the round trips (what the robot cell waits),
 `result.elapsed` the node's own compute time.
 
@@ -42,7 +47,7 @@ from perception_config_interfaces.msg import Hypothesis
 from perception_config_interfaces.srv import GenerateHypothesis, Pick, RefineHypothesis, ScoreHypothesis
 from rclpy.executors import SingleThreadedExecutor
 
-from ..blocks.base import BlockResult, Kind
+from ..blocks.base import BlockInput, BlockResult, Kind
 from ..blocks.pipeline import Pipeline
 from ..geometry import Pose
 from ..operators import Episode, StepOutcome, draw_seed, refiner_stream
@@ -86,6 +91,8 @@ class RosOperators:
         self.pose: Pose | None = None
         self.pose_msg: PoseMsg | None = None  # self.pose as answered: passed on as it is, never converted again
         self.scores: dict[str, float] = {}
+        # the last generator call's candidates not yet taken: (confidence, pose, answered message)
+        self._candidates: list[tuple[float, Pose, PoseMsg]] = []
         self.stamp = None  # builtin_interfaces/Time of the episode's frame, once resolved
         self.frame_id = ""
         self.rng = np.random.default_rng(0)
@@ -174,7 +181,28 @@ class RosOperators:
         if res.success and self.stamp is None:  # "latest" is resolved once, by the first answer
             self.stamp = res.hypothesis.header.stamp
             self.frame_id = res.hypothesis.header.frame_id
+        self._candidates = []
+        if res.success:
+            try:
+                self._candidates = [(float(conf), msg_to_pose(h.pose), h.pose)
+                                    for conf, h in zip(res.confidences[1:], res.candidates[1:])]
+            except ValueError:  # an unusable candidate pose: offer none rather than a wrong one
+                self._candidates = []
         return self._result(res, res.hypothesis if res.success else None)
+
+    @property
+    def candidates(self) -> list[tuple[float, Pose]]:
+        """The last generator call's ranked candidates not yet taken, best first."""
+        return [(conf, pose) for conf, pose, _ in self._candidates]
+
+    def _next_candidate(self, block: Any) -> BlockResult:
+        """`next_candidate`, here: the block picks from the waiting candidates, no node is asked."""
+        assert self.episode is not None
+        result = block(BlockInput(frame=None, model=self.episode.model, pose=self.pose, candidates=self.candidates))
+        if result.ok:
+            result.info["pose_msg"] = self._candidates[0][2]
+            self._candidates = self._candidates[1:]
+        return result
 
     def _score(self) -> dict[str, float]:
         names = self.pipeline.score_names
@@ -207,7 +235,7 @@ class RosOperators:
         self.episode = episode
         self.rng = np.random.default_rng(episode.seed)
         self.refiner_rng = refiner_stream(episode.seed)
-        self.pose, self.pose_msg, self.scores = None, None, {}
+        self.pose, self.pose_msg, self.scores, self._candidates = None, None, {}, []
         self.stamp, self.frame_id = None, ""
         started = time.perf_counter()
         return self._outcome("generate", self._generate(self.pipeline.generator.name), started)
@@ -216,6 +244,8 @@ class RosOperators:
         act = self.pipeline.action(action)
         started = time.perf_counter()
         if act.kind == Kind.GENERATION:
+            if act.block.takes_candidate:
+                return self._outcome(action, self._next_candidate(act.block), started)
             return self._outcome(action, self._generate(action), started)
         if self.pose is None:
             return self._outcome(action, BlockResult.fail("no hypothesis to work on"), started)
@@ -233,10 +263,12 @@ class RosOperators:
 
     def snapshot(self) -> Any:
         return (self.pose, self.pose_msg, dict(self.scores), self.rng.bit_generator.state,
-                self.refiner_rng.bit_generator.state, self.stamp, self.frame_id)
+                self.refiner_rng.bit_generator.state, self.stamp, self.frame_id, list(self._candidates))
 
     def restore(self, state: Any) -> None:
-        self.pose, self.pose_msg, scores, rng_state, refiner_state, self.stamp, self.frame_id = state
+        (self.pose, self.pose_msg, scores, rng_state, refiner_state, self.stamp, self.frame_id,
+         candidates) = state
+        self._candidates = list(candidates)
         self.scores = dict(scores)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = rng_state
