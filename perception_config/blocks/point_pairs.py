@@ -21,10 +21,11 @@ import time
 import numpy as np
 
 from ..geometry import Pose
+from ..models import model_defect
 from ..render import render_box
 from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
-from ..vision.segmentation import frame_segmentation
+from ..vision.segmentation import frame_segmentation, too_small
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -65,6 +66,9 @@ class PointPairFeatures(Block):
         start = time.perf_counter()
         model, frame = inp.model, inp.frame
         d = model.diameter
+        defect = model_defect(model)
+        if defect:
+            return BlockResult.fail(f"ppf: the model cannot be prepared: {defect}")
         try:
             table, source = ppf_model(model, max(c["sampling_rel"], c["min_sampling"] / d), c["n_angle"])
         except ValueError as exc:
@@ -76,6 +80,9 @@ class PointPairFeatures(Block):
         seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"ppf: only {seg.n_valid} valid depth pixels")
+        small = too_small(seg, frame.K, d)
+        if small:
+            return BlockResult.fail(f"ppf: {small}")
         voxel = table.dist_step
         # The regions kept depend on the diameter, the sampling on the voxel: both name the cloud
         # (two small models share the 3 mm floor of the sampling, not their regions).
