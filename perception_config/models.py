@@ -497,6 +497,8 @@ def make_model(
     faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
     if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
         raise ValueError(f"model {obj_id}: faces are empty or index outside the {len(vertices)} vertices")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"model {obj_id}: vertices are not finite")
     if normals is None or np.asarray(normals).shape != vertices.shape:
         normals = vertex_normals(vertices, faces)
     else:

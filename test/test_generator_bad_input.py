@@ -62,6 +62,8 @@ def test_make_model_refuses_a_mesh_without_area():
     for vertices in (collinear, np.zeros((6, 3))):
         with pytest.raises(ValueError, match="zero surface area"):
             make_model(1, vertices, faces)
+    with pytest.raises(ValueError, match="not finite"):
+        make_model(1, np.where(collinear == 0, np.nan, collinear), faces)
 
 
 def test_a_nearly_collinear_model_is_refused_as_degenerate(block, scene):
@@ -141,7 +143,8 @@ def huge():
 def test_a_model_of_millions_of_faces_is_prepared_in_bounded_time(huge):
     model, seconds = huge
     assert len(model.faces) > 1_900_000 and len(model.vertices) > 900_000
-    assert seconds < 15.0, seconds  # measured ~3 s; before: unbounded (qhull 20 s, then a 1M x 1M diameter)
+    # Measured 3-8 s (two cores, idle to loaded); before: qhull 20 s, then a 1M x 1M diameter (hours).
+    assert seconds < 30.0, seconds
     # Centrally symmetric: the diameter is twice the farthest vertex from the centre.
     assert model.diameter == pytest.approx(2 * np.linalg.norm(model.vertices, axis=1).max(), rel=1e-4)
     assert len(model.hull_points) <= 60_000
@@ -158,7 +161,11 @@ def test_a_model_of_millions_of_faces_is_still_found(huge, name):
     assert r.ok, r.reason
     centre = model.points.mean(axis=0)[None]
     assert np.linalg.norm(r.pose.transform(centre) - gt.transform(centre)) < 0.1 * model.diameter
-    assert r.elapsed < block.config["max_seconds"] + 3.0, r.elapsed  # first call: render scene, table, features
+    # The first call prepares the model (ppf's table; the features and distance field) before the
+    # budget starts: measured 0.5-1.5 s.
+    info = r.info
+    prepare = info["seconds"]["prepare"] if name == "ppf" else info["prepare_seconds"]
+    assert prepare < 5.0 and r.elapsed - prepare < block.config["max_seconds"] + MARGIN, (prepare, r.elapsed)
 
 
 def test_a_model_of_millions_of_faces_not_in_the_scene_fails(block, huge):

@@ -206,7 +206,8 @@ class GlobalRegistration(Block):
         t_model = time.perf_counter()
         mf = model_features(model, voxel)
         distance_field(model)
-        deadline = self.deadline(inp, start + time.perf_counter() - t_model)
+        t_prep = time.perf_counter() - t_model
+        deadline = self.deadline(inp, start + t_prep)
         icp_dists = (max(3.0 * voxel, 0.006), max(1.2 * voxel, 0.003), max(0.5 * voxel, 0.002))
         best: tuple[float, Pose, dict[str, float]] | None = None
         n_tried = n_candidates = 0
@@ -254,7 +255,8 @@ class GlobalRegistration(Block):
         info = {"clusters_total": len(seg.clusters), "clusters_plausible": len(plausible),
                 "clusters_merged": len(merged), "candidates": tried, "best_cluster_rank": best_rank,
                 "clusters_tried": n_tried, "candidates_verified": n_candidates,
-                "plane_share": seg.plane_share, "seconds": time.perf_counter() - start}
+                "plane_share": seg.plane_share, "seconds": time.perf_counter() - start,
+                "prepare_seconds": t_prep}
         if best is None:
             return BlockResult(ok=False, reason="global_registration: no candidate within the time budget "
                                f"({c['max_seconds']} s) or no feature match", info=info)
