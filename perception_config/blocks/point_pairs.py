@@ -11,7 +11,9 @@ against the model's point pair table (built once per model and parameter set, ca
 are pre-verified by rendering (`verify`: depth agreement, free-space violations, coverage of
 their regions); (4) the best `n_polish` are polished by coarse-to-fine ICP against the observed
 points under them and verified again; the distinct results, best first, are the candidates.
-Confidence = the verification score clipped to [0, 1].
+Confidence = the verification score clipped to [0, 1]. A model that cannot be used
+(models.model_defect: degenerate, no normals) or too small to make a region of the frame
+(segmentation.too_small) is refused at once with that reason.
 """
 from __future__ import annotations
 
