@@ -41,7 +41,8 @@ DEFAULT_MAX_EDGE_POINTS = 2000
 # Beyond these counts a scanned or finely subdivided mesh (millions of faces) is summarised, so it is
 # prepared in seconds: qhull took 20 s on the 1M vertices of a fine sphere, all on its hull, and the
 # diameter is quadratic in the hull's size (43 s for 90k points). Every LM-O model is far below both.
-MAX_HULL_INPUT = 20_000  # vertices the convex hull is computed from
+MAX_HULL_INPUT = 100_000  # vertices beyond which the convex hull is that of a subset ...
+HULL_SUBSET = 20_000  # ... of about this many (qhull: ~1 s for 100k vertices all on the hull)
 MAX_DIAMETER_POINTS = 10_000  # points the diameter is computed over exactly
 COLLINEAR = 1e-4  # samples spread less than this share of the diameter across their line: degenerate
 
@@ -281,7 +282,7 @@ def sample_surface(
 def convex_hull_points(vertices: np.ndarray, max_input: int = MAX_HULL_INPUT) -> np.ndarray:
     """Vertices of the convex hull (falls back to all vertices for flat/degenerate meshes). Beyond
     `max_input` vertices, the hull of a subset: the vertices extreme along 128 directions and
-    about `max_input` more spread evenly over the mesh. It lies inside the true hull by a fraction
+    about HULL_SUBSET more spread evenly over the mesh. It lies inside the true hull by a fraction
     of their spacing (at most 0.07 mm on the 2M-face part of test_generator_bad_input; projected
     boxes keep a pixel of margin)."""
     from scipy.spatial import ConvexHull, QhullError
@@ -295,7 +296,7 @@ def convex_hull_points(vertices: np.ndarray, max_input: int = MAX_HULL_INPUT) ->
             k = np.argmax(proj, axis=0)
             better = proj[k, np.arange(len(dirs))] > top
             top[better], arg[better] = proj[k[better], np.flatnonzero(better)], i + k[better]
-        subset = vertices[np.union1d(arg, _spread_subset(vertices, max_input - len(dirs)))]
+        subset = vertices[np.union1d(arg, _spread_subset(vertices, HULL_SUBSET))]
     try:
         return subset[ConvexHull(subset).vertices]
     except (QhullError, ValueError):
