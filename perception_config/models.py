@@ -243,8 +243,9 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals, for meshes whose file carries none. Summed with bincount in
-    the order np.add.at would (corner 0 of every face, then 1, then 2), ten times faster."""
+    """Area-weighted vertex normals, for meshes whose file carries none. Summed by bincount in
+    the order np.add.at would (corner 0 of every face, then 1, then 2): the same bits, without
+    add.at's slow loop (a second for 2M faces)."""
     fn, area = face_normals(vertices, faces)
     weighted = np.tile(fn * area[:, None], (3, 1))
     index = faces.T.ravel()
@@ -304,17 +305,14 @@ def convex_hull_points(vertices: np.ndarray, max_input: int = MAX_HULL_INPUT) ->
 
 
 def _spread_subset(points: np.ndarray, n: int) -> np.ndarray:
-    """Indices of about `n` (at most 2 n) points spread evenly over the space they take: one per
-    cell of a grid sized from a first count of the occupied cells (a surface's count grows as
-    1 / cell^2)."""
-    def cells(size: float) -> np.ndarray:
-        _, first = np.unique(np.floor((points - lo) / size).astype(np.int64) @ [1 << 42, 1 << 21, 1], return_index=True)
-        return first
-
+    """Indices of about `n` (at most 2 n) points spread evenly over the space they take: the
+    first point in each cell of a grid, the cell sized from the count of occupied cells at a
+    first size (a surface's count grows as 1 / cell^2)."""
     lo = points.min(axis=0)
     size = float(np.linalg.norm(points.max(axis=0) - lo)) / 100.0 or 1.0
     for _ in range(3):
-        first = cells(size)
+        cell = np.floor((points - lo) / size).astype(np.int64)  # < 2^21 per axis: 100 cells or fewer
+        _, first = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_index=True)
         if len(first) <= 2 * n:
             break
         size *= math.sqrt(len(first) / n)
