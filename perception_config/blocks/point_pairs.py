@@ -11,7 +11,9 @@ against the model's point pair table (built once per model and parameter set, ca
 are pre-verified by rendering (`verify`: depth agreement, free-space violations, coverage of
 their regions); (4) the best `n_polish` are polished by coarse-to-fine ICP against the observed
 points under them and verified again; the distinct results, best first, are the candidates.
-Confidence = the verification score clipped to [0, 1].
+Confidence = the verification score clipped to [0, 1]. A model that cannot be used
+(models.model_defect: degenerate, no normals) or too small to make a region of the frame
+(segmentation.too_small) is refused at once with that reason.
 """
 from __future__ import annotations
 
@@ -21,10 +23,11 @@ import time
 import numpy as np
 
 from ..geometry import Pose
+from ..models import model_defect
 from ..render import render_box
 from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
-from ..vision.segmentation import frame_segmentation
+from ..vision.segmentation import frame_segmentation, too_small
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -66,6 +69,9 @@ class PointPairFeatures(Block):
         start = time.perf_counter()
         model, frame = inp.model, inp.frame
         d = model.diameter
+        defect = model_defect(model)
+        if defect:
+            return BlockResult.fail(f"ppf: the model cannot be prepared: {defect}")
         try:
             table, source = ppf_model(model, max(c["sampling_rel"], c["min_sampling"] / d), c["n_angle"])
         except ValueError as exc:
@@ -77,6 +83,9 @@ class PointPairFeatures(Block):
         seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"ppf: only {seg.n_valid} valid depth pixels")
+        small = too_small(seg, frame.K, d)
+        if small:
+            return BlockResult.fail(f"ppf: {small}")
         voxel = table.dist_step
         # The regions kept depend on the diameter, the sampling on the voxel: both name the cloud
         # (two small models share the 3 mm floor of the sampling, not their regions).

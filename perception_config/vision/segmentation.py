@@ -16,6 +16,9 @@ import numpy as np
 from ..scene import Frame
 
 MIN_DEPTH_JUMP = 0.008  # metres: neighbour differences below this are noise or slanted surfaces
+# An object spanning fewer pixels covers fewer than the 40 a region needs (segment_scene's
+# min_pixels): a cube 6 px across covers at most ~21.
+MIN_SPAN_PX = 6.0
 
 
 @dataclass
@@ -212,6 +215,20 @@ def frame_segmentation(frame: Frame, cache: dict | None, plane_distance: float =
         if cache is not None:
             cache[key] = seg
     return seg
+
+
+def too_small(seg: Segmentation, K: np.ndarray, diameter: float) -> str:
+    """Why an object of `diameter` metres cannot make a region of this depth image, or '' when
+    it can: even at the nearest observed depth it would span fewer than MIN_SPAN_PX pixels."""
+    z = seg.points[..., 2]
+    if not np.any(np.isfinite(z)):
+        return ""
+    z_near = float(np.nanmin(z))
+    span = min(K[0, 0], K[1, 1]) * diameter / z_near
+    if span >= MIN_SPAN_PX:
+        return ""
+    return (f"the model is too small to find: {diameter * 1e3:.1f} mm across spans {span:.1f} px at the nearest "
+            f"depth ({z_near:.2f} m), under the {MIN_SPAN_PX:.0f} px a region needs")
 
 
 def smooth_depth(depth: np.ndarray, size: int = 5) -> np.ndarray:
