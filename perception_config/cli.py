@@ -418,9 +418,21 @@ def _cmd_launch(args: argparse.Namespace) -> int:
     specs = resolve_nodes(
         parse_nodes(args.nodes) if args.nodes else None, models=args.models, pipeline=args.pipeline,
         policy=args.policy, bag=args.bag, rate=args.rate, params_file=args.params_file,
-        say=lambda text: print(f"[launch] {text}", flush=True),
+        say=lambda text: print(f"[launch] {text}", flush=True), remaps=_remaps(args.remap or []),
     )
     return run(specs, log_dir=args.log_dir)
+
+
+def _remaps(items: list[str]) -> dict[str, str]:
+    """--remap FROM:=TO options as a mapping; a malformed one is a clear error."""
+    out = {}
+    for item in items:
+        source, sep, target = item.partition(":=")
+        if not sep or not source or not target:
+            raise ValueError(f"--remap {item!r}: expected FROM:=TO, e.g. "
+                             "camera/color/image_raw:=/camera/camera/color/image_raw")
+        out[source] = target
+    return out
 
 
 def _add_launch_parser(sub: argparse._SubParsersAction) -> None:
@@ -448,6 +460,9 @@ def _add_launch_parser(sub: argparse._SubParsersAction) -> None:
     la.add_argument("--rate", type=float, default=None, metavar="R", help="bag_replay_node's replay rate")
     la.add_argument("--params-file", type=Path, default=None, metavar="YAML",
                     help="ROS params file passed to every node; the options above win over it")
+    la.add_argument("--remap", action="append", metavar="FROM:=TO",
+                    help="topic remapping for the operator nodes and the configurator (repeatable), e.g. the "
+                         "camera driver's topics: camera/color/image_raw:=/camera/camera/color/image_raw")
     la.add_argument("--log-dir", type=Path, default=None, metavar="DIR",
                     help="also write each node's output to DIR/<node>.log")
     la.set_defaults(func=_cmd_launch)

@@ -483,10 +483,12 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
                   pipeline: str | os.PathLike | None = None, policy: str | None = None,
                   bag: str | os.PathLike | None = None, rate: float | None = None,
                   params_file: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None,
-                  say: Callable[[str], None] = print) -> list[NodeSpec]:
+                  say: Callable[[str], None] = print, remaps: dict[str, str] | None = None) -> list[NodeSpec]:
     """The NodeSpecs of `perception-config launch`, with every default resolved and every path
     absolute. Explicit options become `-p` parameters (they win over `params_file`); defaults
-    are passed only where `params_file` does not set that parameter."""
+    are passed only where `params_file` does not set that parameter. `remaps` (topic: the
+    camera driver's topic) go to every node that takes models and frames (the operator nodes
+    and the configurator): a params file cannot remap."""
     cwd = Path(cwd or Path.cwd()).resolve()
 
     def absolute(p: str | os.PathLike, what: str, is_dir: bool | None = False) -> Path:
@@ -529,6 +531,12 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             pipeline_ref = None
         for s in model_specs:
             set_param(s, "pipeline", str(pipeline) if shipped else pipeline_ref, True)
+
+    for source, target in (remaps or {}).items():
+        if not source or not target or ":=" in source or ":=" in target:
+            raise ValueError(f"a remap is FROM:=TO with two topic names, got {source!r}:={target!r}")
+        for s in model_specs:
+            s.remaps[source] = target
 
     if "configurator" in names:
         conf = specs[names.index("configurator")]

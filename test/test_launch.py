@@ -458,3 +458,39 @@ def test_launch_bag_replays_a_short_bag_once_the_nodes_listen(ros_node, syntheti
         assert [r.success for r in results] == [True, True, True], [r.message for r in results]
     finally:
         _cleanup(launcher, None)
+
+
+def test_the_shipped_real_camera_example_sets_only_declared_parameters_and_remaps_the_camera(tmp_path):
+    """config/realsense_cell.yaml (README "A real robot cell"): a valid ROS params file whose every
+    parameter is one a node declares, launched with --pipeline cell and the driver's topics."""
+    import re
+    from importlib import resources
+
+    import yaml
+
+    import perception_config.ros as ros_pkg
+
+    example = resources.files("perception_config.config").joinpath("realsense_cell.yaml")
+    data = yaml.safe_load(example.read_text())
+    declared = set()
+    for src in resources.files(ros_pkg).iterdir():
+        if src.name.endswith(".py"):
+            declared |= set(re.findall(r'declare_parameter\(\s*"(\w+)"', src.read_text()))
+    for node, body in data.items():
+        params = body["ros__parameters"]
+        assert params and set(params) <= declared, (node, set(params) - declared)
+    assert data["pick_node"]["ros__parameters"]["robot_service"]
+
+    _models(tmp_path / "models", 1)
+    remaps = {"camera/color/image_raw": "/camera/camera/color/image_raw",
+              "camera/depth/image_raw": "/camera/camera/aligned_depth_to_color/image_raw",
+              "camera/camera_info": "/camera/camera/color/camera_info"}
+    specs = resolve_nodes(cwd=tmp_path, models="models", pipeline="cell", params_file=str(example), remaps=remaps,
+                          say=lambda _: None)
+    for spec in specs:
+        cmd = spec.command()
+        assert cmd[2:4] == ["--params-file", str(example)]
+        assert [cmd[i + 1] for i, a in enumerate(cmd) if a == "-r"] == [f"{k}:={v}" for k, v in remaps.items()]
+        assert _p(spec)["pipeline"] == "cell"
+    with pytest.raises(ValueError, match="FROM:=TO"):
+        resolve_nodes(cwd=tmp_path, models="models", remaps={"camera/camera_info": ""}, say=lambda _: None)
