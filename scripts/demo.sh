@@ -4,11 +4,15 @@
 #   2. train the policy-gradient agent briefly on the train images;
 #   3. evaluate it against the oracle, fixed engineer pipelines and the random agent over the
 #      noise sweep lambda = 0.1 .. 1.0 on the test images (Fig. 5), print the table and plots;
-#   4. through ROS 2: record test images to MCAP, replay them with bag_replay_node through the
+#   4. the robot cell without ground truth: train the agent on the cell pipeline (ppf, ranked
+#      candidates, global_registration, ICP; only the simulated pick looks at the ground truth)
+#      and evaluate it against the fixed ground-truth-free pipelines and the oracle;
+#   5. through ROS 2: record test images to MCAP, replay them with bag_replay_node through the
 #      operator nodes and the configurator running the trained policy (each its own process),
 #      estimate every object with estimate_pose and compare with the same episodes in-process.
 # Environment: DEMO_EPISODES (training episodes, default 1500), DEMO_EVAL_EPISODES (episodes
-# per lambda, default 12), DEMO_REPLAY_IMAGES (images replayed through ROS, default 8),
+# per lambda, default 12), DEMO_CELL_EPISODES (training episodes of the cell agent, default 400),
+# DEMO_CELL_EVAL_EPISODES (its evaluation episodes, default 30), DEMO_REPLAY_IMAGES (images replayed through ROS, default 8),
 # PERCEPTION_CONFIG_DATA (dataset folder, default data/default), DEMO_WORKERS (Ray workers for
 # training and evaluation, default 2 on a machine with 2+ cores; 1 = in-process, without Ray).
 set -euo pipefail
@@ -18,30 +22,44 @@ cd "$ROOT"
 DATA="${PERCEPTION_CONFIG_DATA:-$ROOT/data/default}"
 OUT="$ROOT/outputs/demo"
 RUN="$ROOT/runs/demo-pg"
+CELL_RUN="$ROOT/runs/demo-cell-pg"
 mkdir -p "$OUT"
 start=$(date +%s)
 WORKERS="${DEMO_WORKERS:-$(( $(nproc) >= 2 ? 2 : 1 ))}"
 
 if [ ! -f "$DATA/models/models_info.json" ]; then  # the generator renames a finished dataset into place
-  say "1/4 synthesising the default dataset into $DATA"
+  say "1/5 synthesising the default dataset into $DATA"
   perception-config synth --out "$DATA" --scenes 4 --images-per-scene 10 --seed 0
 else
-  say "1/4 default dataset present: $DATA"
+  say "1/5 default dataset present: $DATA"
 fi
 perception-config show --dataset "$DATA" --out "$OUT/frame.png"
 
-say "2/4 training the policy-gradient agent (${DEMO_EPISODES:-1500} episodes, measured time)"
+say "2/5 training the policy-gradient agent (${DEMO_EPISODES:-1500} episodes, measured time)"
 perception-config train --dataset "$DATA" --agent pg --out "$RUN" --episodes "${DEMO_EPISODES:-1500}" --overwrite \
   --workers "$WORKERS"
 
-say "3/4 evaluating over lambda = 0.1 .. 1.0 on the test images"
+say "3/5 evaluating over lambda = 0.1 .. 1.0 on the test images"
 perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/evaluation" \
   --episodes "${DEMO_EVAL_EPISODES:-12}" --workers "$WORKERS"
 
-say "4/4 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
+say "4/5 the cell without ground truth: pg on the cell pipeline (${DEMO_CELL_EPISODES:-400} episodes, measured time)"
+perception-config train --dataset "$DATA" --agent pg --pipeline cell --out "$CELL_RUN" \
+  --episodes "${DEMO_CELL_EPISODES:-400}" --overwrite --workers "$WORKERS"
+# The cell's generator (ppf) has no noise level: one lambda, whose value is not used.
+perception-config evaluate --dataset "$DATA" --policy "$CELL_RUN/policy.safetensors" --out "$OUT/cell" \
+  --lambdas 0.5 --episodes "${DEMO_CELL_EVAL_EPISODES:-30}" --oracle-budget 300 --workers "$WORKERS"
+
+say "5/5 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
 perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \
   --images "${DEMO_REPLAY_IMAGES:-8}"
 
+table() { "$PY" -c 'import json, sys; from perception_config.evaluation import format_table
+print(format_table(json.load(open(sys.argv[1]))))' "$1"; }
+say "the lambda study (simulated initialisation, default pipeline):"
+table "$OUT/evaluation/results.json"
+say "the cell without ground truth (cell pipeline: ppf + ranked candidates + global_registration):"
+table "$OUT/cell/results.json"
 say "done in $(( $(date +%s) - start )) s. Look at:"
 echo "  $OUT/frame.png                      a frame with the ground truth overlaid"
 echo "  $RUN/learning_curve.png      the training curve"
@@ -49,5 +67,7 @@ echo "  $OUT/evaluation/fig5.png           operations, time and first picks vs l
 echo "  $OUT/evaluation/lambda_grid.png    initial hypotheses per lambda (Fig. 4)"
 echo "  $OUT/evaluation/episode_*.png      initial vs final hypothesis of chosen episodes (Fig. 2)"
 echo "  $OUT/evaluation/results.json       all figures; bop/*.csv for bop_toolkit"
+echo "  $CELL_RUN/learning_curve.png  the cell agent's training curve"
+echo "  $OUT/cell/results.json             the cell pipeline: agent vs fixed ground-truth-free pipelines and oracle"
 echo "  $OUT/replay/replay_check.png       through ROS vs in-process: success and operator time"
 echo "  $OUT/replay/replay.mcap            the recorded bag (perception-config launch --bag ... replays it)"
