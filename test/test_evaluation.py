@@ -362,3 +362,26 @@ def test_cli_evaluate(dataset, tmp_path, capsys):
     rc = main(["evaluate", "--dataset", str(dataset), "--out", str(out), "--lambdas", "0.5,3", "--quiet"])
     assert rc == 2
     assert "lambda must be in [0, 2.0], got 3.0" in capsys.readouterr().err
+
+
+def test_oracle_ratio_pairs_the_episodes_both_solved_and_counts_the_first_generator_call():
+    from perception_config.evaluation import _oracle_ratios, format_table, summarise
+
+    def ep(agent, episode, success, time, gen=0.5):
+        return {"agent": agent, "lambda": 0.5, "episode": episode, "episode_seed": 10 + episode, "success": success,
+                "time": time, "generation_time": gen, "ops": 2, "cost": time, "first_pick_success": success}
+
+    eps = [ep("oracle", 0, True, 0.1), ep("oracle", 1, True, 0.3), ep("oracle", 2, False, 1.0),
+           ep("pg", 0, True, 0.3), ep("pg", 1, False, 5.0), ep("pg", 2, True, 0.2)]
+    records = [summarise(a, 0.5, [e for e in eps if e["agent"] == a]) for a in ("oracle", "pg")]
+    _oracle_ratios(records, eps)
+    oracle, pg = records
+    assert oracle["oracle_ratio"] == 1.0 and oracle["oracle_ratio_n"] == 2
+    # only episode 0 is solved by both: (0.3 + 0.5) / (0.1 + 0.5)
+    assert pg["oracle_ratio"] == pytest.approx(0.8 / 0.6) and pg["oracle_ratio_n"] == 1
+    assert pg["time_to_success_with_generation"]["mean"] == pytest.approx(np.mean([0.8, 0.7]))
+    table = format_table(records)
+    assert "gen+time" in table and "vs oracle" in table and "1.33x" in table
+    # without a generator's time and an oracle the table keeps its plain columns
+    plain = [summarise("pg", 0.5, [dict(e, generation_time=0.0) for e in eps if e["agent"] == "pg"])]
+    assert "gen+time" not in format_table(plain) and "vs oracle" not in format_table(plain)
