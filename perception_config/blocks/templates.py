@@ -28,7 +28,7 @@ from ..vision.linemod import (
     distinct_matches,
     linemod_templates,
     match,
-    pose_from_match,
+    poses_from_matches,
 )
 from ..vision.segmentation import frame_segmentation
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
@@ -58,7 +58,7 @@ class LineMod(Block):
         Param("per_place", 30, 1, 1000, doc="matches kept per place (half the smallest template size)"),
         Param("n_matches", 60, 1, 1000,
               doc="matches verified (with depth: the best by a render-free depth check; without: by similarity)"),
-        Param("n_polish", 8, 0, 50,
+        Param("n_polish", 5, 0, 50,
               doc="best verified matches polished (ICP with depth, d2co without) and verified again"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
@@ -104,27 +104,27 @@ class LineMod(Block):
             return BlockResult(ok=False, info={"templates": source, "matches": 0}, reason=(
                 f"linemod: no template matches at {c['threshold']:.0f} % (object not in view?)"))
         seg = frame_segmentation(frame, inp.cache, c["plane_distance"]) if use_depth else None
-        poses = [pose_from_match(t, m, frame.K, d, _observed_depth(t, m, frame, d) if use_depth else None)
-                 for m in found]
+        z = np.array([_observed_depth(t, m, frame, d) for m in found], float) if use_depth else None
+        Rs, ts = poses_from_matches(t, found, frame.K, d, z)
         if use_depth:  # the best by a render-free depth check (support surfaces neutral)
             observed = np.where(seg.support, np.nan, frame.depth)
-            sub = np.linspace(0, len(model.points) - 1, min(len(model.points), 300)).astype(np.intp)
+            sub = np.linspace(0, len(model.points) - 1, min(len(model.points), 200)).astype(np.intp)
             tol = max(c["verify_tol"], 0.03 * d)
-            quick = np.concatenate([depth_agreement(model.points[sub], model.point_normals[sub],
-                                                    np.array([p.R for p in poses[i:i + 256]]),
-                                                    np.array([p.t for p in poses[i:i + 256]]), observed, frame.K, tol)
-                                    for i in range(0, len(poses), 256)])
+            quick = np.concatenate([depth_agreement(model.points[sub], model.point_normals[sub], Rs[i:i + 256],
+                                                    ts[i:i + 256], observed, frame.K, tol)
+                                    for i in range(0, len(Rs), 256)])
             order = np.argsort(-quick, kind="stable")
         else:
-            order = np.arange(len(poses))
+            order = np.arange(len(Rs))
         order = order[: int(c["n_matches"])]
+        poses = {int(k): Pose(Rs[k], ts[k]) for k in order}
         t_quick = time.perf_counter()
         psi = create("psi_rgb")
         pre = []
         for k in order:
             if time.perf_counter() >= deadline:
                 break
-            pose = poses[k]
+            pose = poses[int(k)]
             if not pose.is_valid():
                 continue
             score = self._score(inp, pose, seg, psi)
@@ -185,16 +185,16 @@ class LineMod(Block):
         return icp_polish(model, pose, target, dists, self.config["icp_iterations"])[0]
 
 
-def _observed_depth(t, m, frame, diameter: float) -> float | None:
+def _observed_depth(t, m, frame, diameter: float) -> float:
     """The depth of the model centre for match `m`: the median observed depth within a quarter
     of the template's size around the matched centre, behind it by the template's surface
-    offset (the template's size gives the depth only to a scale step). None without depth there."""
+    offset (the template's size gives the depth only to a scale step). NaN without depth there."""
     r = max(2, int(0.25 * t.pixels[m.template]))
     u, v = int(round(m.u)), int(round(m.v))
     obs = frame.depth[max(0, v - r):v + r + 1, max(0, u - r):u + r + 1]
     obs = obs[np.isfinite(obs) & (obs > 0)]
     if len(obs) < 5:
-        return None
+        return math.nan
     return float(np.median(obs)) - float(t.surface[m.template]) * diameter
 
 

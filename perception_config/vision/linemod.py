@@ -347,34 +347,45 @@ def depth_agreement(points: np.ndarray, normals: np.ndarray, R: np.ndarray, t: n
     return (inl.sum(axis=1) - viol.sum(axis=1)) / n
 
 
-def ray_rotation(K: np.ndarray, u: float, v: float) -> np.ndarray:
-    """Rotation taking the optical axis onto the ray through pixel (u, v)."""
-    d = np.linalg.solve(K, np.array([u, v, 1.0]))
-    d /= np.linalg.norm(d)
-    axis = np.cross([0.0, 0.0, 1.0], d)
-    s = np.linalg.norm(axis)
-    if s < 1e-12:
-        return np.eye(3)
-    ang = math.atan2(s, d[2])
-    k = axis / s
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(ang) * Kx + (1 - math.cos(ang)) * Kx @ Kx
+def ray_rotations(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations taking the optical axis onto the rays through pixels uv (n, 2)."""
+    d = np.linalg.solve(K, np.c_[uv, np.ones(len(uv))].T).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    axis = np.stack([-d[:, 1], d[:, 0], np.zeros(len(d))], axis=1)  # z x d
+    s = np.linalg.norm(axis, axis=1)
+    k = axis / np.maximum(s, 1e-12)[:, None]
+    ang = np.arctan2(s, d[:, 2])[:, None, None]
+    Kx = np.zeros((len(d), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    return np.eye(3) + np.sin(ang) * Kx + (1.0 - np.cos(ang)) * (Kx @ Kx)
+
+
+def poses_from_matches(t: Templates, matches: list[TemplateMatch], K: np.ndarray, diameter: float,
+                       z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The poses (R (n, 3, 3), t (n, 3)) the matches stand for: each template's rotation seen
+    along the ray through its matched centre, the centre at depth `z` (n,) where given (finite),
+    else at the template's range (its pixel size with the frame's focal length) along the ray."""
+    K = np.asarray(K, np.float64)
+    uv = np.array([[m.u, m.v] for m in matches], np.float64).reshape(-1, 2)
+    idx = np.array([m.template for m in matches], np.intp)
+    R = ray_rotations(K, uv) @ t.rotations[idx]
+    ray = np.linalg.solve(K, np.c_[uv, np.ones(len(uv))].T).T
+    rng = math.sqrt(K[0, 0] * K[1, 1]) * diameter / t.pixels[idx]
+    c = ray / np.linalg.norm(ray, axis=1, keepdims=True) * rng[:, None]
+    if z is not None:
+        given = np.isfinite(z)
+        c[given] = ray[given] * (z[given] / ray[given, 2])[:, None]
+    return R, c - R @ t.centre
 
 
 def pose_from_match(t: Templates, m: TemplateMatch, K: np.ndarray, diameter: float,
                     z: float | None = None) -> Pose:
-    """The pose a match stands for: the template's rotation seen along the ray through the
-    matched centre, at depth `z` of the centre (None: from the template's pixel size)."""
-    K = np.asarray(K, np.float64)
-    R = ray_rotation(K, m.u, m.v) @ t.rotations[m.template]
-    ray = np.linalg.solve(K, np.array([m.u, m.v, 1.0]))
-    if z is None:  # the template's range, along the ray
-        c = ray / np.linalg.norm(ray) * (math.sqrt(K[0, 0] * K[1, 1]) * diameter / float(t.pixels[m.template]))
-    else:
-        c = ray * (z / ray[2])
-    return Pose(R, c - R @ t.centre)
+    """The pose one match stands for (see poses_from_matches)."""
+    R, tr = poses_from_matches(t, [m], K, diameter, None if z is None else np.array([z], float))
+    return Pose(R[0], tr[0])
 
 
 __all__ = ["TemplateParams", "Templates", "TemplateMatch", "linemod_templates", "prepare_templates", "match",
            "distinct_matches", "depth_agreement",
-           "pose_from_match", "icosphere", "view_rotations", "LINEMOD_FORMAT"]
+           "pose_from_match", "poses_from_matches", "icosphere", "view_rotations", "LINEMOD_FORMAT"]
