@@ -10,7 +10,8 @@ distinct matches become poses (the template's rotation along the matched ray; th
 template's size, or from the observed depth under the match); (3) each is verified: with depth by
 render-and-compare (vision/verification.py `verify`, as ppf), without by `psi_rgb` (colour-region
 separation and oriented edges of the outline); (4) the best `n_polish` are polished (ICP against
-the observed points, or the `d2co` edge refiner without depth) and verified again; the distinct
+the observed points; without depth, the depth along the ray by a scan over the template size step,
+then hill climbing of psi_rgb over depth, image position and rotation) and verified again; the distinct
 results, best first, are the candidates. Confidence = the verification score clipped to [0, 1].
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose
+from ..geometry import Pose, exp_so3
 from ..render import render_box
 from ..vision.linemod import (
     TemplateParams,
@@ -59,7 +60,8 @@ class LineMod(Block):
         Param("n_matches", 60, 1, 1000,
               doc="matches verified (with depth: the best by a render-free depth check; without: by similarity)"),
         Param("n_polish", 5, 0, 50,
-              doc="best verified matches polished (ICP with depth, d2co without) and verified again"),
+              doc="with depth: best verified matches polished by ICP and verified again"),
+        Param("n_climb", 2, 0, 50, doc="without depth: best verified matches polished by psi_rgb hill climbing"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
@@ -133,11 +135,10 @@ class LineMod(Block):
         pre.sort(key=lambda q: (-q[0], q[1]))
         t_verify = time.perf_counter()
         polished: list[tuple[float, Pose]] = [(q[0], q[2]) for q in pre]
-        refiner = None if use_depth else create("d2co")
-        for score, _, pose in pre[: c["n_polish"]]:
+        for score, _, pose in pre[: c["n_polish"] if use_depth else c["n_climb"]]:
             if time.perf_counter() >= deadline:
                 break
-            new = self._polish(inp, pose, seg, refiner)
+            new = self._polish(inp, pose, seg, deadline)
             if new is not None:
                 s = self._score(inp, new, seg, psi)
                 if math.isfinite(s) and s > score:
@@ -168,10 +169,54 @@ class LineMod(Block):
         r = psi(BlockInput(frame=inp.frame, model=inp.model, pose=pose, cache=inp.cache))
         return float(r.scores["psi_rgb"]) if r.ok else -math.inf
 
-    def _polish(self, inp: BlockInput, pose: Pose, seg, refiner) -> Pose | None:
-        if seg is None:
-            r = refiner(BlockInput(frame=inp.frame, model=inp.model, pose=pose, cache=inp.cache))
-            return r.pose if r.ok else None
+    def _best_depth(self, inp: BlockInput, pose: Pose) -> Pose:
+        """`pose` moved along its viewing ray to the depth (within the template size step) where
+        psi_rgb at the outline's exact place fits best: the template's size gives the depth only
+        to that step."""
+        exact = create("psi_rgb", search_radius=0)
+        best, best_score = pose, -math.inf
+        for f in _depth_factors(self.config):
+            cand = Pose(pose.R, pose.t * f)
+            score = self._score(inp, cand, None, exact)
+            if score > best_score:
+                best, best_score = cand, score
+        return best
+
+    def _climb(self, inp: BlockInput, pose: Pose, deadline: float) -> tuple[float, Pose]:
+        """RGB only: hill climbing of psi_rgb at the outline's exact place (no shift search) over
+        the depth along the ray, the image position and the rotation about the camera axes, the
+        steps halved when no move helps (a template's rotation and size are a grid step off)."""
+        exact = create("psi_rgb", search_radius=0)
+        score = self._score(inp, pose, None, exact)
+        step_rot, step_z, step_px = math.radians(8.0), 0.06, 4.0
+        f = float(inp.frame.K[0, 0])
+        while step_rot >= math.radians(1.0) and time.perf_counter() < deadline:
+            z = max(float(pose.t[2]), 1e-3)
+            moves = []
+            for sign in (1.0, -1.0):
+                moves.append(Pose(pose.R, pose.t * (1.0 + sign * step_z)))
+                for axis in range(3):
+                    w = np.zeros(3)
+                    w[axis] = sign * step_rot
+                    c = pose.transform(inp.model.points.mean(axis=0)[None])[0]
+                    R = exp_so3(w) @ pose.R
+                    moves.append(Pose(R, c - R @ inp.model.points.mean(axis=0)))
+                    if axis < 2:
+                        dt = np.zeros(3)
+                        dt[axis] = sign * step_px * z / f
+                        moves.append(Pose(pose.R, pose.t + dt))
+            scored = [(self._score(inp, m, None, exact), k) for k, m in enumerate(moves)]
+            best, k = max(scored)
+            if best > score:
+                score, pose = best, moves[k]
+            else:
+                step_rot, step_z, step_px = step_rot / 2, step_z / 2, max(step_px / 2, 0.5)
+        return score, pose
+
+    def _polish(self, inp: BlockInput, pose: Pose, seg, deadline: float) -> Pose | None:
+        if seg is None:  # RGB only: the depth along the ray by psi_rgb over the scale step, then a climb
+            pose = self._best_depth(inp, pose)
+            return self._climb(inp, pose, deadline)[1]
         model, frame = inp.model, inp.frame
         r = render_box(model, pose, frame.K, frame.width, frame.height)
         label = _dominant_label(seg, r)
@@ -183,6 +228,15 @@ class LineMod(Block):
         voxel = max(0.003, 0.03 * model.diameter)
         dists = (max(3.0 * voxel, 0.006), max(1.2 * voxel, 0.003), max(0.5 * voxel, 0.002))
         return icp_polish(model, pose, target, dists, self.config["icp_iterations"])[0]
+
+
+def _depth_factors(c: dict) -> np.ndarray:
+    """Depth factors (1 first) covering the step between two template sizes, about 3 % apart."""
+    step = (max(c["max_px"], c["min_px"]) / c["min_px"]) ** (1.0 / max(1, c["n_scales"] - 1))
+    half = math.sqrt(step) * 1.05
+    n = max(1, int(math.ceil(math.log(half) / math.log(1.03))))
+    f = half ** (np.arange(-n, n + 1) / n)
+    return np.r_[1.0, f[np.abs(f - 1.0) > 1e-9]]
 
 
 def _observed_depth(t, m, frame, diameter: float) -> float:
