@@ -155,13 +155,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--confident", type=float, default=0.5, help="confidence counted as confident")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "candidates.json")
     ap.add_argument("--default", type=Path, default=DEFAULT, help="the synthetic default dataset (BOP layout)")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="prepared tables and templates kept here across runs (default: a fresh temporary folder, "
+                         "so preparation is built and timed)")
+    ap.add_argument("--no-rgb-only", action="store_true", help="leave out the RGB-only photographs")
     args = ap.parse_args(argv)
 
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     cache = tempfile.TemporaryDirectory(prefix="bench_candidates_cache_")
-    os.environ["PERCEPTION_CONFIG_CACHE"] = cache.name
+    os.environ["PERCEPTION_CONFIG_CACHE"] = str(args.cache) if args.cache else cache.name
     sets: dict[str, tuple[list, float]] = {}
     if (LMO / "models" / "models_info.json").exists():
         lmo = frames_of(LMO, test_split=False)
@@ -169,13 +173,14 @@ def main(argv: list[str] | None = None) -> int:
         sets["LM-O real frame, visib >= 0.3"] = (lmo, 0.3)
     sets["synthetic default, test images, visib >= 0.3"] = (frames_of(args.default, test_split=True), 0.3)
     rgb_sets: dict[str, tuple[list, float]] = {}
-    if (LMO_RGB / "models" / "models_info.json").exists():
+    if (LMO_RGB / "models" / "models_info.json").exists() and not args.no_rgb_only:
         rgb_sets["LM-O real photographs, no depth, all objects"] = (without_depth(frames_of(LMO_RGB, test_split=False)),
                                                                     0.0)
     print(f"candidates benchmark, one core (OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}), "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     out: dict = {"machine": {"python": platform.python_version(), "open3d": o3d.__version__,
-                             "load_average": os.getloadavg()[0], "cpus": os.cpu_count()}, "results": []}
+                             "load_average": os.getloadavg()[0], "cpus": os.cpu_count()}, "results": [],
+           "cache_reused": bool(args.cache)}  # True: the preparation times below are reads, not builds
     if "ppf" in args.generators:
         out["ppf_tables"] = prepare_tables({k: v[0] for k, v in sets.items()})
         t = out["ppf_tables"]

@@ -53,7 +53,12 @@ class LineMod(Block):
         Param("min_px", 32.0, 16.0, 400.0, doc="apparent model diameter (px) of the smallest templates"),
         Param("max_px", 160.0, 16.0, 600.0, doc="apparent model diameter (px) of the largest templates"),
         Param("num_features", 63, 8, 200, doc="LINE-MOD features per template and modality"),
-        Param("threshold", 70.0, 10.0, 100.0, doc="LINE-MOD similarity (percent) a match must reach"),
+        Param("threshold", 80.0, 10.0, 100.0,
+              doc="LINE-MOD similarity (percent) a match must reach (on cluttered, textured images the "
+                  "match time grows steeply below 80)"),
+        Param("threshold_low", 70.0, 10.0, 100.0, doc="the threshold of a second match when the first finds few"),
+        Param("min_raw", 500, 0, 100000, doc="fewer matches at `threshold`: matched again at `threshold_low`"),
+        Param("mask_support", True, doc="with depth: image features on the support planes are left out of matching"),
         Param("use_depth", True, doc="with depth in the frame: the surface-normal modality and depth verification"),
         Param("max_raw", 4000, 10, 100000, doc="LINE-MOD matches read, best first"),
         Param("per_place", 30, 1, 1000, doc="matches kept per place (half the smallest template size)"),
@@ -98,14 +103,20 @@ class LineMod(Block):
         depth_mm = None
         if use_depth:
             depth_mm = np.nan_to_num(np.clip(frame.depth * 1000.0, 0, 65535), nan=0.0).astype(np.uint16)
-        found = match(t, frame.rgb, depth_mm, c["threshold"], int(c["max_raw"]))
+        seg = frame_segmentation(frame, inp.cache, c["plane_distance"]) if use_depth else None
+        mask = None
+        if use_depth and c["mask_support"]:  # features on the support surfaces (table, bin floor) do not count
+            mask = np.where(seg.support, 0, 255).astype(np.uint8)
+        found = match(t, frame.rgb, depth_mm, c["threshold"], int(c["max_raw"]), mask)
+        if len(found) < c["min_raw"] and c["threshold_low"] < c["threshold"]:
+            # few matches (an untextured scene): the lower threshold is cheap there and finds more
+            found = match(t, frame.rgb, depth_mm, c["threshold_low"], int(c["max_raw"]), mask)
         n_raw = len(found)
         found = distinct_matches(found, max(4.0, 0.5 * c["min_px"]), int(c["per_place"]))
         t_match = time.perf_counter()
         if not found:
             return BlockResult(ok=False, info={"templates": source, "matches": 0}, reason=(
                 f"linemod: no template matches at {c['threshold']:.0f} % (object not in view?)"))
-        seg = frame_segmentation(frame, inp.cache, c["plane_distance"]) if use_depth else None
         z = np.array([_observed_depth(t, m, frame, d) for m in found], float) if use_depth else None
         Rs, ts = poses_from_matches(t, found, frame.K, d, z)
         if use_depth:  # the best by a render-free depth check (support surfaces neutral)

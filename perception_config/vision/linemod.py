@@ -291,16 +291,20 @@ class TemplateMatch:
 
 
 def match(t: Templates, rgb: np.ndarray, depth_mm: np.ndarray | None, threshold: float,
-          max_matches: int) -> list[TemplateMatch]:
+          max_matches: int, mask: np.ndarray | None = None) -> list[TemplateMatch]:
     """The best `max_matches` template matches above `threshold` (0..100) in an RGB image (with
-    the depth image in mm for the colour + depth detector), best first."""
+    the depth image in mm for the colour + depth detector), best first; `mask` (uint8, 255 =
+    used): the pixels whose features count."""
     name = "rgb" if depth_mm is None else "rgbd"
     if len(t.index[name]) == 0:
         name = "rgb"
         depth_mm = None
     bgr = np.ascontiguousarray(rgb[..., ::-1])
     sources = [bgr] if depth_mm is None else [bgr, depth_mm]
-    found, _ = t.detectors[name].match(sources, float(threshold))
+    if mask is None:
+        found, _ = t.detectors[name].match(sources, float(threshold))
+    else:
+        found, _ = t.detectors[name].match(sources, float(threshold), masks=[mask] * len(sources))
     out = []
     for m in found[:max_matches]:
         i = int(m.template_id)
