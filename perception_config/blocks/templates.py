@@ -116,7 +116,8 @@ class LineMod(Block):
         t_match = time.perf_counter()
         if not found:
             return BlockResult(ok=False, info={"templates": source, "matches": 0}, reason=(
-                f"linemod: no template matches at {c['threshold']:.0f} % (object not in view?)"))
+                f"linemod: no template matches at {min(c['threshold'], c['threshold_low']):.0f} % "
+                "(object not in view?)"))
         z = np.array([_observed_depth(t, m, frame, d) for m in found], float) if use_depth else None
         Rs, ts = poses_from_matches(t, found, frame.K, d, z)
         if use_depth:  # the best by a render-free depth check (support surfaces neutral)
@@ -163,7 +164,9 @@ class LineMod(Block):
                             "verify": t_verify - t_quick,
                             "polish": now - t_verify}}
         if not ranked:
-            return BlockResult(ok=False, info=info, reason=f"linemod: none of {len(found)} matches could be verified")
+            why = (f"the time budget ({c['max_seconds']} s) ran out in matching" if not pre and now >= deadline
+                   else "none could be verified")
+            return BlockResult(ok=False, info=info, reason=f"linemod: {len(found)} matches, {why}")
         best_score = polished[0][0]
         scores = {"gen_verification": best_score}
         floor = c["min_verification"] if use_depth else c["min_verification_rgb"]
