@@ -71,6 +71,9 @@ class LineMod(Block):
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
         Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
+        Param("explain_weight", 0.5, 0.0, 1.0,
+              doc="weight of the covered share of the regions under a candidate in its depth verification "
+                  "(a small part fitted onto a face of a larger object covers little of that object's region)"),
         Param("min_verification", 0.3, -1.0, 1.0,
               doc="below this (depth verification) the best candidate is not accepted (ok=False)"),
         Param("min_verification_rgb", 0.4, 0.0, 1.0,
@@ -179,7 +182,7 @@ class LineMod(Block):
         """Depth verification (as ppf's) with depth, psi_rgb without; -inf when it cannot be scored."""
         if seg is not None:
             return float(verify(inp.model, pose, inp.frame, self.config["verify_tol"], 1.0, 0.5, seg=seg,
-                                explain_weight=0.5)[0])
+                                explain_weight=self.config["explain_weight"])[0])
         r = psi(BlockInput(frame=inp.frame, model=inp.model, pose=pose, cache=inp.cache))
         return float(r.scores["psi_rgb"]) if r.ok else -math.inf
 
