@@ -145,7 +145,7 @@ setup(
     # packages (rclpy, the message packages) come from the ROS prefix and are declared in package.xml;
     # requirements.lock pins the exact versions set-up installs, ROS wheels included.
     install_requires=[
-        "numpy>=1.26", "scipy>=1.11", "open3d-cpu==0.20.0", "opencv-python-headless>=4.8", "pyyaml>=6",
+        "numpy>=1.26", "scipy>=1.11", "open3d-cpu==0.20.0", "opencv-contrib-python-headless>=4.8", "pyyaml>=6",
         "tqdm>=4.60", "matplotlib>=3.7", "mcap>=1.1", "mcap-ros2-support>=0.5", "rosbags>=0.10",
         "trimesh>=4.0", "zstandard>=0.22", "lz4>=4.3", "gymnasium>=1.0", "torch==2.13.0", "safetensors>=0.4",
         "pyarrow>=14", "ray==2.58.0",

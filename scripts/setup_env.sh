@@ -84,6 +84,12 @@ hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -d' ' -f1; }
 req_hash="$(hash_of "$ROOT/requirements.lock" "$ROOT/requirements.txt")"
 if [ "$(cat "$VENV/.requirements.sha256" 2>/dev/null)" != "$req_hash" ]; then
   say "installing requirements.lock (first run: a few minutes)"
+  # opencv-contrib-python-headless (cv2.linemod) replaces opencv-python-headless: both install cv2/,
+  # so an older venv's plain wheel goes first (left in place, uninstalling either breaks the other).
+  if "$PY" -m pip show -q opencv-python-headless >/dev/null 2>&1; then
+    quiet_pip uninstall -q -y opencv-python-headless opencv-contrib-python-headless \
+      || die "pip uninstall opencv-python-headless failed"
+  fi
   # Exact versions, every file's sha256 checked; torch==2.13.0+cpu comes from pip's find-links folder.
   quiet_pip install -q --require-hashes -r "$ROOT/requirements.lock" || die "pip install -r requirements.lock failed"
   # A line added to requirements.txt without ./scripts/lock.sh still gets installed (unhashed);

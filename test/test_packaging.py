@@ -15,7 +15,7 @@ PACKAGE = ROOT / "perception_config"
 
 # Top-level module -> the pip distribution that provides it (where the names differ, and the rest).
 IMPORT_TO_DIST = {
-    "cv2": "opencv-python-headless", "yaml": "pyyaml", "open3d": "open3d-cpu", "mcap_ros2": "mcap-ros2-support",
+    "cv2": "opencv-contrib-python-headless", "yaml": "pyyaml", "open3d": "open3d-cpu", "mcap_ros2": "mcap-ros2-support",
     "numpy": "numpy", "scipy": "scipy", "tqdm": "tqdm", "matplotlib": "matplotlib", "mcap": "mcap",
     "rosbags": "rosbags", "trimesh": "trimesh", "gymnasium": "gymnasium", "torch": "torch",
     "safetensors": "safetensors", "zstandard": "zstandard", "lz4": "lz4", "pyarrow": "pyarrow",

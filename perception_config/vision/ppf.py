@@ -20,20 +20,17 @@ rewritten (atomically), never trusted.
 """
 from __future__ import annotations
 
-import hashlib
 import math
-import os
 import threading
 import weakref
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..atomic_file import atomic_output
 from ..models import ObjectModel
+from .disk_cache import cache_dir, load_npz, model_digest, store_npz
 
 PPF_FORMAT = 2  # bump when the table's content or layout changes: old cache files are rebuilt
 MAX_MODEL_POINTS = 900  # model samples kept after voxel down-sampling (pairs grow as N^2)
@@ -55,16 +52,6 @@ class PpfModel:
     n_angle: int
     n_dist: int
     diameter: float
-
-
-def cache_dir() -> Path:
-    """Where prepared per-model tables live: $PERCEPTION_CONFIG_CACHE, else
-    $XDG_CACHE_HOME/perception_config, else ~/.cache/perception_config."""
-    env = os.environ.get("PERCEPTION_CONFIG_CACHE")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "perception_config"
 
 
 def normal_to_x(normals: np.ndarray) -> np.ndarray:
@@ -169,11 +156,7 @@ def prepare_model(model: ObjectModel, sampling_rel: float, n_angle: int) -> PpfM
 def model_hash(model: ObjectModel, sampling_rel: float, n_angle: int) -> str:
     """Hash of what the table is built from: the model's geometry and samples, the parameters,
     the format version."""
-    h = hashlib.sha256()
-    for a in (model.vertices, model.faces, model.points, model.point_normals):
-        h.update(np.ascontiguousarray(a).tobytes())
-    h.update(f"{model.diameter:.9g}|{sampling_rel:.6g}|{n_angle}|{MAX_MODEL_POINTS}|{PPF_FORMAT}".encode())
-    return h.hexdigest()[:32]
+    return model_digest(model, f"{model.diameter:.9g}|{sampling_rel:.6g}|{n_angle}|{MAX_MODEL_POINTS}|{PPF_FORMAT}")
 
 
 _FIELDS = ("points", "normals", "rot", "pair_i", "pair_theta", "starts")
@@ -183,16 +166,12 @@ _LOCK = threading.Lock()
 
 def _read_cached(path: Path, digest: str, model: ObjectModel, sampling_rel: float, n_angle: int) -> PpfModel | None:
     """The table stored at `path`, or None when it is missing, unreadable or not the one asked for."""
+    z = load_npz(path, digest)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["digest"]) != digest:
-                return None
-            arrays = {f: z[f] for f in _FIELDS}
-            step, n_dist = float(z["dist_step"]), int(z["n_dist"])
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError):
-        return None  # corrupt or from another format: rebuilt by the caller
+        arrays = {f: z[f] for f in _FIELDS}
+        step, n_dist = float(z["dist_step"]), int(z["n_dist"])
+    except (TypeError, KeyError, ValueError):
+        return None  # missing, corrupt or from another format: rebuilt by the caller
     n = len(arrays["points"])
     ok = (arrays["normals"].shape == (n, 3) and arrays["rot"].shape == (n, 3, 3)
           and len(arrays["starts"]) == n_dist * n_angle**3 + 1 and len(arrays["pair_i"]) == len(arrays["pair_theta"])
@@ -217,13 +196,8 @@ def ppf_model(model: ObjectModel, sampling_rel: float = 0.04, n_angle: int = 30,
     table, source = _read_cached(path, digest, model, sampling_rel, n_angle), "disk"
     if table is None:
         table, source = prepare_model(model, sampling_rel, n_angle), "built"
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_output(path) as tmp:
-                np.savez_compressed(tmp, digest=np.array(digest), dist_step=np.array(table.dist_step),
-                                    n_dist=np.array(table.n_dist), **{f: getattr(table, f) for f in _FIELDS})
-        except OSError:
-            pass  # a read-only cache folder: the table still serves from memory
+        store_npz(path, digest, {"dist_step": np.array(table.dist_step), "n_dist": np.array(table.n_dist),
+                                 **{f: getattr(table, f) for f in _FIELDS}})  # False in a read-only folder
     with _LOCK:
         _MEMORY.setdefault(model, {})[key] = table
     return table, source
