@@ -45,7 +45,7 @@ perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" 
 
 say "4/5 the cell without ground truth: pg on the cell pipeline (${DEMO_CELL_EPISODES:-400} episodes, measured time)"
 perception-config train --dataset "$DATA" --agent pg --pipeline cell --out "$CELL_RUN" \
-  --episodes "${DEMO_CELL_EPISODES:-400}" --overwrite --workers "$WORKERS"
+  --episodes "${DEMO_CELL_EPISODES:-400}" --validation-fraction 0.2 --overwrite --workers "$WORKERS"
 # The cell's generator (ppf) has no noise level: one lambda, whose value is not used.
 perception-config evaluate --dataset "$DATA" --policy "$CELL_RUN/policy.safetensors" --out "$OUT/cell" \
   --lambdas 0.5 --episodes "${DEMO_CELL_EVAL_EPISODES:-30}" --oracle-budget 300 --workers "$WORKERS"
