@@ -337,5 +337,5 @@ def test_the_shipped_rgb_pipeline_by_name(rgb_dataset, tmp_path):
     specs = resolve_nodes(nodes=["refinement"], models=rgb_dataset / "models", pipeline="rgb", cwd=tmp_path,
                           say=lambda _: None)
     assert "pipeline:=rgb" in " ".join(specs[0].arguments())
-    with pytest.raises(FileNotFoundError, match="shipped pipelines by name: default, pick_success, rgb"):
+    with pytest.raises(FileNotFoundError, match="shipped pipelines by name: cell, default, pick_success, rgb"):
         load_pipeline("nope")

@@ -132,7 +132,8 @@ def pipeline_from_dict(data: Any, source: str = "<pipeline>") -> Pipeline:
 
 
 def shipped_pipelines() -> list[str]:
-    """Names of the pipelines shipped in the package (`<name>_pipeline.yaml`): 'default', 'pick_success', 'rgb'."""
+    """Names of the pipelines shipped in the package (`<name>_pipeline.yaml`): 'cell', 'default',
+    'pick_success', 'rgb'."""
     return sorted(p.name[: -len("_pipeline.yaml")] for p in resources.files("perception_config.config").iterdir()
                   if p.name.endswith("_pipeline.yaml"))
 
@@ -148,7 +149,7 @@ def pipeline_reference(path: str | Path | None) -> str | None:
 
 
 def load_pipeline(path: str | Path | None = None) -> Pipeline:
-    """Load a pipeline YAML file, or a shipped pipeline by name ('default', 'rgb'; None = the
+    """Load a pipeline YAML file, or a shipped pipeline by name ('default', 'rgb', 'cell'; None = the
     default). A file of that name in the working folder wins over the shipped one."""
     if path is None:
         path = "default"
