@@ -27,7 +27,7 @@ from ..models import model_defect
 from ..render import render_box
 from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
-from ..vision.segmentation import frame_segmentation, too_small
+from ..vision.segmentation import dominant_label, frame_segmentation, too_small
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -128,7 +128,7 @@ class PointPairFeatures(Block):
         for _, _, pose, r in pre[: c["n_polish"]]:
             if time.perf_counter() >= deadline:
                 break
-            source_label = _dominant_label(seg, r)
+            source_label = dominant_label(seg, r)
             if source_label < 0:
                 continue
             target = icp_target(seg, pose, model, r, source_label)
@@ -155,21 +155,6 @@ class PointPairFeatures(Block):
             return BlockResult(ok=False, scores=scores, info=info, candidates=ranked, reason=(
                 f"ppf: best candidate verifies at {best_score:.2f} < min_verification {c['min_verification']}"))
         return BlockResult(ok=True, pose=best, scores=scores, info=info, candidates=ranked)
-
-
-def _dominant_label(seg, r) -> int:
-    """The region (coarse level) that most of the rendered silhouette lies on, or -1."""
-    if r.empty or not seg.labels:
-        return -1
-    rs, cs = r.crop_slices()
-    under = seg.labels[-1][rs, cs][r.mask >= 0]
-    under = under[under >= 0]
-    if not len(under):
-        under = seg.labels[0][rs, cs][r.mask >= 0]
-        under = under[under >= 0]
-        if not len(under):
-            return -1
-    return int(np.bincount(under).argmax())
 
 
 __all__ = ["PointPairFeatures"]

@@ -31,11 +31,9 @@ from ..vision.linemod import (
     match,
     poses_from_matches,
 )
-from ..vision.segmentation import frame_segmentation
+from ..vision.segmentation import dominant_label, frame_segmentation
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
-from .appearance import PsiRgb
-from .base import MODEL, RGB, Block, BlockInput, BlockResult, Kind, Param, register
-from .point_pairs import _dominant_label
+from .base import MODEL, RGB, Block, BlockInput, BlockResult, Kind, Param, create, register
 
 
 @register
@@ -137,7 +135,7 @@ class LineMod(Block):
         order = order[: int(c["n_matches"])]
         poses = {int(k): Pose(Rs[k], ts[k]) for k in order}
         t_quick = time.perf_counter()
-        psi = PsiRgb()
+        psi = create("psi_rgb")
         pre = []
         for k in order:
             if time.perf_counter() >= deadline:
@@ -191,7 +189,7 @@ class LineMod(Block):
         """`pose` moved along its viewing ray to the depth (within the template size step) where
         psi_rgb at the outline's exact place fits best: the template's size gives the depth only
         to that step."""
-        exact = PsiRgb(search_radius=0)
+        exact = create("psi_rgb", search_radius=0)
         best, best_score = pose, -math.inf
         for f in _depth_factors(self.config):
             cand = Pose(pose.R, pose.t * f)
@@ -204,7 +202,7 @@ class LineMod(Block):
         """RGB only: hill climbing of psi_rgb at the outline's exact place (no shift search) over
         the depth along the ray, the image position and the rotation about the camera axes, the
         steps halved when no move helps (a template's rotation and size are a grid step off)."""
-        exact = PsiRgb(search_radius=0)
+        exact = create("psi_rgb", search_radius=0)
         score = self._score(inp, pose, None, exact)
         step_rot, step_z, step_px = math.radians(8.0), 0.06, 4.0
         f = float(inp.frame.K[0, 0])
@@ -237,7 +235,7 @@ class LineMod(Block):
             return self._climb(inp, pose, deadline)[1]
         model, frame = inp.model, inp.frame
         r = render_box(model, pose, frame.K, frame.width, frame.height)
-        label = _dominant_label(seg, r)
+        label = dominant_label(seg, r)
         if label < 0:
             return None
         target = icp_target(seg, pose, model, r, label)

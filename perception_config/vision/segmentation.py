@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -229,6 +230,21 @@ def too_small(seg: Segmentation, K: np.ndarray, diameter: float) -> str:
         return ""
     return (f"the model is too small to find: {diameter * 1e3:.1f} mm across spans {span:.1f} px at the nearest "
             f"depth ({z_near:.2f} m), under the {MIN_SPAN_PX:.0f} px a region needs")
+
+
+def dominant_label(seg: Segmentation, r: Any) -> int:
+    """The region (coarse level) that most of a rendering `r` (render.Rendering) lies on, or -1."""
+    if r.empty or not seg.labels:
+        return -1
+    rs, cs = r.crop_slices()
+    under = seg.labels[-1][rs, cs][r.mask >= 0]
+    under = under[under >= 0]
+    if not len(under):
+        under = seg.labels[0][rs, cs][r.mask >= 0]
+        under = under[under >= 0]
+        if not len(under):
+            return -1
+    return int(np.bincount(under).argmax())
 
 
 def smooth_depth(depth: np.ndarray, size: int = 5) -> np.ndarray:
