@@ -205,14 +205,16 @@ class InProcessOperators:
         return BlockInput(
             frame=ep.frame, model=ep.model, pose=pose, ground_truth=ep.ground_truth,
             rng=self.rng if rng is None else rng, cache=self._caches.get(ep.frame), scores=dict(self.scores),
-            time_bounded=self.time_bounded, candidates=list(self.candidates),
+            time_bounded=self.time_bounded,
         )
 
     def _generate(self, block) -> BlockResult:
         """A generator call with its own seed from the episode's stream (see `draw_seed`); its
         ranked candidates below the pose become `candidates` (next_candidate takes them in turn)."""
         if block.takes_candidate:  # draws no seed: it searches nothing
-            result = block(self._input(self.pose))
+            inp = self._input(self.pose)
+            inp.candidates = list(self.candidates)
+            result = block(inp)
             if result.ok:
                 self.candidates = self.candidates[1:]
             return result
