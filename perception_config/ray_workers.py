@@ -201,11 +201,17 @@ class RayRunner:
                     if on_result is not None:
                         on_result(k, results[k])
         except BaseException:
-            for ref in pending:
-                try:
-                    ray.cancel(ref, force=True)
-                except Exception:  # noqa: BLE001  (already finished or gone: nothing to cancel)
-                    pass
+            # A local Ray this runner started is shut down next (close), which ends its workers.
+            # Force-cancelling them first races Ray's own retry of a killed task and can crash
+            # the driver in the middle of saving (a RAY_CHECK in task_manager.cc; ray-project/ray
+            # #54260). On a joined cluster the tasks get a KeyboardInterrupt instead: their
+            # workers live on, so nothing is retried.
+            if not self._owned:
+                for ref in pending:
+                    try:
+                        ray.cancel(ref, force=False)
+                    except Exception:  # noqa: BLE001  (already finished or gone: nothing to cancel)
+                        pass
             raise
         return results
 

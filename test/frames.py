@@ -83,11 +83,14 @@ def perturbed_pose(gt: Pose, rng: np.random.Generator, deg: float | tuple[float,
 def refine_perturbed(block: Block, frame: Frame, model: ObjectModel, gt: Pose, rng: np.random.Generator, n: int = 10,
                      cache: dict | None = None, **perturbation) -> Iterator[tuple[Pose, BlockResult]]:
     """Run `block` from `n` starts perturbed_pose(gt, rng, **perturbation), the i-th call seeded
-    with i, all sharing `cache`; each call must succeed. Yields (start, result)."""
+    with i, all sharing `cache`; each call must succeed. Yields (start, result). The calls are not
+    time-bounded: these tests judge what the algorithm does, and a loaded CI machine must not cut
+    a 0.1 s budget before its first step (the budgets have their own tests)."""
     cache = {} if cache is None else cache
     for i in range(n):
         start = perturbed_pose(gt, rng, **perturbation)
-        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i)))
+        r = block(BlockInput(frame=frame, model=model, pose=start, cache=cache, rng=np.random.default_rng(i),
+                             time_bounded=False))
         assert r.ok, r.reason
         yield start, r
 

@@ -484,6 +484,8 @@ class ChamferIcp(Block):
                                           int(c["steps"]), deadline, anchor=pose0.t, loss=str(c["loss"]),
                                           rotation_anchor=pose0.R, information=information)
         if not np.isfinite(mean_dist):
+            if it == 0 and time.perf_counter() > deadline:
+                return BlockResult.fail(f"the time budget ({c['max_seconds']} s) ran out before any contour match")
             return BlockResult.fail("too few contour points near image edges to match")
         cost = chamfer_cost(R, t)
         info = {"match_distance": mean_dist, "matches": matched, "iterations": it + 1, "cost_before": cost0,
