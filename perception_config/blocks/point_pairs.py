@@ -24,11 +24,10 @@ import numpy as np
 
 from ..geometry import Pose
 from ..models import model_defect
-from ..render import render_box
 from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
-from ..vision.segmentation import dominant_label, frame_segmentation, too_small
-from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
+from ..vision.segmentation import frame_segmentation, too_small
+from ..vision.verification import verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
 _SCORE_NAMES = ("gen_verification",)
@@ -54,6 +53,7 @@ class PointPairFeatures(Block):
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("n_clusters", 16, 1, 200, doc="strongest pose clusters pre-verified by rendering"),
         Param("n_polish", 16, 1, 50, doc="pre-verified candidates polished by ICP and verified again"),
+        Param("symmetric_clusters", True, doc="poses the model's symmetries make alike vote in one cluster"),
         Param("flip_variants", True,
               doc="also verify each pose cluster flipped by 180 deg about the model's principal axes"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
@@ -105,40 +105,16 @@ class PointPairFeatures(Block):
         t_scene = time.perf_counter()
         R, t, votes = vote(table, scene, c["ref_step"])
         centre = model.points.mean(axis=0)
-        leaders = cluster_poses(R, t, votes, centre, 0.1 * d, math.radians(30.0), c["n_clusters"])
+        leaders = cluster_poses(R, t, votes, centre, 0.1 * d, math.radians(30.0), c["n_clusters"],
+                               model.symmetries if c["symmetric_clusters"] else None)
         t_vote = time.perf_counter()
         flips = principal_flips(model) if c["flip_variants"] else []
         poses = []
         for _, Rk, tk in leaders:  # each leader and its 180 deg flips about the principal axes
             poses.append(Pose(Rk, tk))
             poses.extend(flipped(poses[-1], F, centre) for F in flips)
-        pre = []
-        for k, pose in enumerate(poses):
-            if time.perf_counter() >= deadline:
-                break
-            if not pose.is_valid():
-                continue
-            r = render_box(model, pose, frame.K, frame.width, frame.height)
-            score = verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, r, seg, 0.5)[0]
-            if math.isfinite(score):
-                pre.append((score, k, pose, r))
-        pre.sort(key=lambda q: (-q[0], q[1]))
-        icp_dists = (max(3.0 * voxel, 0.006), max(1.2 * voxel, 0.003), max(0.5 * voxel, 0.002))
-        polished: list[tuple[float, Pose, dict[str, float]]] = []
-        for _, _, pose, r in pre[: c["n_polish"]]:
-            if time.perf_counter() >= deadline:
-                break
-            source_label = dominant_label(seg, r)
-            if source_label < 0:
-                continue
-            target = icp_target(seg, pose, model, r, source_label)
-            if len(target.points) >= 10:
-                pose, _, _ = icp_polish(model, pose, target, icp_dists, c["icp_iterations"])
-            score, details = verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, seg=seg, explain_weight=0.5)
-            if math.isfinite(score):
-                polished.append((float(score), pose, details))
-        polished.sort(key=lambda q: -q[0])
-        ranked = ranked_candidates([(q[0], q[1]) for q in polished], model, c["top_k"])
+        pre, polished, ranked = verify_polish_rank(model, frame, seg, poses, voxel, deadline, c["verify_tol"],
+                                                   c["n_polish"], c["icp_iterations"], c["top_k"])
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre],
                 "polished": [(q[0], q[1]) for q in polished], "table": source,

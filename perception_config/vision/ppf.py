@@ -289,11 +289,27 @@ def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_0
     return np.concatenate(out_R), np.concatenate(out_t), np.concatenate(out_v)
 
 
+def canonical_poses(R: np.ndarray, t: np.ndarray, symmetries: list) -> tuple[np.ndarray, np.ndarray]:
+    """Each pose replaced by the member of its symmetry orbit {(R Rs, t + R ts)} whose rotation is
+    nearest the identity. Poses a symmetric part cannot tell apart become one pose, so their
+    votes add up in one cluster instead of splitting over up to len(symmetries) clusters (a
+    6-fold nut's or a turned bushing's peak is otherwise one of many weak ones)."""
+    if len(symmetries) <= 1 or len(R) == 0:
+        return R, t
+    Rs = np.stack([s.R for s in symmetries])
+    ts = np.stack([s.t for s in symmetries])
+    k = np.argmax(np.einsum("mij,kji->mk", R, Rs), axis=1)  # trace(R Rs): the largest is nearest I
+    return np.einsum("mij,mjk->mik", R, Rs[k]), t + np.einsum("mij,mj->mi", R, ts[k])
+
+
 def cluster_poses(R: np.ndarray, t: np.ndarray, votes: np.ndarray, centre: np.ndarray, max_dist: float,
-                  max_angle: float, keep: int) -> list[tuple[float, np.ndarray, np.ndarray]]:
+                  max_angle: float, keep: int,
+                  symmetries: list | None = None) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """Greedy clustering of poses in order of votes: a pose joins the first cluster whose
     leader moves the model's centre by less than `max_dist` and differs by less than
-    `max_angle` radians. Returns up to `keep` (summed votes, R, t) of the leaders, best first."""
+    `max_angle` radians. With the model's `symmetries` the poses are first made canonical
+    (canonical_poses). Returns up to `keep` (summed votes, R, t) of the leaders, best first."""
+    R, t = canonical_poses(R, t, symmetries or [])
     order = np.argsort(-votes, kind="stable")
     centres = np.einsum("nij,j->ni", R, centre) + t
     leaders: list[int] = []
@@ -317,4 +333,4 @@ def cluster_poses(R: np.ndarray, t: np.ndarray, votes: np.ndarray, centre: np.nd
 
 
 __all__ = ["PpfModel", "SceneCloud", "ppf_model", "prepare_model", "scene_cloud", "vote", "cluster_poses",
-           "cache_dir", "downsample", "normal_to_x", "PPF_FORMAT"]
+           "canonical_poses", "cache_dir", "downsample", "normal_to_x", "PPF_FORMAT"]

@@ -6,11 +6,13 @@ generator's last steps, blocks/generation.py).
   samples (`visible_model_points`) against them.
 - `verify`: depth agreement, free-space violations, cluster coverage and hue agreement of a
   hypothesis's rendering with the frame.
-- `ranked_candidates`: verified hypotheses as a generator's ranked, distinct candidates.
+- `ranked_candidates`: verified hypotheses as a generator's ranked, distinct candidates;
+  `verify_polish_rank`: the three as a generator's last steps (ppf, resting_pose).
 """
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import open3d as o3d
@@ -21,7 +23,7 @@ from ..render import Rendering, project, render_box
 from ..scene import Frame
 from .colour import chromaticity, colours_agree, model_point_colours
 from .features import point_cloud
-from .segmentation import Segmentation
+from .segmentation import Segmentation, dominant_label
 
 MAX_TARGET_POINTS = 8000
 TARGET_NORMAL_RADIUS = 0.005  # metres: normals fitted to the target's points when the image gives too few
@@ -232,3 +234,46 @@ def ranked_candidates(verified: list[tuple[float, Pose]], model: ObjectModel, ke
         if len(kept) >= keep:
             break
     return [(conf, pose) for conf, pose, _ in kept]
+
+
+def verify_polish_rank(
+    model: ObjectModel, frame: Frame, seg: Segmentation, poses: list[Pose], voxel: float, deadline: float,
+    verify_tol: float = 0.01, n_polish: int = 16, icp_iterations: int = 10, top_k: int = 5,
+    keep_unpolished: bool = False,
+) -> tuple[list, list, list[tuple[float, Pose]]]:
+    """A generator's last steps over its hypotheses `poses` (best first): each is pre-verified
+    by rendering (`verify`), the best `n_polish` are polished by coarse-to-fine ICP (`icp_polish`,
+    from 3 to 0.5 `voxel`s) against the observed points under them (`icp_target`) and verified
+    again; with `keep_unpolished` the pose before ICP competes with the polished one (ICP on a
+    few hundred pixels can pull a well-placed small part off). Stops starting new work at
+    `deadline` (perf_counter). Returns (pre-verified (score,
+    index, pose, rendering), polished (score, pose, details) best first, ranked_candidates)."""
+    pre = []
+    for k, pose in enumerate(poses):
+        if time.perf_counter() >= deadline:
+            break
+        if not pose.is_valid():
+            continue
+        r = render_box(model, pose, frame.K, frame.width, frame.height)
+        score = verify(model, pose, frame, verify_tol, 1.0, 0.5, r, seg, 0.5)[0]
+        if math.isfinite(score):
+            pre.append((score, k, pose, r))
+    pre.sort(key=lambda q: (-q[0], q[1]))
+    icp_dists = (max(3.0 * voxel, 0.006), max(1.2 * voxel, 0.003), max(0.5 * voxel, 0.002))
+    polished: list[tuple[float, Pose, dict[str, float]]] = []
+    for pre_score, _, pose, r in pre[:n_polish]:
+        if time.perf_counter() >= deadline:
+            break
+        if keep_unpolished:
+            polished.append((float(pre_score), pose, {}))
+        source_label = dominant_label(seg, r)
+        if source_label < 0:
+            continue
+        target = icp_target(seg, pose, model, r, source_label)
+        if len(target.points) >= 10:
+            pose, _, _ = icp_polish(model, pose, target, icp_dists, icp_iterations)
+        score, details = verify(model, pose, frame, verify_tol, 1.0, 0.5, seg=seg, explain_weight=0.5)
+        if math.isfinite(score):
+            polished.append((float(score), pose, details))
+    polished.sort(key=lambda q: -q[0])
+    return pre, polished, ranked_candidates([(q[0], q[1]) for q in polished], model, top_k)

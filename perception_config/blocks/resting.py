@@ -1,0 +1,126 @@
+"""`resting_pose`: a ground-truth-free generator for parts lying on a table or a bin floor.
+
+A part at rest on a plane lies on one of its few stable faces (vision/resting_poses.py), so
+under an observed region only its turn about the plane's normal and its place on the plane are
+unknown. Small, symmetric and flat-topped parts (a hex nut, a bushing) give point pair voting
+(`ppf`) a handful of ambiguous references; here the support plane supplies the missing degrees
+of freedom instead.
+
+Steps: (1) the frame's segmentation (shared with `ppf` and `global_registration` through the
+frame's cache) gives the support plane and the object-like regions whose size fits the model
+(`min_extent` .. `max_extent` diameters); (2) under each region, every stable face at `turns`
+turns about the normal is scored by a two-way nearest-point distance (cheap, no rendering) and
+the best `per_region` of each face are kept; (3) those hypotheses, best first, are verified by
+rendering, the best `n_polish` polished by ICP and verified again (verification.
+verify_polish_rank, as in `ppf`); the distinct results are the ranked candidates (confidence =
+verification score clipped to [0, 1]). The stable faces are a convex hull computed in
+milliseconds per model and kept in memory: nothing to cache on disk.
+
+Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
+cannot be used (models.model_defect) or is too small for a region of the frame.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+from ..models import ObjectModel, model_defect
+from ..vision.resting_poses import RestingPose, rest_hypotheses, resting_poses
+from ..vision.segmentation import frame_segmentation, too_small
+from ..vision.verification import verify_polish_rank
+from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
+
+_RESTS: dict[tuple[ObjectModel, int], list[RestingPose]] = {}  # models are shared and compare by identity
+_LOCK = threading.Lock()
+
+
+def _rests(model: ObjectModel, max_rests: int) -> list[RestingPose]:
+    with _LOCK:
+        hit = _RESTS.get((model, max_rests))
+    if hit is None:
+        hit = resting_poses(model, max_rests)
+        with _LOCK:
+            _RESTS[(model, max_rests)] = hit
+    return hit
+
+
+@register
+class RestingPoseGenerator(Block):
+    """Stable faces on the support plane under each fitting region (see the module docstring)."""
+
+    kind = Kind.GENERATION
+    name = "resting_pose"
+    default_cost = 0.4
+    inputs = (DEPTH, MODEL)
+    uses_rng = False  # deterministic: the same frame, model and parameters give the same result
+    score_names = ("gen_verification",)
+    params = (
+        Param("max_rests", 6, 1, 50, doc="stable faces tried, largest first"),
+        Param("turns", 24, 4, 360, doc="turns about the plane's normal tried per face (24: every 15 deg)"),
+        Param("per_region", 3, 1, 50, doc="best turns kept per face and region for verification"),
+        Param("min_extent", 0.3, 0.0, 1.0, doc="smallest region kept, as a share of the diameter"),
+        Param("max_extent", 1.6, 0.5, 20.0, doc="largest region kept, in diameters"),
+        Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
+        Param("n_polish", 8, 1, 50, doc="pre-verified hypotheses polished by ICP and verified again"),
+        Param("max_hypotheses", 48, 1, 1000, doc="hypotheses pre-verified by rendering, best first"),
+        Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
+        Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
+        Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
+        Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
+        Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between hypotheses)"),
+    )
+
+    def run(self, inp: BlockInput) -> BlockResult:
+        c = self.config
+        start = time.perf_counter()
+        deadline = self.deadline(inp, start)
+        model, frame = inp.model, inp.frame
+        d = model.diameter
+        defect = model_defect(model)
+        if defect:
+            return BlockResult.fail(f"resting_pose: the model cannot be used: {defect}")
+        rests = _rests(model, int(c["max_rests"]))
+        if not rests:
+            return BlockResult.fail("resting_pose: the model has no stable face to rest on")
+        seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
+        if seg.n_valid < 50:
+            return BlockResult.fail(f"resting_pose: only {seg.n_valid} valid depth pixels")
+        small = too_small(seg, frame.K, d)
+        if small:
+            return BlockResult.fail(f"resting_pose: {small}")
+        if seg.plane is None:
+            return BlockResult.fail("resting_pose: no support plane in view (a table or bin floor covering "
+                                    "15 % of the valid depth)")
+        regions = [cl for cl in seg.clusters if c["min_extent"] * d <= cl.extent <= c["max_extent"] * d]
+        if not regions:
+            return BlockResult.fail(f"resting_pose: no object-like region of {c['min_extent']:.2f}-"
+                                    f"{c['max_extent']:.1f} diameters ({d * 1000:.0f} mm) on the support plane")
+        hypotheses = []
+        for cl in regions:
+            if time.perf_counter() >= deadline:
+                break
+            hypotheses.extend(rest_hypotheses(model, rests, seg.plane, cl.points, int(c["turns"]),
+                                              int(c["per_region"])))
+        hypotheses.sort(key=lambda h: h[0])
+        t_hyp = time.perf_counter()
+        poses = [pose for _, pose in hypotheses[: int(c["max_hypotheses"])]]
+        pre, polished, ranked = verify_polish_rank(model, frame, seg, poses, max(0.003, 0.05 * d), deadline,
+                                                   c["verify_tol"], int(c["n_polish"]), int(c["icp_iterations"]),
+                                                   int(c["top_k"]), keep_unpolished=True)
+        now = time.perf_counter()
+        info = {"pre_verified": [(q[0], q[2]) for q in pre], "polished": [(q[0], q[1]) for q in polished],
+                "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses),
+                "seconds": {"hypotheses": t_hyp - start, "verify": now - t_hyp}}
+        if not ranked:
+            return BlockResult(ok=False, info=info, reason=f"resting_pose: no candidate could be verified "
+                               f"({len(regions)} regions, {len(hypotheses)} hypotheses)")
+        best_score = polished[0][0]
+        scores = {"gen_verification": best_score}
+        if best_score < c["min_verification"]:
+            return BlockResult(ok=False, scores=scores, info=info, candidates=ranked, reason=(
+                f"resting_pose: best candidate verifies at {best_score:.2f} < min_verification "
+                f"{c['min_verification']}"))
+        return BlockResult(ok=True, pose=ranked[0][1], scores=scores, info=info, candidates=ranked)
+
+
+__all__ = ["RestingPoseGenerator"]
