@@ -123,3 +123,18 @@ def mean_point_distance(model: ObjectModel, a: Pose, b: Pose) -> float:
 def well_visible(frame: Frame, min_visib: float) -> list[SceneObject]:
     """The frame's objects of which more than `min_visib` is visible (BOP's visib_fract)."""
     return [o for o in frame.objects if o.visib_fract is not None and o.visib_fract > min_visib]
+
+
+def resting_on_plane(model: ObjectModel, plane_z: float, xy: tuple[float, float] = (0.0, 0.0), turn: float = 0.0,
+                     rest: int = 0) -> Pose:
+    """The model lying on its `rest`-th stable face (vision/resting_poses) on the background plane
+    z = `plane_z` of synthetic_frame, turned by `turn` radians about the plane's normal, its
+    centroid over plane coordinates `xy` (metres)."""
+    from perception_config.vision.resting_poses import plane_basis, resting_poses
+
+    r = resting_poses(model)[rest]
+    B, o = plane_basis(np.array([0.0, 0.0, -1.0, plane_z]))
+    c, s = np.cos(turn), np.sin(turn)
+    R_plane = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r.R
+    shift = np.array([xy[0], xy[1], r.lift])
+    return Pose(B @ R_plane, o + B @ (shift - R_plane @ model.points.mean(axis=0)))

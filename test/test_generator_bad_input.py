@@ -1,4 +1,5 @@
-"""Bad input for the ground-truth-free generators `ppf` and `global_registration` (issue 13): a
+"""Bad input for the ground-truth-free generators `ppf`, `global_registration` and `resting_pose`
+(issue 13): a
 model that cannot be prepared (degenerate, tiny, without normals), a model of millions of faces,
 an empty or all-background scene, an object out of view, a frame without depth. Each answers
 ok=False with a reason naming the problem, within the block's time bound (plus MARGIN), and never
@@ -11,10 +12,11 @@ import time
 import numpy as np
 import pytest
 
-from frames import K_LINEMOD, box_model, default_pose, synthetic_frame
+from frames import K_LINEMOD, box_model, default_pose, resting_on_plane, synthetic_frame
 from perception_config.blocks.base import BlockInput, BlockResult
 from perception_config.blocks.generation import GlobalRegistration
 from perception_config.blocks.point_pairs import PointPairFeatures
+from perception_config.blocks.resting import RestingPoseGenerator
 from perception_config.geometry import Pose, exp_so3
 from perception_config.models import ObjectModel, make_model
 from perception_config.scene import Frame
@@ -22,7 +24,7 @@ from perception_config.scene import Frame
 # Seconds over `max_seconds` a failing call may take: the per-frame segmentation (~0.2 s) and ppf's
 # table (built once per model, ~0.5-1 s) come before the budget, which is checked between steps.
 MARGIN = 1.5
-GENERATORS = {"ppf": PointPairFeatures, "global_registration": GlobalRegistration}
+GENERATORS = {"ppf": PointPairFeatures, "global_registration": GlobalRegistration, "resting_pose": RestingPoseGenerator}
 
 
 @pytest.fixture(params=sorted(GENERATORS))
@@ -155,6 +157,8 @@ def test_a_model_of_millions_of_faces_is_prepared_in_bounded_time(huge):
 def test_a_model_of_millions_of_faces_is_still_found(huge, name):
     model, _ = huge
     gt = Pose(exp_so3([0.5, -0.3, 0.2]), [0.01, -0.01, 0.6])
+    if name == "resting_pose":  # it finds parts lying on a support plane, as parts in a cell do
+        gt = resting_on_plane(model, 0.7, (0.01, -0.01), 0.4)
     frame = synthetic_frame([model], [gt], background_z=0.7)
     block = GENERATORS[name]()
     r = call(block, frame, model)
@@ -164,7 +168,7 @@ def test_a_model_of_millions_of_faces_is_still_found(huge, name):
     # The first call prepares the model (ppf's table; the features and distance field) before the
     # budget starts: measured 0.5-1.5 s.
     info = r.info
-    prepare = info["seconds"]["prepare"] if name == "ppf" else info["prepare_seconds"]
+    prepare = info["seconds"]["prepare"] if name in ("ppf", "resting_pose") else info["prepare_seconds"]
     assert prepare < 5.0 and r.elapsed - prepare < block.config["max_seconds"] + MARGIN, (prepare, r.elapsed)
 
 

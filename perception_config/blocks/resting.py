@@ -9,12 +9,14 @@ of freedom instead.
 Steps: (1) the frame's segmentation (shared with `ppf` and `global_registration` through the
 frame's cache) gives the support plane and the object-like regions whose size fits the model
 (`min_extent` .. `max_extent` diameters); (2) under each region, every stable face at `turns`
-turns about the normal is scored by a two-way nearest-point distance (cheap, no rendering) and
-the best `per_region` of each face are kept; (3) those hypotheses, best first, are verified by
+turns about the normal is scored cheaply (no rendering), and in the `max_regions` regions the
+part fits best the `per_rest` best turns of each face are aligned in the plane and scored again;
+(3) the best `per_region` hypotheses of each, best first, are verified by
 rendering, the best `n_polish` polished by ICP and verified again (verification.
 verify_polish_rank, as in `ppf`); the distinct results are the ranked candidates (confidence =
-verification score clipped to [0, 1]). The stable faces are a convex hull computed in
-milliseconds per model and kept in memory: nothing to cache on disk.
+verification score clipped to [0, 1]). The per-model preparation (the stable faces from the
+convex hull, a coarse distance field of the surface samples) takes milliseconds, also for a
+model of millions of faces, and is kept in memory: nothing to cache on disk.
 
 Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
 cannot be used (models.model_defect) or is too small for a region of the frame.
@@ -25,7 +27,7 @@ import threading
 import time
 
 from ..models import ObjectModel, model_defect
-from ..vision.resting_poses import RestingPose, rest_hypotheses, resting_poses
+from ..vision.resting_poses import RestingPose, refine_rests, resting_poses, shortlist_rests, surface_field
 from ..vision.segmentation import frame_segmentation, too_small
 from ..vision.verification import verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
@@ -57,7 +59,9 @@ class RestingPoseGenerator(Block):
     params = (
         Param("max_rests", 6, 1, 50, doc="stable faces tried, largest first"),
         Param("turns", 24, 4, 360, doc="turns about the plane's normal tried per face (24: every 15 deg)"),
-        Param("per_region", 3, 1, 50, doc="best turns kept per face and region for verification"),
+        Param("per_rest", 3, 1, 50, doc="best turns of each face and region aligned in the plane"),
+        Param("max_regions", 8, 1, 1000, doc="regions the part fits best (cheap score) whose hypotheses are aligned"),
+        Param("per_region", 8, 1, 100, doc="best aligned hypotheses of each region verified"),
         Param("min_extent", 0.3, 0.0, 1.0, doc="smallest region kept, as a share of the diameter"),
         Param("max_extent", 1.6, 0.5, 20.0, doc="largest region kept, in diameters"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
@@ -73,7 +77,6 @@ class RestingPoseGenerator(Block):
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config
         start = time.perf_counter()
-        deadline = self.deadline(inp, start)
         model, frame = inp.model, inp.frame
         d = model.diameter
         defect = model_defect(model)
@@ -82,6 +85,9 @@ class RestingPoseGenerator(Block):
         rests = _rests(model, int(c["max_rests"]))
         if not rests:
             return BlockResult.fail("resting_pose: the model has no stable face to rest on")
+        surface_field(model)
+        t_prep = time.perf_counter() - start  # a model's first call: its hull and distance field, milliseconds
+        deadline = self.deadline(inp, start + t_prep)
         seg = frame_segmentation(frame, inp.cache, c["plane_distance"])
         if seg.n_valid < 50:
             return BlockResult.fail(f"resting_pose: only {seg.n_valid} valid depth pixels")
@@ -95,12 +101,19 @@ class RestingPoseGenerator(Block):
         if not regions:
             return BlockResult.fail(f"resting_pose: no object-like region of {c['min_extent']:.2f}-"
                                     f"{c['max_extent']:.1f} diameters ({d * 1000:.0f} mm) on the support plane")
-        hypotheses = []
+        shortlists = []
         for cl in regions:
             if time.perf_counter() >= deadline:
                 break
-            hypotheses.extend(rest_hypotheses(model, rests, seg.plane, cl.points, int(c["turns"]),
-                                              int(c["per_region"])))
+            sl = shortlist_rests(model, rests, seg.plane, cl.points, int(c["turns"]), int(c["per_rest"]))
+            if sl is not None:
+                shortlists.append(sl)
+        shortlists.sort(key=lambda sl: sl.best)  # the regions the part fits best first
+        hypotheses = []
+        for sl in shortlists[: int(c["max_regions"])]:
+            if time.perf_counter() >= deadline:
+                break
+            hypotheses.extend(refine_rests(model, rests, sl, int(c["per_region"])))
         hypotheses.sort(key=lambda h: h[0])
         t_hyp = time.perf_counter()
         poses = [pose for _, pose in hypotheses[: int(c["max_hypotheses"])]]
@@ -110,7 +123,7 @@ class RestingPoseGenerator(Block):
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre], "polished": [(q[0], q[1]) for q in polished],
                 "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses),
-                "seconds": {"hypotheses": t_hyp - start, "verify": now - t_hyp}}
+                "seconds": {"prepare": t_prep, "hypotheses": t_hyp - start - t_prep, "verify": now - t_hyp}}
         if not ranked:
             return BlockResult(ok=False, info=info, reason=f"resting_pose: no candidate could be verified "
                                f"({len(regions)} regions, {len(hypotheses)} hypotheses)")

@@ -6,15 +6,17 @@ facet polygon holds the projection of its centre of mass (a stable placement). S
 plane has, per stable face, three degrees of freedom left: where it lies on the plane and how
 far it is turned about the plane's normal. `resting_poses` lists the stable faces of a model
 once (convex hull facets grouped by normal; the largest first; faces the model's symmetries
-make alike kept once). `rest_hypotheses` places each rest under an observed region of the frame
-at a sweep of turns: the model's camera-facing samples are shifted so that their centroid on
-the plane meets the region's, lifted so their top meets the region's top, and scored by a
-truncated two-way nearest-point distance to the region's points (both in the plane's frame).
-The best few per region go on to render-and-compare verification and ICP.
+make alike kept once). `shortlist_rests` places each rest under an observed region of the
+frame at a sweep of turns: the model's camera-facing samples are shifted so that their
+centroid on the plane meets the region's, lifted so their top meets the region's top, and
+scored cheaply. `refine_rests` aligns the best turns in the plane (`planar_icp`) and scores
+them on what the camera sees. The best few go on to render-and-compare verification and ICP.
 """
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +24,7 @@ from scipy.spatial import ConvexHull, cKDTree
 
 from ..geometry import Pose
 from ..models import ObjectModel
+from .features import DistanceField
 
 MAX_SAMPLES = 150  # model and region points per comparison: enough to tell turns apart, cheap to query
 
@@ -66,18 +69,18 @@ def resting_poses(model: ObjectModel, max_poses: int = 6, merge_deg: float = 5.0
     areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     com = model.points.mean(axis=0)
     cos_merge = math.cos(math.radians(merge_deg))
-    groups: list[list[int]] = []
-    for f in np.argsort(-areas, kind="stable"):
-        for g in groups:
-            if normals[g[0]] @ normals[f] > cos_merge:
-                g.append(int(f))
-                break
-        else:
-            groups.append([int(f)])
+    # Facets of one face of the hull share their plane: group them by their normal rounded to
+    # about merge_deg (one sort, also for the ~10^5 facets of a curved model of millions of faces).
+    key = np.round(normals * (180.0 / math.pi / merge_deg)).astype(np.int64)
+    _, group_of = np.unique(key, axis=0, return_inverse=True)
+    group_of = group_of.ravel()
+    group_area = np.bincount(group_of, weights=areas)
+    order = np.argsort(-group_area, kind="stable")[: 8 * max_poses]  # the largest faces are the likely rests
+    groups = [np.flatnonzero(group_of == g) for g in order]
     sym = [s.R for s in model.symmetries] or [np.eye(3)]
     rests: list[RestingPose] = []
     kept_normals: list[np.ndarray] = []
-    for g in sorted(groups, key=lambda g: -areas[g].sum()):
+    for g in groups:
         n = np.average(normals[g], axis=0, weights=areas[g] + 1e-12)
         n /= np.linalg.norm(n)
         h0 = float(np.max(offsets[g]))
@@ -94,6 +97,34 @@ def resting_poses(model: ObjectModel, max_poses: int = 6, merge_deg: float = 5.0
         if len(rests) >= max_poses:
             break
     return rests
+
+
+_FIELDS: "weakref.WeakKeyDictionary[ObjectModel, DistanceField]" = weakref.WeakKeyDictionary()
+_FIELDS_LOCK = threading.Lock()
+
+
+def surface_field(model: ObjectModel, cells: int = 32, margin: int = 4) -> DistanceField:
+    """A coarse distance field of the model's surface (cell = diameter / `cells`) from its
+    surface samples, cached per model: milliseconds even for a model of millions of faces
+    (features.distance_field samples the mesh densely, for registration's finer needs)."""
+    with _FIELDS_LOCK:
+        f = _FIELDS.get(model)
+    if f is not None:
+        return f
+    from scipy.ndimage import distance_transform_edt
+
+    cell = model.diameter / cells
+    origin = model.points.min(axis=0) - margin * cell
+    shape = np.ceil((model.points.max(axis=0) + margin * cell - origin) / cell).astype(int) + 1
+    occ = np.ones(shape, bool)
+    ijk = np.floor((model.points - origin) / cell).astype(int)
+    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = False
+    dist = distance_transform_edt(occ)
+    grid = np.maximum(dist * cell - 0.5 * cell, 0.0).astype(np.float32)
+    f = DistanceField(origin, cell, grid, np.zeros((*shape, 3), np.float32), model.points.mean(axis=0))
+    with _FIELDS_LOCK:
+        _FIELDS[model] = f
+    return f
 
 
 def plane_basis(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,17 +152,19 @@ def planar_icp(model_pts: np.ndarray, observed: np.ndarray, max_dist: float,
                iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Align (P, 3) model points to (N, 3) observed points (both in the plane frame) by a turn
     about z and a shift in the plane only: the resting face stays on the plane, the prior full
-    ICP would give up (on a few hundred pixels of a small part it tilts it). Each observed point
-    is matched to its nearest model point within `max_dist`. Returns (Rz, shift) with
-    aligned = model_pts @ Rz.T + shift."""
+    ICP would give up (on a few hundred pixels of a small part it tilts it). Each observed
+    point is matched to its nearest model point within `max_dist` (occluded model parts then
+    pull nothing). Returns (Rz, shift) with aligned = model_pts @ Rz.T + shift."""
+    tree = cKDTree(model_pts)
     Rz, shift = np.eye(3), np.zeros(3)
     for _ in range(iterations):
-        cur = model_pts @ Rz.T + shift
-        dist, idx = cKDTree(cur).query(observed)
-        ok = dist < max_dist
+        back = (observed - shift) @ Rz  # the observed points in the model points' frame
+        dist, idx = tree.query(back, distance_upper_bound=max_dist)
+        ok = np.isfinite(dist)
         if ok.sum() < 5:
             break
-        src, dst = cur[idx[ok], :2], observed[ok, :2]
+        src = model_pts[idx[ok]] @ Rz.T + shift
+        src, dst = src[:, :2], observed[ok, :2]
         cs, cd = src.mean(axis=0), dst.mean(axis=0)
         h = (src - cs).T @ (dst - cd)
         phi = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
@@ -144,55 +177,99 @@ def planar_icp(model_pts: np.ndarray, observed: np.ndarray, max_dist: float,
     return Rz, shift
 
 
-def rest_hypotheses(
+@dataclass
+class RegionShortlist:
+    """One region's cheap fit of every rest (shortlist_rests), kept for refine_rests."""
+
+    best: float  # the best cheap cost (diameters): regions are refined in this order
+    picks: list[tuple[int, int, np.ndarray]]  # (rest index, turn index, shift) of each rest's best turns
+    q: np.ndarray  # (N, 3) the region's points in the plane frame
+    tree: cKDTree  # over q
+    view: np.ndarray  # camera -> region direction, plane frame
+    B: np.ndarray  # plane_basis
+    o: np.ndarray
+    rotations: np.ndarray  # (T, 3, 3) the turns about z
+
+
+def _samples(model: ObjectModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centroid, samples about it, their normals), about 2 MAX_SAMPLES of them."""
+    com = model.points.mean(axis=0)
+    step = max(1, len(model.points) // (2 * MAX_SAMPLES))
+    return com, model.points[::step] - com, model.point_normals[::step]
+
+
+def shortlist_rests(
     model: ObjectModel, rests: list[RestingPose], plane: np.ndarray, region: np.ndarray, turns: int = 24,
-    keep: int = 3, truncate: float = 0.1,
-) -> list[tuple[float, Pose]]:
-    """The `keep` best (cost, pose) of every rest at `turns` turns about the plane's normal,
-    placed under `region` ((N, 3) camera-frame points of one observed region), each then
-    aligned in the plane (planar_icp); cost: the mean truncated (`truncate` diameters) nearest
-    distance, observed -> model and model -> observed, in diameters (lower is better). Rests
-    much taller or much lower than the region are skipped (a part on its side does not fit a
-    flat region)."""
+    per_rest: int = 3, truncate: float = 0.1,
+) -> RegionShortlist | None:
+    """Every rest at `turns` turns about the plane's normal, shifted under `region` ((N, 3)
+    camera-frame points of one observed region) and scored cheaply: the mean truncated
+    (`truncate` diameters) distance of the region's points to the model's surface (its
+    distance field) plus that of the model's camera-facing samples to the region's points, in
+    diameters; the `per_rest` best turns of each rest. Rests much taller or much lower than the
+    region are skipped (a part on its side does not fit a flat region). None: nothing fits."""
     B, o = plane_basis(plane)
     q = _subsample((region - o) @ B)  # plane frame
     if len(q) < 5:
-        return []
+        return None
     top = float(np.percentile(q[:, 2], 98))
     centre = q[:, :2].mean(axis=0)
     view = np.append(centre, top / 2.0) - (-o) @ B  # camera -> region, plane frame
     view /= np.linalg.norm(view)
     tree_q = cKDTree(q)
+    field = surface_field(model)
     d, tau = model.diameter, truncate * model.diameter
-    com = model.points.mean(axis=0)
-    pts, nrm = model.points - com, model.point_normals
-
-    def cost(vis: np.ndarray) -> float:
-        model_to_obs = np.minimum(tree_q.query(vis)[0], tau).mean()
-        return float(model_to_obs + np.minimum(cKDTree(vis).query(q)[0], tau).mean()) / d
-
-    out: list[tuple[float, Pose]] = []
-    for rest in rests:
+    com, pts, nrm = _samples(model)
+    Rzs = np.stack([_turn(a) for a in 2.0 * math.pi * np.arange(turns) / turns])  # (T, 3, 3)
+    RzT = Rzs.transpose(0, 2, 1)
+    picks, best = [], math.inf
+    for i, rest in enumerate(rests):
         if top > rest.height + 0.25 * d + 0.01 or top < 0.4 * rest.height:
             continue
         base = max(0.0, top - rest.height)  # the part lies on the plane, or on something under it
-        p0, n0 = pts @ rest.R.T, nrm @ rest.R.T
-        found = []
-        for k in range(turns):
-            Rz = _turn(2.0 * math.pi * k / turns)
-            p, n = p0 @ Rz.T, n0 @ Rz.T
-            vis = p[n @ view < 0.0]
-            vis = _subsample(vis if len(vis) >= 5 else p)
-            shift = np.append(centre - vis[:, :2].mean(axis=0), base + rest.lift)
-            found.append((cost(vis + shift), Rz, vis, shift))
-        found.sort(key=lambda f: f[0])
-        for _, Rz, vis, shift in found[:keep]:
-            R2, s2 = planar_icp(vis + shift, q, 2.0 * tau)
-            R_plane, shift = R2 @ Rz @ rest.R, R2 @ shift + s2
-            out.append((cost(vis @ R2.T + shift),
-                        Pose(B @ R_plane, o + B @ (shift - R_plane @ com))))
+        p = (pts @ rest.R.T) @ RzT  # (T, P, 3)
+        vis = ((nrm @ rest.R.T) @ RzT) @ view < 0.0  # camera-facing
+        vis[vis.sum(axis=1) < 5] = True
+        n_vis = vis.sum(axis=1)
+        mean_xy = np.einsum("tp,tpi->ti", vis, p[..., :2]) / n_vis[:, None]
+        shifts = np.concatenate([centre - mean_xy, np.full((turns, 1), base + rest.lift)], axis=1)  # (T, 3)
+        # model -> observed: the camera-facing samples of every turn in one query
+        dm = np.minimum(tree_q.query((p + shifts[:, None, :])[vis], distance_upper_bound=tau)[0], tau)
+        model_to_obs = np.add.reduceat(dm, np.concatenate([[0], np.cumsum(n_vis)[:-1]])) / n_vis
+        # observed -> model: the region's points in the model frame of every turn, on the distance field
+        x_model = (q[None] - shifts[:, None, :]) @ (Rzs @ rest.R) + com
+        total = (model_to_obs + np.minimum(field.lookup(x_model)[0], tau).mean(axis=1)) / d
+        for k in np.argsort(total, kind="stable")[:per_rest]:
+            picks.append((i, int(k), shifts[k]))
+            best = min(best, float(total[k]))
+    if not picks:
+        return None
+    return RegionShortlist(best, picks, q, tree_q, view, B, o, Rzs)
+
+
+def refine_rests(model: ObjectModel, rests: list[RestingPose], sl: RegionShortlist, keep: int = 8,
+                 truncate: float = 0.1) -> list[tuple[float, Pose]]:
+    """The shortlisted turns aligned in the plane (planar_icp) and scored on what the camera
+    sees: the mean truncated (`truncate` diameters) nearest distance between the region's
+    points and the model's camera-facing samples, both ways, in diameters. The `keep` best
+    (cost, pose), lowest cost first."""
+    d, tau = model.diameter, truncate * model.diameter
+    com, pts, nrm = _samples(model)
+    out: list[tuple[float, Pose]] = []
+    for i, k, shift in sl.picks:
+        R0 = sl.rotations[k] @ rests[i].R
+        p = pts @ R0.T
+        front = p[(nrm @ R0.T) @ sl.view < 0.0]
+        front = front if len(front) >= 5 else p
+        R2, s2 = planar_icp(front + shift, sl.q, 2.0 * tau)
+        R_plane, shift = R2 @ R0, R2 @ shift + s2
+        placed = front @ R2.T + shift
+        cost = (np.minimum(cKDTree(placed).query(sl.q, distance_upper_bound=tau)[0], tau).mean()
+                + np.minimum(sl.tree.query(placed, distance_upper_bound=tau)[0], tau).mean()) / d
+        out.append((float(cost), Pose(sl.B @ R_plane, sl.o + sl.B @ (shift - R_plane @ com))))
     out.sort(key=lambda f: f[0])
-    return out
+    return out[:keep]
 
 
-__all__ = ["RestingPose", "resting_poses", "rest_hypotheses", "planar_icp", "plane_basis", "rotation_to"]
+__all__ = ["RestingPose", "RegionShortlist", "resting_poses", "shortlist_rests", "refine_rests", "planar_icp",
+           "plane_basis", "rotation_to", "surface_field"]
