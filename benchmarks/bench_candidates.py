@@ -2,7 +2,8 @@
 candidate within MSSD <= 0.1 d is the first (top-1) or among the first five (top-5), how often
 the first is a confident wrong answer, and how long a call takes once the model is prepared.
 
-    python benchmarks/bench_candidates.py [--generators ppf,global_registration,linemod] [--out FILE.json]
+    python benchmarks/bench_candidates.py [--generators resting_pose,ppf,global_registration,linemod]
+        [--out FILE.json]
         [--default PATH]
 
 Data: the real LM-O RGB-D frame (../shared/data/lmo, 8 objects, clutter; every object, and
@@ -151,7 +152,7 @@ def without_depth(frames: list) -> list:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--generators", default="ppf,global_registration")
+    ap.add_argument("--generators", default="resting_pose,ppf,global_registration")
     ap.add_argument("--confident", type=float, default=0.5, help="confidence counted as confident")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "candidates.json")
     ap.add_argument("--default", type=Path, default=DEFAULT, help="the synthetic default dataset (BOP layout)")

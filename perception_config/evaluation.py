@@ -85,9 +85,10 @@ DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
     ("icp_coarse", "pick"),
     ("d2co", "icp_fine", "pick"),
     # The cell pipeline's ground-truth-free engineer sequences: refine, pick, and on a failed
-    # pick the next ranked candidate (or a new global registration) and again.
+    # pick the next ranked candidate (or another generator: ppf, global registration) and again.
     ("icp_coarse", "icp_fine", "pick", "next_candidate"),
     ("icp_fine", "pick", "next_candidate"),
+    ("icp_coarse", "icp_fine", "pick", "ppf"),
     ("icp_coarse", "icp_fine", "pick", "global_registration"),
 )
 RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, the simulated pick's tolerance

@@ -4,8 +4,8 @@
 #   2. train the policy-gradient agent briefly on the train images;
 #   3. evaluate it against the oracle, fixed engineer pipelines and the random agent over the
 #      noise sweep lambda = 0.1 .. 1.0 on the test images (Fig. 5), print the table and plots;
-#   4. the robot cell without ground truth: train the agent on the cell pipeline (ppf, ranked
-#      candidates, global_registration, ICP; only the simulated pick looks at the ground truth)
+#   4. the robot cell without ground truth: train the agent on the cell pipeline (resting_pose,
+#      ranked candidates, ppf, global_registration, ICP; only the simulated pick looks at the ground truth)
 #      and evaluate it against the fixed ground-truth-free pipelines and the oracle;
 #   5. through ROS 2: record test images to MCAP, replay them with bag_replay_node through the
 #      operator nodes and the configurator running the trained policy (each its own process),
@@ -46,7 +46,7 @@ perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" 
 say "4/5 the cell without ground truth: pg on the cell pipeline (${DEMO_CELL_EPISODES:-400} episodes, measured time)"
 perception-config train --dataset "$DATA" --agent pg --pipeline cell --out "$CELL_RUN" \
   --episodes "${DEMO_CELL_EPISODES:-400}" --validation-fraction 0.2 --overwrite --workers "$WORKERS"
-# The cell's generator (ppf) has no noise level: one lambda, whose value is not used.
+# The cell's generator (resting_pose) has no noise level: one lambda, whose value is not used.
 perception-config evaluate --dataset "$DATA" --policy "$CELL_RUN/policy.safetensors" --out "$OUT/cell" \
   --lambdas 0.5 --episodes "${DEMO_CELL_EVAL_EPISODES:-30}" --oracle-budget 300 --workers "$WORKERS"
 

@@ -133,9 +133,9 @@ def test_the_env_observes_the_waiting_candidates_only_in_pipelines_that_can_take
 
 def test_the_shipped_cell_pipeline_needs_no_ground_truth_but_the_simulated_pick():
     pipe = load_pipeline("cell")
-    assert pipe.generator.name == "ppf" and GROUND_TRUTH not in pipe.generator.inputs
+    assert pipe.generator.name == "resting_pose" and GROUND_TRUTH not in pipe.generator.inputs
     names = pipe.action_names
-    assert {"next_candidate", "global_registration", "pick"} <= set(names)
+    assert {"next_candidate", "ppf", "global_registration", "pick"} <= set(names)
     for action in pipe.actions:
         if action.kind != Kind.PICK:
             assert GROUND_TRUTH not in action.block.inputs, action.name

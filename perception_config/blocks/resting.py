@@ -23,6 +23,7 @@ cannot be used (models.model_defect) or is too small for a region of the frame.
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -101,9 +102,13 @@ class RestingPoseGenerator(Block):
         if not regions:
             return BlockResult.fail(f"resting_pose: no object-like region of {c['min_extent']:.2f}-"
                                     f"{c['max_extent']:.1f} diameters ({d * 1000:.0f} mm) on the support plane")
+        # The cheap fit gets half the budget at most, the regions nearest the part's size first
+        # (a cluttered frame has ~80 of them); alignment and verification get the rest.
+        regions.sort(key=lambda cl: abs(math.log(max(cl.extent, 1e-6) / (0.8 * d))))
+        half = start + t_prep + 0.5 * (deadline - start - t_prep) if math.isfinite(deadline) else deadline
         shortlists = []
         for cl in regions:
-            if time.perf_counter() >= deadline:
+            if time.perf_counter() >= half:
                 break
             sl = shortlist_rests(model, rests, seg.plane, cl.points, int(c["turns"]), int(c["per_rest"]))
             if sl is not None:
