@@ -13,8 +13,10 @@ turns about the normal is scored cheaply (no rendering), and in the `max_regions
 part fits best the `per_rest` best turns of each face are aligned in the plane and scored again;
 (3) the best `per_region` hypotheses of each, best first, are verified by
 rendering, the best `n_polish` polished by ICP and verified again (verification.
-verify_polish_rank, as in `ppf`); the distinct results are the ranked candidates (confidence =
-verification score clipped to [0, 1]). The per-model preparation (the stable faces from the
+verify_polish_rank, as in `ppf`); (4) the `sweep_candidates` best distinct ones are swept in
+the plane, turns then shifts, and keep what verifies best (resting_poses.sweep_in_plane: ICP
+leaves a flange's or hex nut's turn where it started); the distinct results are the ranked
+candidates (confidence = verification score clipped to [0, 1]). The per-model preparation (the stable faces from the
 convex hull, a coarse distance field of the surface samples) takes milliseconds, also for a
 model of millions of faces, and is kept in memory: nothing to cache on disk.
 
@@ -28,9 +30,17 @@ import threading
 import time
 
 from ..models import ObjectModel, model_defect
-from ..vision.resting_poses import RestingPose, refine_rests, resting_poses, shortlist_rests, surface_field
+from ..vision.resting_poses import (
+    RestingPose,
+    plane_basis,
+    refine_rests,
+    resting_poses,
+    shortlist_rests,
+    surface_field,
+    sweep_in_plane,
+)
 from ..vision.segmentation import frame_segmentation, too_small
-from ..vision.verification import verify_polish_rank
+from ..vision.verification import ranked_candidates, verify, verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 
 _RESTS: dict[tuple[ObjectModel, int], list[RestingPose]] = {}  # models are shared and compare by identity
@@ -67,9 +77,14 @@ class RestingPoseGenerator(Block):
         Param("max_extent", 1.6, 0.5, 20.0, doc="largest region kept, in diameters"),
         Param("plane_distance", 0.008, 0.001, 0.05, doc="metres: points within this of the support plane are removed"),
         Param("n_polish", 8, 1, 50, doc="pre-verified hypotheses polished by ICP and verified again"),
-        Param("max_hypotheses", 48, 1, 1000, doc="hypotheses pre-verified by rendering, best first"),
+        Param("max_hypotheses", 24, 1, 1000, doc="hypotheses pre-verified by rendering, best first"),
         Param("icp_iterations", 10, 1, 200, doc="ICP iterations per stage (three stages, coarse to fine)"),
         Param("verify_tol", 0.01, 0.001, 0.05, doc="metres: depth agreement counted as an inlier in verification"),
+        Param("sweep_candidates", 2, 0, 50, doc="best distinct candidates swept in the plane (turns, then shifts) "
+                                                 "by verification; 0: none"),
+        Param("sweep_span", 30.0, 0.0, 180.0, doc="degrees: turns swept either side of a candidate"),
+        Param("sweep_step", 6.0, 0.5, 90.0, doc="degrees between swept turns (then half a step beside the best)"),
+        Param("sweep_shift", 0.03, 0.0, 0.5, doc="diameters: the shifts along the plane tried after the best turn"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
         Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
         Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between hypotheses)"),
@@ -125,14 +140,26 @@ class RestingPoseGenerator(Block):
         pre, polished, ranked = verify_polish_rank(model, frame, seg, poses, max(0.003, 0.05 * d), deadline,
                                                    c["verify_tol"], int(c["n_polish"]), int(c["icp_iterations"]),
                                                    int(c["top_k"]), keep_unpolished=True)
+        t_verify = time.perf_counter()
+        n_sweep = int(c["sweep_candidates"])
+        if ranked and n_sweep:
+            B, _ = plane_basis(seg.plane)
+
+            def score(pose):
+                return verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
+
+            swept = [sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
+                                    c["sweep_shift"]) for s, pose in ranked[:n_sweep]]
+            ranked = ranked_candidates(swept + ranked[n_sweep:], model, int(c["top_k"]))
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre], "polished": [(q[0], q[1]) for q in polished],
                 "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses),
-                "seconds": {"prepare": t_prep, "hypotheses": t_hyp - start - t_prep, "verify": now - t_hyp}}
+                "seconds": {"prepare": t_prep, "hypotheses": t_hyp - start - t_prep, "verify": t_verify - t_hyp,
+                            "sweep": now - t_verify}}
         if not ranked:
             return BlockResult(ok=False, info=info, reason=f"resting_pose: no candidate could be verified "
                                f"({len(regions)} regions, {len(hypotheses)} hypotheses)")
-        best_score = polished[0][0]
+        best_score = ranked[0][0]
         scores = {"gen_verification": best_score}
         if best_score < c["min_verification"]:
             return BlockResult(ok=False, scores=scores, info=info, candidates=ranked, reason=(
