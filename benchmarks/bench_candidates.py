@@ -15,7 +15,8 @@ symmetry-aware MSSD <= 0.1 x diameter (the simulated pick). Confident wrong: the
 candidate's confidence >= --confident and MSSD > 0.3 d. Both generators rank their distinct
 candidates (BlockResult.candidates, by verification score). Per-model preparation (ppf's point
 pair tables, linemod's templates) is built into a fresh temporary cache first and timed apart:
-the query times are after caching.
+the query times are after caching. With several generators, "any of them" counts a query when
+any one has a right candidate in its top 5 (the cell's agent can call each).
 """
 from __future__ import annotations
 
@@ -213,6 +214,24 @@ def main(argv: list[str] | None = None) -> int:
                   f"{s['confident_wrong']:>10.0%} {s['median_s']:>8.2f} {s['p90_s']:>6.2f}")
             print(f"{'':<46} per object top-5: "
                   + ", ".join(f"{k}: {v['top5']:.0%}" for k, v in s["per_object"].items()), flush=True)
+    # Together: a query counts when any of the generators has a right candidate in its top 5 (the
+    # cell's agent can call each of them).
+    by_data: dict[str, list[list[dict]]] = {}
+    for res in out["results"]:
+        if res["summary"].get("queries"):
+            by_data.setdefault(res["data"], []).append([r for r in res["rows"] if r["visib_fract"] is None
+                                                        or "visib >= 0.3" not in res["data"]
+                                                        or r["visib_fract"] >= 0.3])
+    for text, runs_of in by_data.items():
+        if len(runs_of) < 2:
+            continue
+        hit = [any(0 <= run[k]["rank"] < 5 for run in runs_of) for k in range(len(runs_of[0]))]
+        objs = [r["obj_id"] for r in runs_of[0]]
+        per_obj = {str(o): float(np.mean([h for h, oo in zip(hit, objs) if oo == o])) for o in sorted(set(objs))}
+        out["together"] = out.get("together", []) + [{"data": text, "generators": names, "queries": len(hit),
+                                                      "top5": float(np.mean(hit)), "per_object": per_obj}]
+        print(f"{text:<46} {'any of them':<20} {len(hit):>7} {'':>6} {np.mean(hit):>6.0%}")
+        print(f"{'':<46} per object top-5: " + ", ".join(f"{k}: {v:.0%}" for k, v in per_obj.items()))
     atomic_write(args.out, json.dumps(out, indent=1, default=float))
     print(f"wrote {args.out}")
     return 0

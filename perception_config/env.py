@@ -27,7 +27,11 @@ respects the mask. A masked action taken anyway does not crash: its block answer
 block's cost-table seconds plus the scoring pass, or the measured time). With the frame in
 the operator nodes (ROS, `Episode.frame` None) the mask follows `Episode.has_depth` (the
 configurator's `use_depth` parameter); unknown (None): all ones, and an operator answers
-"needs depth" itself. Scoring blocks that need depth are simply missing on an RGB-only frame
+"needs depth" itself. After a failed pick, `pick` is masked too until an action changes the
+hypothesis: the robot would try the very pose it just failed on (in simulation it fails again,
+2 s each; before this rule the policy-gradient agent learned to repeat the failed pick until
+`max_ops`, never trying the ranked candidates waiting in the cell pipeline). A pick taken
+anyway is still attempted. Scoring blocks that need depth are simply missing on an RGB-only frame
 (their missing flags are 1: the observation layout is the same), and cost-table mode charges
 the scoring pass of the scoring blocks that can run only.
 
@@ -157,6 +161,7 @@ class PerceptionConfigEnv(gym.Env):
         self.episode = None
         self.episode_time = 0.0
         self._mask = np.ones(len(self.action_names), np.int8)
+        self._failed_pick_pose = None  # the hypothesis a pick failed on (pick masked while it stays)
 
     def _frame_changed(self) -> None:
         """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
@@ -173,8 +178,15 @@ class PerceptionConfigEnv(gym.Env):
 
     def action_mask(self) -> np.ndarray:
         """1 per action that can run on the current episode's frame, 0 where its block needs an
-        input the frame lacks (depth on an RGB-only frame); a copy, np.int8 of n actions."""
-        return self._mask.copy()
+        input the frame lacks (depth on an RGB-only frame) and, while the hypothesis is one a
+        pick failed on, for the pick actions (never every action); np.int8 of n actions."""
+        mask = self._mask.copy()
+        pose = self.last_outcome.pose if self.last_outcome is not None else None
+        if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
+            picks = [i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK]
+            if mask.sum() > sum(int(mask[i]) for i in picks):  # something else can run
+                mask[picks] = 0
+        return mask
 
     @property
     def max_ops(self) -> int:
@@ -217,7 +229,7 @@ class PerceptionConfigEnv(gym.Env):
             "seconds": seconds, "scores": dict(outcome.scores), "picked": outcome.result.picked,
             "episode_time": self.episode_time, "steps": self.steps,
             "episode_key": ep.key if ep else None, "noise_lambda": ep.noise_lambda if ep else None,
-            "pose": outcome.pose, "action_mask": self._mask.copy(),
+            "pose": outcome.pose, "action_mask": self.action_mask(),
         }
         return info
 
@@ -273,6 +285,7 @@ class PerceptionConfigEnv(gym.Env):
                 terminated = True
             else:
                 self.pick_failed = True
+                self._failed_pick_pose = outcome.pose if outcome.pose is not None else before
                 reward -= self.settings.failed_pick_cost
                 seconds += self.settings.failed_pick_cost
         self.steps += 1
@@ -294,6 +307,12 @@ class PerceptionConfigEnv(gym.Env):
         info = self._info(outcome, seconds)
         info["truncation_cost"] = self.settings.truncation_cost if truncated else 0.0
         return self._obs(), float(reward), terminated, truncated, info
+
+
+def _same_pose(a: Any, b: Any, metres: float = 1e-4, radians: float = 1e-4) -> bool:
+    """The same hypothesis to a robot: within 0.1 mm and 0.006 deg (an ICP that re-converges
+    where it was moves it by less)."""
+    return bool(np.linalg.norm(a.t - b.t) <= metres and rotation_angle(a.R, b.R) <= radians)
 
 
 def register() -> None:

@@ -157,6 +157,34 @@ def test_failed_pick_costs_the_robot_attempt(tmp_path_factory):
     assert obs[e.observation_layout.index("progress:pick_failed")] == 1.0
 
 
+def test_pick_is_masked_on_the_hypothesis_it_failed_on(tmp_path_factory):
+    """After a failed pick the pick is masked until an action changes the hypothesis; an action
+    that fails (the hypothesis stays) leaves it masked; a pick taken anyway is attempted."""
+    from perception_config.agents.base import EnvSpec
+    from perception_config.agents.fixed import FixedAgent
+
+    e = make_env(tmp_path_factory)
+    pick, refine = e.action_names.index("pick"), e.action_names.index("depth_refine")
+    _, info = e.reset(options={"episode": 0, "lambda": 2.0, "episode_seed": 3})  # far off: the pick fails
+    assert info["action_mask"].all()
+    _, _, _, _, info = e.step(pick)
+    assert info["picked"] is False and info["action_mask"][pick] == 0 and e.action_mask()[pick] == 0
+    assert info["action_mask"].sum() == len(e.action_names) - 1
+    _, _, terminated, _, info = e.step(pick)  # taken anyway: the robot tries again
+    assert info["ok"] and info["picked"] is False and not terminated and info["action_mask"][pick] == 0
+    _, _, _, _, info = e.step(refine)
+    assert info["ok"] and info["action_mask"].all()
+    # the fixed agent goes on with its loop instead of picking the failed hypothesis again
+    agent = FixedAgent(EnvSpec.from_env(e), sequence=["pick", "depth_refine"], after="pick")
+    _, info = e.reset(options={"episode": 0, "lambda": 2.0, "episode_seed": 3})
+    played = []
+    for _ in range(4):
+        a = agent.act(None, info)
+        played.append(e.action_names[a])
+        info = e.step(a)[4]
+    assert played == ["pick", "depth_refine", "pick", "depth_refine"], played
+
+
 def test_truncation_at_max_ops_is_charged(tmp_path_factory):
     e = make_env(tmp_path_factory, max_ops=3, truncation_cost=4.0)
     e.reset(options={"episode": 0, "lambda": 0.5, "episode_seed": 0})

@@ -7,10 +7,12 @@ goes on (its pick failed, or it contains no pick), `after` decides:
 - "pick": keep picking (the sequence's last pick action, else the env's first pick action).
 The names are checked against the environment's action set when the agent is built.
 
-Actions that cannot run on the episode's frame (`info["action_mask"]`: e.g. the ICPs and
-depth_refine on an RGB-only frame) are skipped: the sequence is played without them
-([icp_coarse, icp_fine, pick] is [pick] on RGB-only data; `restart` indexes the full sequence
-and the loop is sequence[restart:] without them). A sequence left empty picks.
+Actions that cannot run (`info["action_mask"]`: e.g. the ICPs and depth_refine on an RGB-only
+frame, `pick` right after a failed pick on the same hypothesis) are skipped where they come:
+the sequence is played without them ([icp_coarse, icp_fine, pick] is [pick] on RGB-only data;
+after a failed pick the loop goes on with its next action). With `after="pick"` and the pick
+masked, the loop's first action that can run comes before the next pick. When nothing of the
+sequence can run, it picks.
 """
 from __future__ import annotations
 
@@ -62,22 +64,31 @@ class FixedAgent(Agent):
         super().begin_episode(seed)
         self._t = 0
 
+    def _planned(self, k: int) -> int:
+        """The k-th action of the plan: the sequence, then its loop (or the pick) forever."""
+        n = len(self._ids)
+        if k < n:
+            return self._ids[k]
+        return self._pick if self.after == "pick" else self._ids[self.restart + (k - n) % (n - self.restart)]
+
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        # Steps count from the env when it tells us (robust if begin_episode was not called).
-        t = int(info.get("steps", self._t)) if isinstance(info, dict) else self._t
-        self._t = t + 1
-        ids, loop = self._ids, self._ids[self.restart:]
+        # The plan's position: 0 at an episode's first step (the env's step count tells us, also
+        # when begin_episode was not called), then one past the last action played.
+        if isinstance(info, dict) and info.get("steps", None) == 0:
+            self._t = 0
         allowed = allowed_actions(info, self.spec.n_actions)
-        if allowed is not None:  # skip the actions that cannot run on this frame
-            ids, loop = [i for i in ids if allowed[i]], [i for i in loop if allowed[i]]
-            if not ids:
-                return self._pick
-        n = len(ids)
-        if t < n:
-            return ids[t]
-        if self.after == "pick" or not loop:
-            return self._pick
-        return loop[(t - n) % len(loop)]
+        if allowed is None:
+            a, self._t = self._planned(self._t), self._t + 1
+            return a
+        for k in range(self._t, self._t + len(self._ids) + 1):  # every planned action comes up once in there
+            if allowed[self._planned(k)]:
+                self._t = k + 1
+                return self._planned(k)
+        if self.after == "pick":  # the pick is masked: the loop's first action that can run first
+            loop = [i for i in self._ids[self.restart:] if allowed[i]]
+            if loop:
+                return loop[0]
+        return self._pick
 
     def hparams(self) -> dict[str, Any]:
         return {"sequence": list(self.sequence), "restart": self.restart, "after": self.after, "seed": self.seed}
