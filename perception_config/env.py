@@ -27,13 +27,15 @@ respects the mask. A masked action taken anyway does not crash: its block answer
 block's cost-table seconds plus the scoring pass, or the measured time). With the frame in
 the operator nodes (ROS, `Episode.frame` None) the mask follows `Episode.has_depth` (the
 configurator's `use_depth` parameter); unknown (None): all ones, and an operator answers
-"needs depth" itself. After a failed pick, `pick` is masked too until an action changes the
-hypothesis: the robot would try the very pose it just failed on (in simulation it fails again,
-2 s each; before this rule the policy-gradient agent learned to repeat the failed pick until
-`max_ops`, never trying the ranked candidates waiting in the cell pipeline). A pick taken
-anyway is still attempted. Scoring blocks that need depth are simply missing on an RGB-only frame
-(their missing flags are 1: the observation layout is the same), and cost-table mode charges
-the scoring pass of the scoring blocks that can run only.
+"needs depth" itself. Besides the frame's mask (`frame_mask()`), `pick` is masked after a
+failed pick until an action changes the hypothesis: the robot would try the very pose it just
+failed on (in simulation it fails again, 2 s each; before this rule the policy-gradient agent
+learned to repeat a failed pick until `max_ops`). A pick taken anyway is still attempted.
+Actions that need a hypothesis stay allowed without one: they fail in milliseconds, the
+cheapest way to give up on a part no generator finds (masking them, measured: the agent called
+1 s generators until `max_ops` instead, at a higher cost). Scoring blocks that need depth
+are simply missing on an RGB-only frame (their missing flags are 1: the observation layout is
+the same), and cost-table mode charges the scoring pass of the scoring blocks that can run only.
 
 Reward: minus the seconds each action took (the block plus the scoring after it); a failed pick
 also costs the robot's attempt time (`failed_pick_cost`, default 2 s). A successful pick ends
@@ -176,10 +178,14 @@ class PerceptionConfigEnv(gym.Env):
         self._scoring_cost = (self._full_scoring_cost if len(runnable) == len(self.pipeline.scoring)
                               else self.settings.scoring_cost(runnable))
 
+    def frame_mask(self) -> np.ndarray:
+        """1 per action whose block can run on the current episode's frame, 0 where it needs an
+        input the frame lacks (depth on an RGB-only frame); np.int8 of n actions."""
+        return self._mask.copy()
+
     def action_mask(self) -> np.ndarray:
-        """1 per action that can run on the current episode's frame, 0 where its block needs an
-        input the frame lacks (depth on an RGB-only frame) and, while the hypothesis is one a
-        pick failed on, for the pick actions (never every action); np.int8 of n actions."""
+        """The frame's mask (frame_mask) and, while the hypothesis is one a pick failed on, 0 for
+        the pick actions (unless nothing else could run); np.int8 of n actions."""
         mask = self._mask.copy()
         pose = self.last_outcome.pose if self.last_outcome is not None else None
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):

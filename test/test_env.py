@@ -170,6 +170,7 @@ def test_pick_is_masked_on_the_hypothesis_it_failed_on(tmp_path_factory):
     _, _, _, _, info = e.step(pick)
     assert info["picked"] is False and info["action_mask"][pick] == 0 and e.action_mask()[pick] == 0
     assert info["action_mask"].sum() == len(e.action_names) - 1
+    assert e.frame_mask().all()  # the frame itself allows every action (the oracle searches with this)
     _, _, terminated, _, info = e.step(pick)  # taken anyway: the robot tries again
     assert info["ok"] and info["picked"] is False and not terminated and info["action_mask"][pick] == 0
     _, _, _, _, info = e.step(refine)

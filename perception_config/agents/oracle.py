@@ -17,7 +17,7 @@ Search: uniform-cost (Dijkstra) over action sequences, costs = the env's own acc
   expanded; as nodes come off the queue cheapest first, the search ends when the next one
   does, and `best` is then optimal;
 - memo: a (pose, rng state, candidates left) reached before at no higher cost and no deeper is pruned;
-- actions that cannot run on the episode's frame (`env.action_mask()`: depth blocks on an
+- actions that cannot run on the episode's frame (`env.frame_mask()`: depth blocks on an
   RGB-only frame) are never tried;
 - depth is bounded by the env's remaining max_ops, work by `node_budget` operator calls.
 `exact` says the search finished within the budget: then no cheaper sequence exists (with
@@ -71,7 +71,8 @@ def oracle_search(env: Any, node_budget: int = 2000, noop_tol: float = 1e-6) -> 
         raise RuntimeError("oracle_search needs an episode: call env.reset() first")
     ops = env.ops
     names = env.action_names
-    runnable = [bool(m) for m in env.action_mask()] if hasattr(env, "action_mask") else [True] * len(names)
+    # The frame's mask: what can never run on this frame (the search itself skips failed actions).
+    runnable = [bool(m) for m in env.frame_mask()] if hasattr(env, "frame_mask") else [True] * len(names)
     pick_ids = [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick" and runnable[i]]
     pick_ids = pick_ids or [i for i, a in enumerate(env.pipeline.actions) if a.kind.value == "pick"]
     max_depth = env.max_ops - env.steps
