@@ -16,9 +16,10 @@ rendering, the best `n_polish` polished by ICP and verified again (verification.
 verify_polish_rank, as in `ppf`); (4) the `sweep_candidates` best distinct ones are swept in
 the plane, turns then shifts, and keep what verifies best (resting_poses.sweep_in_plane: ICP
 leaves a flange's or hex nut's turn where it started); the distinct results are the ranked
-candidates (confidence = verification score clipped to [0, 1]). The per-model preparation (the stable faces from the
-convex hull, a coarse distance field of the surface samples) takes milliseconds, also for a
-model of millions of faces, and is kept in memory: nothing to cache on disk.
+candidates (confidence = verification score clipped to [0, 1]). The per-model preparation
+(the stable faces from the convex hull, a coarse distance field of the surface samples) takes
+milliseconds, also for a model of millions of faces, and is kept in memory: nothing to cache
+on disk.
 
 Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
 cannot be used (models.model_defect) or is too small for a region of the frame.
