@@ -228,8 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         hit = [any(0 <= run[k]["rank"] < 5 for run in runs_of) for k in range(len(runs_of[0]))]
         objs = [r["obj_id"] for r in runs_of[0]]
         per_obj = {str(o): float(np.mean([h for h, oo in zip(hit, objs) if oo == o])) for o in sorted(set(objs))}
-        out["together"] = out.get("together", []) + [{"data": text, "generators": names, "queries": len(hit),
-                                                      "top5": float(np.mean(hit)), "per_object": per_obj}]
+        out.setdefault("together", []).append({"data": text, "generators": names, "queries": len(hit),
+                                               "top5": float(np.mean(hit)), "per_object": per_obj})
         print(f"{text:<46} {'any of them':<20} {len(hit):>7} {'':>6} {np.mean(hit):>6.0%}")
         print(f"{'':<46} per object top-5: " + ", ".join(f"{k}: {v:.0%}" for k, v in per_obj.items()))
     atomic_write(args.out, json.dumps(out, indent=1, default=float))

@@ -320,8 +320,7 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
         "confidence": _confidence(info["scores"], env.pipeline),
         "initial_pose": _pose_json(initial), "final_pose": _pose_json(final),
     }
-    frame_mask = env.frame_mask() if hasattr(env, "frame_mask") else traj.initial_info.get("action_mask", ())
-    masked = [n for n, m in zip(env.action_names, frame_mask) if not m]
+    masked = [n for n, m in zip(env.action_names, env.frame_mask()) if not m]
     if masked:  # actions that could not run on this frame (depth actions on RGB-only data)
         rec["masked_actions"] = masked
     search = getattr(agent, "last_result", None)  # the oracle's search of this episode

@@ -292,20 +292,26 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
     the synthetic parts: the right turn verifies best in 8 of 10 such near misses). Stops at
     `deadline` (perf_counter) with the best so far."""
     pivot = pose.transform(model.points.mean(axis=0)[None])[0]
-    best = (score, 0.0, 0.0, 0.0)
-    coarse = np.radians(np.arange(step_deg, span_deg + 1e-9, step_deg))
+    best = (score, 0.0, 0.0, 0.0)  # (score, turn, dx, dy)
     fine = math.radians(step_deg / 2.0)
     h = shift * model.diameter
-    stages = [[(s * a, 0.0, 0.0) for a in coarse for s in (1.0, -1.0)],
-              lambda a: [(a - fine, 0.0, 0.0), (a + fine, 0.0, 0.0)],
-              lambda a: [(a, dx, dy) for dx in (-h, 0.0, h) for dy in (-h, 0.0, h) if dx or dy]]
-    for stage in stages:
-        for a, dx, dy in (stage if isinstance(stage, list) else stage(best[1])):
-            if time.perf_counter() >= deadline:
-                return best[0], moved_in_plane(pose, B, pivot, best[1], best[2], best[3])
-            s = verify(moved_in_plane(pose, B, pivot, a, dx, dy))
-            if s > best[0]:
-                best = (s, a, dx, dy)
+
+    def tries():  # read `best` as it is when each stage starts
+        for a in np.radians(np.arange(step_deg, span_deg + 1e-9, step_deg)):
+            yield a, 0.0, 0.0
+            yield -a, 0.0, 0.0
+        a = best[1]
+        yield a - fine, 0.0, 0.0
+        yield a + fine, 0.0, 0.0
+        a = best[1]
+        yield from ((a, dx, dy) for dx in (-h, 0.0, h) for dy in (-h, 0.0, h) if dx or dy)
+
+    for a, dx, dy in tries():
+        if time.perf_counter() >= deadline:
+            break
+        s = verify(moved_in_plane(pose, B, pivot, a, dx, dy))
+        if s > best[0]:
+            best = (s, a, dx, dy)
     return best[0], moved_in_plane(pose, B, pivot, best[1], best[2], best[3])
 
 
