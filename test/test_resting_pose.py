@@ -169,7 +169,7 @@ def test_the_synthetic_parts_on_the_table(tmp_path_factory):
 
 @pytest.mark.skipif(not (LMO / "models" / "models_info.json").exists(), reason="../shared/data/lmo absent")
 def test_the_real_lmo_frame():
-    """The real LM-O RGB-D frame, 8 objects in clutter: measured 6 of 8 in the top 5."""
+    """The real LM-O RGB-D frame, 8 objects in clutter: measured 5 of 8 in the top 5 (the duck needs 16 regions)."""
     import warnings
 
     from perception_config.datasets.bop import BopDataset
