@@ -18,6 +18,7 @@ from perception_config.vision.ppf import canonical_poses
 from perception_config.vision.resting_poses import (
     moved_in_plane,
     planar_icp,
+    planar_icp_many,
     plane_basis,
     resting_poses,
     rotation_to,
@@ -79,6 +80,24 @@ def test_planar_icp_recovers_a_turn_and_a_shift():
     R, shift = planar_icp(model, observed, 0.02, iterations=30)
     assert abs(math.degrees(math.atan2(R[1, 0], R[0, 0])) - 9.0) < 1.0
     assert np.allclose(shift[:2], [0.006, -0.004], atol=0.001) and shift[2] == 0.0 and np.allclose(R[2], [0, 0, 1])
+
+
+def test_planar_icp_many_aligns_each_set_as_planar_icp_does_alone():
+    """The batch pads the sets to one length: the padding must never match, and a set that
+    converges or loses its matches must stop while the others go on."""
+    rng = np.random.default_rng(2)
+    observed = np.c_[rng.uniform(-0.03, 0.03, (150, 2)), rng.uniform(0.0, 0.02, 150)]
+    sets = []
+    for n in (60, 150, 90, 7):
+        a = rng.uniform(-0.3, 0.3)
+        Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        sets.append(observed[rng.choice(150, n)] @ Rz.T + rng.normal(0, 0.003, (n, 3)) * [1, 1, 0])
+    sets.append(observed[:40] + [1.0, 0.0, 0.0])  # nothing within reach: not moved
+    batch = planar_icp_many(sets, observed, 0.02)
+    for m, (R, shift) in zip(sets, batch):
+        R1, shift1 = planar_icp(m, observed, 0.02)
+        assert np.allclose(R, R1, atol=1e-12) and np.allclose(shift, shift1, atol=1e-12)
+    assert np.allclose(batch[-1][0], np.eye(3)) and np.allclose(batch[-1][1], 0.0)
 
 
 def test_canonical_poses_merge_what_the_symmetries_make_alike():

@@ -157,26 +157,62 @@ def planar_icp(model_pts: np.ndarray, observed: np.ndarray, max_dist: float,
     ICP would give up (on a few hundred pixels of a small part it tilts it). Each observed
     point is matched to its nearest model point within `max_dist` (occluded model parts then
     pull nothing). Returns (Rz, shift) with aligned = model_pts @ Rz.T + shift."""
-    tree = cKDTree(model_pts)
-    Rz, shift = np.eye(3), np.zeros(3)
+    return planar_icp_many([model_pts], observed, max_dist, iterations)[0]
+
+
+def planar_icp_many(model_sets: list[np.ndarray], observed: np.ndarray, max_dist: float,
+                    iterations: int = 8) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`planar_icp` of each of several (P_i, 3) model point sets to the same observed points, in
+    one batch: nearest neighbours by brute force over the sets padded to one length (a region's
+    ~150 points against ~150 model samples, ~18 sets: a few hundred thousand distances per
+    iteration, where a k-d tree per set and iteration cost 5x more in Python overhead). A set
+    stops moving once converged or left with fewer than 5 matches, as planar_icp does alone."""
+    n_sets = len(model_sets)
+    size = max(len(m) for m in model_sets)
+    M = np.full((n_sets, size, 3), np.inf)  # padding: never the nearest
+    for b, m in enumerate(model_sets):
+        M[b, : len(m)] = m
+    M0 = np.nan_to_num(M, posinf=0.0)
+    m_sq = np.where(np.isfinite(M[..., 0]), (M0 * M0).sum(axis=2), np.inf)  # (sets, P)
+    MT = np.ascontiguousarray(M0.transpose(0, 2, 1))
+    obs_xy = observed[:, :2]
+    Rz = np.repeat(np.eye(3)[None], n_sets, axis=0)
+    shift = np.zeros((n_sets, 3))
+    active = np.ones(n_sets, bool)
+    rows = np.arange(len(observed))
+    buf = np.empty((n_sets, len(observed), size))
     for _ in range(iterations):
-        back = (observed - shift) @ Rz  # the observed points in the model points' frame
-        dist, idx = tree.query(back, distance_upper_bound=max_dist)
-        ok = np.isfinite(dist)
-        if ok.sum() < 5:
+        b_idx = np.flatnonzero(active)
+        if not len(b_idx):
             break
-        src = model_pts[idx[ok]] @ Rz.T + shift
-        src, dst = src[:, :2], observed[ok, :2]
-        cs, cd = src.mean(axis=0), dst.mean(axis=0)
-        h = (src - cs).T @ (dst - cd)
-        phi = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
-        step = _turn(phi)
-        t2 = cd - step[:2, :2] @ cs
-        Rz = step @ Rz
-        shift = step @ shift + np.array([t2[0], t2[1], 0.0])
-        if abs(phi) < 1e-4 and np.linalg.norm(t2) < 1e-5:
+        back = (observed[None] - shift[b_idx, None, :]) @ Rz[b_idx]  # the observed points in each set's frame
+        d2 = np.matmul(back, MT[b_idx], out=buf[: len(b_idx)])  # |model|^2 - 2 back . model (+ |back|^2, the
+        d2 *= -2.0  # same along a row), in one buffer: each temporary of this size would cost its page faults
+        d2 += m_sq[b_idx, None, :]
+        idx = np.argmin(d2, axis=2)  # (b, N)
+        best = d2[np.arange(len(b_idx))[:, None], rows[None, :], idx] + (back * back).sum(axis=2)
+        ok = best <= max_dist * max_dist
+        n_ok = ok.sum(axis=1)
+        few = n_ok < 5
+        active[b_idx[few]] = False
+        b_idx, idx, ok, n_ok = b_idx[~few], idx[~few], ok[~few], n_ok[~few]
+        if not len(b_idx):
             break
-    return Rz, shift
+        src = M0[b_idx[:, None], idx, :2] @ Rz[b_idx, :2, :2].transpose(0, 2, 1) + shift[b_idx, None, :2]
+        w = ok[..., None].astype(float)
+        cs = (src * w).sum(axis=1) / n_ok[:, None]
+        cd = (obs_xy[None] * w).sum(axis=1) / n_ok[:, None]
+        h = ((src - cs[:, None]) * w).transpose(0, 2, 1) @ (obs_xy[None] - cd[:, None])  # (b, 2, 2)
+        phi = np.arctan2(h[:, 0, 1] - h[:, 1, 0], h[:, 0, 0] + h[:, 1, 1])
+        c, s_ = np.cos(phi), np.sin(phi)
+        step = np.zeros((len(b_idx), 3, 3))
+        step[:, 0, 0], step[:, 0, 1], step[:, 1, 0], step[:, 1, 1], step[:, 2, 2] = c, -s_, s_, c, 1.0
+        t2 = cd - (step[:, :2, :2] @ cs[..., None])[..., 0]
+        Rz[b_idx] = step @ Rz[b_idx]
+        shift[b_idx] = (step @ shift[b_idx, :, None])[..., 0]
+        shift[b_idx, :2] += t2
+        active[b_idx[(np.abs(phi) < 1e-4) & (np.linalg.norm(t2, axis=1) < 1e-5)]] = False
+    return [(Rz[b], shift[b]) for b in range(n_sets)]
 
 
 @dataclass
@@ -257,13 +293,16 @@ def refine_rests(model: ObjectModel, rests: list[RestingPose], sl: RegionShortli
     (cost, pose), lowest cost first."""
     d, tau = model.diameter, truncate * model.diameter
     com, pts, nrm = _samples(model)
-    out: list[tuple[float, Pose]] = []
+    fronts, starts = [], []
     for i, k, shift in sl.picks:
         R0 = sl.rotations[k] @ rests[i].R
         p = pts @ R0.T
         front = p[(nrm @ R0.T) @ sl.view < 0.0]
-        front = front if len(front) >= 5 else p
-        R2, s2 = planar_icp(front + shift, sl.q, 2.0 * tau)
+        fronts.append(front if len(front) >= 5 else p)
+        starts.append((R0, shift))
+    aligned = planar_icp_many([f + shift for f, (_, shift) in zip(fronts, starts)], sl.q, 2.0 * tau)
+    out: list[tuple[float, Pose]] = []
+    for front, (R0, shift), (R2, s2) in zip(fronts, starts, aligned):
         R_plane, shift = R2 @ R0, R2 @ shift + s2
         placed = front @ R2.T + shift
         cost = (np.minimum(cKDTree(placed).query(sl.q, distance_upper_bound=tau)[0], tau).mean()
@@ -316,4 +355,4 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
 
 
 __all__ = ["RestingPose", "RegionShortlist", "resting_poses", "shortlist_rests", "refine_rests", "planar_icp",
-           "plane_basis", "rotation_to", "surface_field", "moved_in_plane", "sweep_in_plane"]
+           "planar_icp_many", "plane_basis", "rotation_to", "surface_field", "moved_in_plane", "sweep_in_plane"]
