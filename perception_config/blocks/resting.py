@@ -15,11 +15,13 @@ part fits best the `per_rest` best turns of each face are aligned in the plane a
 rendering, the best `n_polish` polished by ICP and verified again (verification.
 verify_polish_rank, as in `ppf`); (4) the `sweep_candidates` best distinct ones are swept in
 the plane, turns then shifts, and keep what verifies best (resting_poses.sweep_in_plane: ICP
-leaves a flange's or hex nut's turn where it started); the distinct results are the ranked
-candidates (confidence = verification score clipped to [0, 1]). The per-model preparation
-(the stable faces from the convex hull, a coarse distance field of the surface samples) takes
-milliseconds, also for a model of millions of faces, and is kept in memory: nothing to cache
-on disk.
+leaves a flange's or hex nut's turn where it started); (5) a candidate floating above the
+plane or sunk into it by less than `settle` diameters is moved onto it unless a verification
+at a third of the tolerance prefers it where it was (resting_poses.settled_on_plane); the
+distinct results are the ranked candidates (confidence = verification score clipped to
+[0, 1]). The per-model preparation (the stable faces from the convex hull, a coarse distance
+field of the surface samples) takes milliseconds, also for a model of millions of faces, and
+is kept in memory: nothing to cache on disk.
 
 Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
 cannot be used (models.model_defect) or is too small for a region of the frame.
@@ -36,6 +38,7 @@ from ..vision.resting_poses import (
     plane_basis,
     refine_rests,
     resting_poses,
+    settled_on_plane,
     shortlist_rests,
     surface_field,
     sweep_in_plane,
@@ -86,6 +89,9 @@ class RestingPoseGenerator(Block):
         Param("sweep_span", 30.0, 0.0, 180.0, doc="degrees: turns swept either side of a candidate"),
         Param("sweep_step", 6.0, 0.5, 90.0, doc="degrees between swept turns (then half a step beside the best)"),
         Param("sweep_shift", 0.03, 0.0, 0.5, doc="diameters: the shifts along the plane tried after the best turn"),
+        Param("settle", 0.2, 0.0, 1.0, doc="diameters: a candidate floating above the plane or sunk into it by less "
+                                            "is moved onto it, unless that verifies worse at settle_tol; 0: never"),
+        Param("settle_tol", 0.33, 0.05, 1.0, doc="share of verify_tol: the depth tolerance that judges settling"),
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
         Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
         Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between hypotheses)"),
@@ -152,9 +158,26 @@ class RestingPoseGenerator(Block):
             swept = [sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
                                     c["sweep_shift"]) for s, pose in ranked[:n_sweep]]
             ranked = ranked_candidates(swept + ranked[n_sweep:], model, int(c["top_k"]))
+        n_settled = 0
+        if ranked and c["settle"] > 0:
+            # a part at rest touches the plane: close a small gap when a verification at a tighter
+            # tolerance (depth noise, not the pose's slack) does not prefer the gap
+            tight = c["settle_tol"] * c["verify_tol"]
+            settled = []
+
+            def tight_score(pose):
+                return verify(model, pose, frame, tight, 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
+
+            for conf, pose in ranked:
+                down = settled_on_plane(model, pose, seg.plane, c["settle"] * d)
+                if (down is not None and time.perf_counter() < deadline
+                        and tight_score(down) >= tight_score(pose)):
+                    pose, n_settled = down, n_settled + 1
+                settled.append((conf, pose))
+            ranked = settled
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre], "polished": [(q[0], q[1]) for q in polished],
-                "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses),
+                "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses), "settled": n_settled,
                 "seconds": {"prepare": t_prep, "hypotheses": t_hyp - start - t_prep, "verify": t_verify - t_hyp,
                             "sweep": now - t_verify}}
         if not ranked:

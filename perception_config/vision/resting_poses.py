@@ -320,6 +320,19 @@ def moved_in_plane(pose: Pose, B: np.ndarray, pivot: np.ndarray, angle: float, d
     return Pose(Rw @ pose.R, Rw @ (pose.t - pivot) + pivot + B[:, 0] * dx + B[:, 1] * dy)
 
 
+def settled_on_plane(model: ObjectModel, pose: Pose, plane: np.ndarray, max_gap: float) -> Pose | None:
+    """`pose` moved along the plane's normal until the part's lowest surface sample touches the
+    plane ((n, d), plane_basis), when it floats above it or sinks into it by less than
+    `max_gap` metres; None otherwise (stacked on something, or not this plane's). The region's
+    top that places a rest includes its edge pixels' and the sensor's noise: the synthetic hex
+    nuts and bushings floated 3-4 mm, 0.1 d, which the pick's MSSD counts in full."""
+    n = plane[:3] / np.linalg.norm(plane[:3])
+    gap = float(np.min(pose.transform(model.points) @ n)) + plane[3] / np.linalg.norm(plane[:3])
+    if not abs(gap) < max_gap:
+        return None
+    return Pose(pose.R, pose.t - gap * n)
+
+
 def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, verify: Callable[[Pose], float],
                    deadline: float = math.inf, span_deg: float = 30.0, step_deg: float = 6.0,
                    shift: float = 0.03) -> tuple[float, Pose]:
@@ -355,4 +368,5 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
 
 
 __all__ = ["RestingPose", "RegionShortlist", "resting_poses", "shortlist_rests", "refine_rests", "planar_icp",
-           "planar_icp_many", "plane_basis", "rotation_to", "surface_field", "moved_in_plane", "sweep_in_plane"]
+           "planar_icp_many", "plane_basis", "rotation_to", "surface_field", "moved_in_plane", "settled_on_plane",
+           "sweep_in_plane"]
