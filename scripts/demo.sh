@@ -58,7 +58,7 @@ table() { "$PY" -c 'import json, sys; from perception_config.evaluation import f
 print(format_table(json.load(open(sys.argv[1]))))' "$1"; }
 say "the lambda study (simulated initialisation, default pipeline):"
 table "$OUT/evaluation/results.json"
-say "the cell without ground truth (cell pipeline: ppf + ranked candidates + global_registration):"
+say "the cell without ground truth (cell pipeline: resting_pose + ranked candidates, ppf, global_registration, ICP):"
 table "$OUT/cell/results.json"
 say "done in $(( $(date +%s) - start )) s. Look at:"
 echo "  $OUT/frame.png                      a frame with the ground truth overlaid"
