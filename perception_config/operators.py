@@ -182,7 +182,8 @@ class InProcessOperators:
     the blocks' wall-clock bounds (`BlockInput.time_bounded`; the env's cost-table mode).
     Ground-truth-free generator results are reused for the same call (`GeneratorMemo`).
     After a generator call the candidates it ranked below its pose wait in `candidates` for
-    `next_candidate`; a failed generator call leaves none.
+    `next_candidate`; a call that failed (its best candidate verified below the generator's
+    threshold) leaves all it ranked, the first too, and none when it ranked none.
     """
 
     def __init__(self, pipeline: Pipeline, frame_cache_size: int = 4, time_bounded: bool = True) -> None:
@@ -221,7 +222,9 @@ class InProcessOperators:
         seed = draw_seed(self.rng)
         inp = self._input(self.pose, np.random.default_rng(seed))
         result = self.memo.call(block, inp, seed) if GeneratorMemo.applies(block) else block(inp)
-        self.candidates = [(c, as_transmitted(p)) for c, p in result.candidates[1:]] if result.ok else []
+        # an accepted call's first candidate is the pose; a call whose best candidate verified below
+        # its threshold (ok=False) leaves them all waiting: the agent sees how many and how confident
+        self.candidates = [(c, as_transmitted(p)) for c, p in result.candidates[0 if not result.ok else 1:]]
         return result
 
     def _generator(self, noise_lambda: float):

@@ -78,6 +78,31 @@ def test_next_candidate_takes_the_ranked_candidates_in_turn_then_fails_and_keeps
     assert [c for c, _ in ops.candidates] == ([c for c, _ in gen.result.candidates[1:]] if gen.result.ok else [])
 
 
+def test_a_refused_generator_call_leaves_all_its_candidates_waiting(frames):
+    """A generator whose best candidate verifies below its threshold answers ok=False and sets no
+    hypothesis, but what it ranked waits for next_candidate, the first too: the agent sees how
+    many and how confident (a flat bracket verifies at 0.1-0.3 where it is right)."""
+    strict = yaml.safe_load(PIPELINE)
+    strict["generator"]["params"] = {"min_verification": 1.0}  # a verification score never reaches 1
+    ops = InProcessOperators(pipeline_from_dict(strict), time_bounded=False)
+    for frame in frames:
+        for obj in frame.objects:
+            out = ops.start(episode(frame, obj))
+            if out.result.candidates:
+                break
+        else:
+            continue
+        break
+    else:
+        pytest.skip("ppf ranked no object's candidates on the tiny dataset's frames")
+    ranked = out.result.candidates
+    assert not out.result.ok and "min_verification" in out.result.reason and ops.pose is None
+    assert [c for c, _ in ops.candidates] == [c for c, _ in ranked]
+    step = ops.apply("next_candidate")
+    assert step.result.ok and step.result.info["confidence"] == ranked[0][0] and same_pose(ops.pose, ranked[0][1])
+    assert len(ops.candidates) == len(ranked) - 1
+
+
 def test_next_candidate_draws_no_seed_so_later_generator_calls_are_unchanged(frames):
     """Taking a candidate searches nothing: the episode's seed stream is where it was, so a
     generator call after it draws what it would have drawn without it."""

@@ -11,7 +11,8 @@ Parameters (besides those of every operator node, see operator_node.py):
   default_lambda  noise level of simulated_init when a request's noise_lambda is negative (0.5)
 A request's seed makes simulated_init reproducible (0 = draw one); with `score` the hypothesis
 comes back scored by the pipeline's scoring set (the camera frame is then needed too). The
-ground-truth-free generators also answer their ranked candidates (`candidates`, `confidences`).
+ground-truth-free generators also answer their ranked candidates (`candidates`, `confidences`),
+also with success=false when the best of them verified below the generator's threshold.
 """
 from __future__ import annotations
 
@@ -51,6 +52,10 @@ class GenerationNode(OperatorNode):
         _, block = self.block(method, (Kind.GENERATION,), lam)
         rng = np.random.default_rng(request.seed if request.seed else int(self._rng.integers(1, 2**32)))
         result, header = self.run_block(block, stamp_ns, object_id, None, rng)
+        # the ranked candidates go out also with a refusal (best verified below the threshold):
+        # the caller may still take them in turn (next_candidate)
+        response.candidates = [make_hypothesis(header, object_id, answered_pose(p)[0]) for _, p in result.candidates]
+        response.confidences = [float(conf) for conf, _ in result.candidates]
         if not result.ok:
             raise ValueError(f"{method}: {result.reason}")
         pose_msg, pose = answered_pose(result.pose)
@@ -58,8 +63,6 @@ class GenerationNode(OperatorNode):
         if request.score:
             scores = self.score(stamp_to_nanoseconds(header.stamp), object_id, pose)[0]
         response.hypothesis = make_hypothesis(header, object_id, pose_msg, scores)
-        response.candidates = [make_hypothesis(header, object_id, answered_pose(p)[0]) for _, p in result.candidates]
-        response.confidences = [float(conf) for conf, _ in result.candidates]
 
 
 def main(args: list[str] | None = None) -> None:

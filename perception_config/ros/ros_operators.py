@@ -181,13 +181,12 @@ class RosOperators:
         if res.success and self.stamp is None:  # "latest" is resolved once, by the first answer
             self.stamp = res.hypothesis.header.stamp
             self.frame_id = res.hypothesis.header.frame_id
-        self._candidates = []
-        if res.success:
-            try:
-                self._candidates = [(float(conf), msg_to_pose(h.pose), h.pose)
-                                    for conf, h in zip(res.confidences[1:], res.candidates[1:])]
-            except ValueError:  # an unusable candidate pose: offer none rather than a wrong one
-                self._candidates = []
+        first = 1 if res.success else 0  # a refused call's candidates all wait (InProcessOperators._generate)
+        try:
+            self._candidates = [(float(conf), msg_to_pose(h.pose), h.pose)
+                                for conf, h in zip(res.confidences[first:], res.candidates[first:])]
+        except ValueError:  # an unusable candidate pose: offer none rather than a wrong one
+            self._candidates = []
         return self._result(res, res.hypothesis if res.success else None)
 
     @property
