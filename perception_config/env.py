@@ -31,9 +31,12 @@ configurator's `use_depth` parameter); unknown (None): all ones, and an operator
 failed pick until an action changes the hypothesis: the robot would try the very pose it just
 failed on (in simulation it fails again, 2 s each; before this rule the policy-gradient agent
 learned to repeat a failed pick until `max_ops`). A pick taken anyway is still attempted.
-Actions that need a hypothesis stay allowed without one: they fail in milliseconds, the
-cheapest way to give up on a part no generator finds (masking them, measured: the agent called
-1 s generators until `max_ops` instead, at a higher cost). Scoring blocks that need depth
+A generator that searches without a seed or the pose (ppf, resting_pose: `repeats_search`) is
+masked once it ran in the episode: it would answer the same poses again (a trained agent called
+ppf until `max_ops` after a failed pick); its candidates stay for next_candidate. Actions that
+need a hypothesis stay allowed without one: they fail in milliseconds, the cheapest way to
+give up on a part no generator finds (masking them, measured: the agent called 1 s generators
+until `max_ops` instead, at a higher cost). Scoring blocks that need depth
 are simply missing on an RGB-only frame (their missing flags are 1: the observation layout is
 the same), and cost-table mode charges the scoring pass of the scoring blocks that can run only.
 
@@ -70,7 +73,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .blocks.base import DEPTH, Kind
+from .blocks.base import DEPTH, POSE, Kind
 from .blocks.pipeline import Pipeline, load_pipeline
 from .datasets.bop import BopDataset
 from .episodes import EpisodeSource
@@ -164,6 +167,7 @@ class PerceptionConfigEnv(gym.Env):
         self.episode_time = 0.0
         self._mask = np.ones(len(self.action_names), np.int8)
         self._failed_pick_pose = None  # the hypothesis a pick failed on (pick masked while it stays)
+        self._searched: set[int] = set()  # deterministic generator actions already called this episode
 
     def _frame_changed(self) -> None:
         """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
@@ -184,14 +188,18 @@ class PerceptionConfigEnv(gym.Env):
         return self._mask.copy()
 
     def action_mask(self) -> np.ndarray:
-        """The frame's mask (frame_mask) and, while the hypothesis is one a pick failed on, 0 for
-        the pick actions (unless nothing else could run); np.int8 of n actions."""
+        """The frame's mask (frame_mask); while the hypothesis is one a pick failed on, 0 for the
+        pick actions; 0 for a deterministic generator already called this episode (`repeats_search`:
+        the same search, the same answer); each unless nothing else could run. np.int8 of n actions."""
         mask = self._mask.copy()
         pose = self.last_outcome.pose if self.last_outcome is not None else None
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
             picks = [i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK]
             if mask.sum() > sum(int(mask[i]) for i in picks):  # something else can run
                 mask[picks] = 0
+        searched = sorted(self._searched)
+        if searched and mask.sum() > sum(int(mask[i]) for i in searched):
+            mask[searched] = 0
         return mask
 
     @property
@@ -286,6 +294,8 @@ class PerceptionConfigEnv(gym.Env):
         seconds = self.action_seconds(outcome, block)
         reward = -seconds
         terminated = False
+        if repeats_search(block):
+            self._searched.add(a)
         if block.kind == Kind.PICK and outcome.result.ok:
             if outcome.result.picked:
                 terminated = True
@@ -313,6 +323,15 @@ class PerceptionConfigEnv(gym.Env):
         info = self._info(outcome, seconds)
         info["truncation_cost"] = self.settings.truncation_cost if truncated else 0.0
         return self._obs(), float(reward), terminated, truncated, info
+
+
+def repeats_search(block: Any) -> bool:
+    """Whether a second call of this generator in an episode repeats the first: it searches the
+    frame for the model without a seed or the current pose (ppf, resting_pose), so it answers
+    the same poses again (a trained agent had learned to call ppf until max_ops after a failed
+    pick). Its candidates stay reachable by next_candidate."""
+    return (block.kind == Kind.GENERATION and not block.uses_rng and POSE not in block.inputs
+            and not block.takes_candidate)
 
 
 def _same_pose(a: Any, b: Any, metres: float = 1e-4, radians: float = 1e-4) -> bool:

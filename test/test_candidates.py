@@ -156,6 +156,30 @@ def test_the_env_observes_the_waiting_candidates_only_in_pipelines_that_can_take
     assert not any(n.startswith("candidates:") for n in default.observation_layout)
 
 
+def test_a_deterministic_generator_is_masked_once_it_searched_this_episode(synthetic_dataset):
+    """ppf searches the frame without a seed or the pose: a second call in the episode repeats
+    the first, so it is masked once called (a trained agent called it until max_ops after a
+    failed pick); the randomised global_registration stays available, and a new episode
+    unmasks ppf."""
+    from perception_config.env import PerceptionConfigEnv, repeats_search
+
+    pipe = yaml.safe_load(PIPELINE)
+    pipe["actions"].insert(0, {"name": "ppf", "block": "ppf", "params": {"max_seconds": 1.0}})
+    env = PerceptionConfigEnv(synthetic_dataset, pipeline_from_dict(pipe), time_mode="cost_table")
+    kinds = {a.name: repeats_search(a.block) for a in env.pipeline.actions}
+    assert kinds == {"ppf": True, "icp_fine": False, "next_candidate": False, "global_registration": False,
+                     "pick": False}
+    ppf, gr = env.action_names.index("ppf"), env.action_names.index("global_registration")
+    _, info = env.reset(seed=0)
+    assert info["action_mask"].all()
+    _, _, _, _, info = env.step(ppf)
+    assert info["action_mask"][ppf] == 0 and info["action_mask"].sum() == len(env.action_names) - 1
+    _, _, _, _, info = env.step(gr)
+    assert info["action_mask"][gr] == 1 and info["action_mask"][ppf] == 0
+    _, info = env.reset(seed=1)
+    assert info["action_mask"].all()
+
+
 def test_the_shipped_cell_pipeline_needs_no_ground_truth_but_the_simulated_pick():
     pipe = load_pipeline("cell")
     assert pipe.generator.name == "resting_pose" and GROUND_TRUTH not in pipe.generator.inputs
