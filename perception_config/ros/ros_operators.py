@@ -15,7 +15,8 @@ scoring node. After a pick or a failed operator the hypothesis is unchanged, and
 scores (scoring is deterministic): no call.
 
 Candidates: a generator's answer carries its ranked candidates (`candidates`, `confidences`); the
-ones below the answered pose wait here, and `next_candidate` takes the next of them in this
+ones below the answered pose wait here (all of them after a refusal, success=false, whose best
+verified below the generator's threshold), and `next_candidate` takes the next of them in this
 process, with no call but the scoring of the new hypothesis (the node answers them as it
 answers poses, so they travel on unconverted).
 

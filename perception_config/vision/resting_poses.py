@@ -165,9 +165,11 @@ def planar_icp_many(model_sets: list[np.ndarray], observed: np.ndarray, max_dist
     """`planar_icp` of each of several (P_i, 3) model point sets to the same observed points, in
     one batch: nearest neighbours by brute force over the sets padded to one length (a region's
     ~150 points against ~150 model samples, ~18 sets: a few hundred thousand distances per
-    iteration, where a k-d tree per set and iteration cost 5x more in Python overhead). A set
-    stops moving once converged or left with fewer than 5 matches, as planar_icp does alone."""
+    iteration, where a k-d tree per set and iteration took twice as long, in Python overhead).
+    A set stops moving once converged or left with fewer than 5 matches, as planar_icp does alone."""
     n_sets = len(model_sets)
+    if not n_sets:
+        return []
     size = max(len(m) for m in model_sets)
     M = np.full((n_sets, size, 3), np.inf)  # padding: never the nearest
     for b, m in enumerate(model_sets):
