@@ -116,12 +116,15 @@ def service_specs(models_dir: Path, pipeline: Any, frames: int, rgb_only: bool,
 def replay_spec(bag: Path, rate: float, rgb_only: bool, ground_truth_subscribers: int = 2,
                 **params: Any) -> NodeSpec:
     """bag_replay_node starting once the four operator nodes subscribe to the camera topics and
-    `ground_truth_subscribers` to the ground truth (generation and pick, plus any client)."""
+    `ground_truth_subscribers` to the ground truth (generation and pick, plus any client), waiting
+    up to a minute for them: five node processes importing Open3D and torch at once on 2 cores
+    took 12 s to subscribe on a slow machine, past the node's default 10 s, and the replay then
+    went to nobody."""
     cameras = ("camera/color/image_raw", "camera/camera_info") if rgb_only else \
         ("camera/color/image_raw", "camera/depth/image_raw", "camera/camera_info")
     wait_for = [f"{t}:4" for t in cameras] + [f"perception/ground_truth:{ground_truth_subscribers}"]
     return NodeSpec("bag_replay_node", params={"bag": str(bag), "rate": float(rate), "start_delay": 0.5,
-                                               "wait_for": wait_for, **params})
+                                               "wait_for": wait_for, "wait_timeout": 60.0, **params})
 
 
 def replay_check(
