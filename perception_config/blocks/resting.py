@@ -149,12 +149,12 @@ class RestingPoseGenerator(Block):
                                                    int(c["top_k"]), keep_unpolished=True)
         t_verify = time.perf_counter()
         n_sweep = int(c["sweep_candidates"])
+
+        def score(pose, tol=c["verify_tol"]):
+            return verify(model, pose, frame, tol, 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
+
         if ranked and n_sweep:
             B, _ = plane_basis(seg.plane)
-
-            def score(pose):
-                return verify(model, pose, frame, c["verify_tol"], 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
-
             swept = [sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
                                     c["sweep_shift"]) for s, pose in ranked[:n_sweep]]
             ranked = ranked_candidates(swept + ranked[n_sweep:], model, int(c["top_k"]))
@@ -164,14 +164,10 @@ class RestingPoseGenerator(Block):
             # tolerance (depth noise, not the pose's slack) does not prefer the gap
             tight = c["settle_tol"] * c["verify_tol"]
             settled = []
-
-            def tight_score(pose):
-                return verify(model, pose, frame, tight, 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
-
             for conf, pose in ranked:
                 down = settled_on_plane(model, pose, seg.plane, c["settle"] * d)
                 if (down is not None and time.perf_counter() < deadline
-                        and tight_score(down) >= tight_score(pose)):
+                        and score(down, tight) >= score(pose, tight)):
                     pose, n_settled = down, n_settled + 1
                 settled.append((conf, pose))
             ranked = settled

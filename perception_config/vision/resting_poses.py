@@ -171,11 +171,11 @@ def planar_icp_many(model_sets: list[np.ndarray], observed: np.ndarray, max_dist
     if not n_sets:
         return []
     size = max(len(m) for m in model_sets)
-    M = np.full((n_sets, size, 3), np.inf)  # padding: never the nearest
+    M0 = np.zeros((n_sets, size, 3))
+    real = np.zeros((n_sets, size), bool)
     for b, m in enumerate(model_sets):
-        M[b, : len(m)] = m
-    M0 = np.nan_to_num(M, posinf=0.0)
-    m_sq = np.where(np.isfinite(M[..., 0]), (M0 * M0).sum(axis=2), np.inf)  # (sets, P)
+        M0[b, : len(m)], real[b, : len(m)] = m, True
+    m_sq = np.where(real, (M0 * M0).sum(axis=2), np.inf)  # (sets, P); padding at infinity: never the nearest
     MT = np.ascontiguousarray(M0.transpose(0, 2, 1))
     obs_xy = observed[:, :2]
     Rz = np.repeat(np.eye(3)[None], n_sets, axis=0)
