@@ -158,10 +158,10 @@ def _intersect(a: Box, b: Box) -> Box | None:
 
 
 def _cast(
-    model: ObjectModel, pose: Pose, Kinv: np.ndarray, box: Box, nthreads: int
-) -> tuple[np.ndarray, np.ndarray]:
+    model: ObjectModel, pose: Pose, Kinv: np.ndarray, box: Box, nthreads: int, with_normals: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Cast the rays of `box` at one model: z-depth (h, w) (inf = miss) and model-frame
-    primitive normals (h, w, 3) oriented towards the camera."""
+    primitive normals (h, w, 3) oriented towards the camera (None without `with_normals`)."""
     x, y, w, h = box
     # Direction in the model frame for pixel (u, v): R^T K^-1 [u, v, 1] = u M0 + v M1 + M2,
     # with M = (R^T K^-1)^T = Kinv^T R (rows). Built separably: no per-pixel matrix products.
@@ -174,6 +174,8 @@ def _cast(
            casting="same_kind")
     ans = raycasting_scene(model).cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
     depth = ans["t_hit"].numpy()
+    if not with_normals:
+        return depth, None
     normals = ans["primitive_normals"].numpy()
     # Face the camera: flip where the normal points along the ray (same sign in any frame).
     flip = np.einsum("hwc,hwc->hw", normals, rays[:, :, 3:]) > 0
@@ -189,12 +191,14 @@ def render(
     height: int,
     crop: Box | None = None,
     nthreads: int | None = None,
+    with_normals: bool = True,
 ) -> Rendering:
     """Render depth, normals and instance mask of `models` at `poses` (model-to-camera, metres)
     for a pinhole camera K of an image width x height, restricted to the pixel box `crop`
     (x, y, w, h; clipped to the image; None = whole image). Occlusion between the models is
     exact (nearest hit per pixel). `nthreads` threads per cast (default: OMP_NUM_THREADS or 1;
-    0 = all cores)."""
+    0 = all cores). Without `with_normals` the normals are a read-only zero image (verification
+    reads depth and mask only: a fifth less time per rendering)."""
     if len(models) != len(poses):
         raise ValueError(f"render: {len(models)} models but {len(poses)} poses")
     if len(models) > np.iinfo(np.int16).max:
@@ -206,7 +210,7 @@ def render(
     box = _clip_box(crop, width, height)
     x, y, w, h = box
     depth = np.full((h, w), np.inf, np.float32)
-    normals = np.zeros((h, w, 3), np.float32)
+    normals = np.zeros((h, w, 3), np.float32) if with_normals else np.broadcast_to(np.float32(0.0), (h, w, 3))
     mask = np.full((h, w), -1, np.int16)
     if w and h:
         Kinv = np.linalg.inv(K)
@@ -215,7 +219,7 @@ def render(
             sub = _intersect(box, obox) if obox is not None else None
             if sub is None:
                 continue
-            d, n = _cast(model, pose, Kinv, sub, nthreads)
+            d, n = _cast(model, pose, Kinv, sub, nthreads, with_normals)
             rs = slice(sub[1] - y, sub[1] - y + sub[3])
             cs = slice(sub[0] - x, sub[0] - x + sub[2])
             closer = d < depth[rs, cs]
@@ -223,14 +227,15 @@ def render(
                 continue
             depth[rs, cs][closer] = d[closer]
             mask[rs, cs][closer] = i
-            normals[rs, cs][closer] = n[closer] @ pose.R.T.astype(np.float32)
+            if n is not None:
+                normals[rs, cs][closer] = n[closer] @ pose.R.T.astype(np.float32)
     depth[mask < 0] = np.nan
     return Rendering(depth, normals, mask, (x, y), (int(width), int(height)))
 
 
 def render_box(
     model: ObjectModel, pose: Pose, K: np.ndarray, width: int, height: int, margin: int = 1,
-    nthreads: int | None = None,
+    nthreads: int | None = None, with_normals: bool = True,
 ) -> Rendering:
     """Render one model cropped to its projected box (plus `margin` px): the fast path for
     refinement and scoring. An object outside the image gives an empty (0 x 0) rendering."""
@@ -238,7 +243,7 @@ def render_box(
     box = projected_box(model, pose, K, width, height, margin)
     if box is None:
         box = (0, 0, 0, 0)
-    return render([model], [pose], K, width, height, crop=box, nthreads=nthreads)
+    return render([model], [pose], K, width, height, crop=box, nthreads=nthreads, with_normals=with_normals)
 
 
 def depth_to_points(depth: np.ndarray, K: np.ndarray, offset: tuple[int, int] = (0, 0)) -> np.ndarray:

@@ -99,6 +99,18 @@ def test_render_box_covers_the_object(make_box) -> None:
     assert rb.box == projected_box(m, pose, K, W, H)
 
 
+def test_rendering_without_normals_has_the_same_depth_and_mask(make_box) -> None:
+    a, b = make_box((0.1, 0.06, 0.04), 1), make_box((0.05, 0.05, 0.05), 2)
+    poses = [Pose(exp_so3([0.4, 0.2, 0.1]), [0.0, 0.0, 0.6]), Pose(exp_so3([0.1, 0.7, 0.0]), [0.04, 0.02, 0.5])]
+    full = render([a, b], poses, K, W, H)
+    bare = render([a, b], poses, K, W, H, with_normals=False)
+    np.testing.assert_array_equal(bare.mask, full.mask)
+    np.testing.assert_array_equal(np.nan_to_num(bare.depth, nan=-1), np.nan_to_num(full.depth, nan=-1))
+    assert np.any(full.normals != 0) and not np.any(bare.normals) and bare.normals.shape == full.normals.shape
+    box = render_box(a, poses[0], K, W, H, with_normals=False)
+    assert box.box == render_box(a, poses[0], K, W, H).box and not box.to_full().normals.any()
+
+
 def test_objects_outside_the_view(make_box) -> None:
     m = make_box()
     behind = render_box(m, Pose(np.eye(3), [0, 0, -1.0]), K, W, H)

@@ -232,7 +232,7 @@ class GlobalRegistration(Block):
             for cand in candidates:
                 if time.perf_counter() >= deadline:
                     break
-                r = render_box(model, cand, frame.K, frame.width, frame.height)
+                r = render_box(model, cand, frame.K, frame.width, frame.height, with_normals=False)
                 score = verify(model, cand, frame, c["verify_tol"], c["violation_penalty"], c["colour_weight"], r, seg,
                                c["explain_weight"])[0]
                 pre.append((score, len(pre), cand, r))
