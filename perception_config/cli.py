@@ -334,14 +334,23 @@ def _cmd_train(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
-    policy = train(
-        args.dataset, args.agent, args.out, args.episodes, settings=settings, seed=args.seed,
-        pipeline=args.pipeline, progress=not args.quiet, resume=args.resume, test_fraction=args.test_fraction,
-        split_seed=args.split_seed, workers=args.workers, ray_address=args.ray_address, overwrite=args.overwrite,
-        checkpoint_every=args.checkpoint_every, use_depth=args.use_depth, store_episodes=args.store_episodes,
-        validation_fraction=args.validation_fraction, validate_every=args.validate_every,
-        agent_kwargs=agent_params(args.agent, args.agent_param),
+    common = dict(
+        settings=settings, pipeline=args.pipeline, progress=not args.quiet, resume=args.resume,
+        test_fraction=args.test_fraction, split_seed=args.split_seed, workers=args.workers,
+        ray_address=args.ray_address, overwrite=args.overwrite, checkpoint_every=args.checkpoint_every,
+        use_depth=args.use_depth, store_episodes=args.store_episodes, validation_fraction=args.validation_fraction,
+        validate_every=args.validate_every, agent_kwargs=agent_params(args.agent, args.agent_param),
     )
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.seeds == 1:
+        policy = train(args.dataset, args.agent, args.out, args.episodes, seed=args.seed, **common)
+    else:
+        from .seed_selection import SEEDS_CSV, train_seeds
+
+        policy = train_seeds(args.dataset, args.agent, args.out, args.episodes,
+                             list(range(args.seed, args.seed + args.seeds)), **common)
+        print(Path(args.out, SEEDS_CSV).read_text(), end="")
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
     return 0
@@ -383,6 +392,10 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
                     help="lambda of the training episodes ~ U(A, B) "
                          f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
     tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seeds", type=int, default=1, metavar="N",
+                    help="train N runs (seeds --seed .. --seed+N-1, in OUT/seed-<s>/) and ship the one of lowest "
+                         "validation cost as OUT/policy.safetensors, with OUT/seeds.csv; needs --validation-fraction "
+                         "(default 1: one run in OUT)")
     tr.add_argument("--pipeline", type=Path, default=None,
                     help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
                          "(default: default)")

@@ -13,6 +13,7 @@ from perception_config import cli
 from perception_config.agents import load_agent, make_agent
 from perception_config.agents.policy_io import PolicyError, read_file
 from perception_config.episode_loop import acting_seed, play_episode
+from perception_config.seed_selection import SEEDS_CSV, train_seeds, validated
 from perception_config.settings import EnvSettings
 from perception_config.training import CHECKPOINT, VALIDATION_CSV, train
 from perception_config.validation import TENSOR_PREFIX, default_lambdas, split_validation, validation_episodes
@@ -128,6 +129,42 @@ def test_cli_train_flags(tmp_path_factory, tmp_path, capsys):
                      "--workers", "1", "--quiet", "--validation-fraction", "0"]) == 0
     meta, _ = read_file(out0 / "policy.safetensors")
     assert "selected" not in meta["extra"] and not (out0 / VALIDATION_CSV).exists()
+
+
+def test_seeds_ship_the_run_of_lowest_validation_cost(tmp_path_factory, tmp_path, capsys):
+    """`train --seeds N`: one run per seed in OUT/seed-<s>/, the validation-best shipped
+    (seed_selection.py); a resumed call over finished runs trains nothing and ships the same."""
+    out = tmp_path / "seeds"
+    args = ["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out), "--episodes", "16",
+            "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+            "--lambda-range", "0.2", "0.8", "--workers", "1", "--quiet", "--validate-every", "8",
+            "--agent-param", "batch_episodes=8", "--agent-param", "lr=0.05", "--seed", "3", "--seeds", "3"]
+    assert cli.main(args) == 2 and "validation_fraction must be > 0" in capsys.readouterr().err
+    assert not out.exists()
+    assert cli.main(args + ["--validation-fraction", "0.34"]) == 0
+    rows = _rows(out / SEEDS_CSV)
+    assert [int(r["seed"]) for r in rows] == [3, 4, 5] and [r["run"] for r in rows] == ["seed-3", "seed-4", "seed-5"]
+    for r in rows:  # each row is its run's own selection
+        v = validated(out / r["run"] / "policy.safetensors")
+        assert float(r["validation_cost"]) == pytest.approx(v["cost"], rel=1e-5)
+        assert int(r["selected_episode"]) == v["episode"] and read_file(out / r["run"] / "policy.safetensors")[0][
+            "extra"]["seed"] == int(r["seed"])
+    costs = [float(r["validation_cost"]) for r in rows]
+    best = costs.index(min(costs))
+    assert len(set(costs)) > 1  # the seeds' policies differ, so the choice is a real one
+    assert [int(r["shipped"]) for r in rows] == [int(i == best) for i in range(3)]
+    shipped = (out / "policy.safetensors").read_bytes()
+    assert shipped == (out / rows[best]["run"] / "policy.safetensors").read_bytes()
+    assert (out / "learning_curve.png").exists() and not (out / CHECKPOINT).exists()
+    # Every run validated on the same episodes: their costs compare.
+    metas = [read_file(out / r["run"] / "policy.safetensors")[0]["extra"] for r in rows]
+    assert all(m["validation_image_keys"] == metas[0]["validation_image_keys"] for m in metas)
+    # Without --resume the runs are not overwritten; with it, finished runs stay as they are.
+    assert cli.main(args + ["--validation-fraction", "0.34"]) == 2
+    assert cli.main(args + ["--validation-fraction", "0.34", "--resume"]) == 0
+    assert (out / "policy.safetensors").read_bytes() == shipped and _rows(out / SEEDS_CSV) == rows
+    with pytest.raises(ValueError, match="at least two seeds"):
+        train_seeds("nowhere", "pg", tmp_path / "one", 8, [1, 1])
 
 
 def test_pg_learning_rate_half_life_and_resume(tmp_path_factory, tmp_path):
