@@ -11,7 +11,8 @@ the chosen run's learning curve. Every run's validation uses the same held-out i
 episode seeds (validation.py), so their costs compare. Ties go to the earlier seed.
 
 Each run is an ordinary training run: `resume` continues the runs that have a checkpoint and
-starts the others; a stop signal ends the seed in progress as `train` does (its work saved) and
+starts the others; `overwrite` starts them again (and over a single run's folder, drops its
+checkpoint, history and validation files, as retraining it would); a stop signal ends the seed in progress as `train` does (its work saved) and
 leaves the selection to the resumed call.
 """
 from __future__ import annotations
@@ -23,9 +24,10 @@ from typing import Any
 
 from .agents.policy_io import read_file
 from .atomic_file import atomic_write
-from .training import CHECKPOINT, CURVE, train
+from .training import CHECKPOINT, CURVE, VALIDATION_CSV, train
 
 SEEDS_CSV = "seeds.csv"
+HISTORY_CSV = "history.csv"  # a single run's (training.py)
 SEEDS_FIELDS = ("seed", "run", "validation_cost", "validation_success", "validation_first_pick", "selected_episode",
                 "shipped")
 
@@ -55,6 +57,12 @@ def train_seeds(dataset: str | Path, agent: str, out: str | Path, episodes: int,
     if not validation_fraction > 0:
         raise ValueError("seed selection compares the runs' validation costs: validation_fraction must be > 0")
     out = Path(out)
+    if (out / CHECKPOINT).exists():  # a single run's folder: its files would sit beside the seeds' as if shipped
+        if not overwrite:
+            raise FileExistsError(f"{out} already holds a single training run ({CHECKPOINT}): pass overwrite=True "
+                                  "to train the seeds there instead, or choose another folder")
+        for name in (CHECKPOINT, HISTORY_CSV, VALIDATION_CSV):
+            (out / name).unlink(missing_ok=True)
     runs = []
     for seed in seeds:
         run = seed_run(out, seed)

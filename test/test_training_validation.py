@@ -165,6 +165,14 @@ def test_seeds_ship_the_run_of_lowest_validation_cost(tmp_path_factory, tmp_path
     assert (out / "policy.safetensors").read_bytes() == shipped and _rows(out / SEEDS_CSV) == rows
     with pytest.raises(ValueError, match="at least two seeds"):
         train_seeds("nowhere", "pg", tmp_path / "one", 8, [1, 1])
+    # Over a single run's folder only with --overwrite, which drops that run's checkpoint and history.
+    single = [a if a != str(out) else str(tmp_path / "single") for a in args[:-2]] + ["--episodes", "8",
+                                                                                       "--validation-fraction", "0.34"]
+    assert cli.main(single) == 0 and (tmp_path / "single" / CHECKPOINT).exists()
+    assert cli.main(single + ["--seeds", "2"]) == 2 and "single training run" in capsys.readouterr().err
+    assert cli.main(single + ["--seeds", "2", "--overwrite"]) == 0
+    assert not (tmp_path / "single" / CHECKPOINT).exists() and not (tmp_path / "single" / "history.csv").exists()
+    assert [r["run"] for r in _rows(tmp_path / "single" / SEEDS_CSV)] == ["seed-3", "seed-4"]
 
 
 def test_pg_learning_rate_half_life_and_resume(tmp_path_factory, tmp_path):
