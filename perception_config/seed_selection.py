@@ -12,8 +12,8 @@ episode seeds (validation.py), so their costs compare. Ties go to the earlier se
 
 Each run is an ordinary training run: `resume` continues the runs that have a checkpoint and
 starts the others; `overwrite` starts them again (and over a single run's folder, drops its
-checkpoint, history and validation files, as retraining it would); a stop signal ends the seed in progress as `train` does (its work saved) and
-leaves the selection to the resumed call.
+checkpoint, history and validation files, as retraining it would); a stop signal ends the
+seed in progress as `train` does (its work saved) and leaves the selection to the resumed call.
 """
 from __future__ import annotations
 
