@@ -124,6 +124,13 @@ def test_a_box_lying_turned_on_a_table_is_found():
         found, true = r.pose.transform(model.vertices), gt.transform(model.vertices)
         assert np.linalg.norm(true[:, None] - found[None], axis=2).min(axis=1).max() < 0.05 * model.diameter, k
         assert r.candidates[0][1] is r.pose and 0.0 <= r.candidates[0][0] <= 1.0
+        if k == 0:  # sweep_stop: a first candidate verifying that well ends the sweep (the box has rivals)
+            assert len(r.candidates) >= 2
+            swept = {stop: create("resting_pose", sweep_stop=stop)(BlockInput(frame=frame, model=model,
+                                                                            time_bounded=False))
+                     for stop in (0.0, 1.01)}
+            assert swept[0.0].info["swept"] == 1 and swept[1.01].info["swept"] == 2
+            assert np.allclose(swept[0.0].pose.matrix(), swept[1.01].pose.matrix(), atol=1e-9)
 
 
 def test_the_sweep_turns_a_flange_back_onto_its_bolt_holes():

@@ -89,6 +89,8 @@ class RestingPoseGenerator(Block):
         Param("sweep_span", 30.0, 0.0, 180.0, doc="degrees: turns swept either side of a candidate"),
         Param("sweep_step", 6.0, 0.5, 90.0, doc="degrees between swept turns (then half a step beside the best)"),
         Param("sweep_shift", 0.03, 0.0, 0.5, doc="diameters: the shifts along the plane tried after the best turn"),
+        Param("sweep_stop", 0.9, 0.0, 1.01, doc="when the first candidate sweeps to this verification or above, "
+                                                 "the others are not swept (1.01: they always are)"),
         Param("settle", 0.2, 0.0, 1.0, doc="diameters: a candidate floating above the plane or sunk into it by less "
                                             "is moved onto it, unless that verifies worse at settle_tol; 0: never"),
         Param("settle_tol", 0.33, 0.05, 1.0, doc="share of verify_tol: the depth tolerance that judges settling"),
@@ -153,10 +155,17 @@ class RestingPoseGenerator(Block):
         def score(pose, tol=c["verify_tol"]):
             return verify(model, pose, frame, tol, 1.0, 0.5, seg=seg, explain_weight=0.5)[0]
 
+        n_swept = 0
         if ranked and n_sweep:
             B, _ = plane_basis(seg.plane)
-            swept = [sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
-                                    c["sweep_shift"]) for s, pose in ranked[:n_sweep]]
+            swept = []
+            for s, pose in ranked[:n_sweep]:
+                if swept and swept[0][0] >= c["sweep_stop"]:
+                    swept.append((s, pose))  # the first verifies so well that no rival is swept
+                    continue
+                n_swept += 1
+                swept.append(sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
+                                            c["sweep_shift"]))
             ranked = ranked_candidates(swept + ranked[n_sweep:], model, int(c["top_k"]))
         n_settled = 0
         if ranked and c["settle"] > 0:
@@ -173,7 +182,8 @@ class RestingPoseGenerator(Block):
             ranked = settled
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre], "polished": [(q[0], q[1]) for q in polished],
-                "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses), "settled": n_settled,
+                "regions": len(regions), "rests": len(rests), "hypotheses": len(hypotheses), "swept": n_swept,
+                "settled": n_settled,
                 "seconds": {"prepare": t_prep, "hypotheses": t_hyp - start - t_prep, "verify": t_verify - t_hyp,
                             "sweep": now - t_verify}}
         if not ranked:
