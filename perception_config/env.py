@@ -190,9 +190,14 @@ class PerceptionConfigEnv(gym.Env):
     def action_mask(self) -> np.ndarray:
         """The frame's mask (frame_mask); while the hypothesis is one a pick failed on, 0 for the
         pick actions; 0 for a deterministic generator already called this episode (`repeats_search`:
-        the same search, the same answer); each unless nothing else could run. np.int8 of n actions."""
+        the same search, the same answer); while there is no hypothesis, 0 for the refiners
+        (`refines_nothing`); each unless nothing else could run. np.int8 of n actions."""
         mask = self._mask.copy()
         pose = self.last_outcome.pose if self.last_outcome is not None else None
+        if pose is None:
+            idle = [i for i, a in enumerate(self.pipeline.actions) if refines_nothing(a.block)]
+            if idle and mask.sum() > sum(int(mask[i]) for i in idle):
+                mask[idle] = 0
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
             picks = [i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK]
             if mask.sum() > sum(int(mask[i]) for i in picks):  # something else can run
@@ -332,6 +337,15 @@ def repeats_search(block: Any) -> bool:
     pick). Its candidates stay reachable by next_candidate."""
     return (block.kind == Kind.GENERATION and not block.uses_rng and POSE not in block.inputs
             and not block.takes_candidate)
+
+
+def refines_nothing(block: Any) -> bool:
+    """Whether the block can only fail while there is no hypothesis: it needs the pose and is
+    no pick (a pick without a pose fails in milliseconds, the cheapest way to give up on a part
+    no generator finds, so it stays). After a refused generator call, trained agents looped an
+    ICP that failed at once until max_ops (6 of a cell agent's 8 failures on the 68 test
+    episodes) instead of taking the candidates the call left waiting."""
+    return POSE in block.inputs and block.kind != Kind.PICK
 
 
 def _same_pose(a: Any, b: Any, metres: float = 1e-4, radians: float = 1e-4) -> bool:

@@ -64,8 +64,10 @@ def train_seeds(dataset: str | Path, agent: str, out: str | Path, episodes: int,
         for name in (CHECKPOINT, HISTORY_CSV, VALIDATION_CSV):
             (out / name).unlink(missing_ok=True)
     runs = []
-    for seed in seeds:
+    for k, seed in enumerate(seeds):
         run = seed_run(out, seed)
+        if train_kwargs.get("progress", True):
+            print(f"seed {seed} ({k + 1} of {len(seeds)}): {run}", flush=True)
         again = resume and (run / CHECKPOINT).exists()
         policy = train(dataset, agent, run, episodes, seed=seed, resume=again, overwrite=overwrite and not again,
                        validation_fraction=validation_fraction, **train_kwargs)

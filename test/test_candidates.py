@@ -180,6 +180,29 @@ def test_a_deterministic_generator_is_masked_once_it_searched_this_episode(synth
     assert info["action_mask"].all()
 
 
+def test_without_a_hypothesis_the_refiners_are_masked_and_pick_stays(synthetic_dataset):
+    """After a refused generator call there is no hypothesis: an ICP can only fail (trained agents
+    looped one until max_ops), so it is masked until a candidate is taken; pick (the cheap way
+    to give up), next_candidate and the generators stay."""
+    from perception_config.env import PerceptionConfigEnv, refines_nothing
+
+    strict = yaml.safe_load(PIPELINE)
+    strict["generator"]["params"] = {"min_verification": 1.0}  # every call refused: no hypothesis
+    env = PerceptionConfigEnv(synthetic_dataset, pipeline_from_dict(strict), time_mode="cost_table")
+    names = env.action_names
+    assert [refines_nothing(a.block) for a in env.pipeline.actions] == [n == "icp_fine" for n in names]
+    for seed in range(12):
+        _, info = env.reset(seed=seed)
+        assert env.last_outcome.pose is None
+        mask = dict(zip(names, info["action_mask"].tolist()))
+        assert mask == {"icp_fine": 0, "next_candidate": 1, "global_registration": 1, "pick": 1}
+        _, _, _, _, info = env.step(names.index("next_candidate"))
+        if env.last_outcome.pose is not None:  # a candidate taken: there is something to refine
+            assert info["action_mask"].all()
+            return
+    pytest.skip("no refused call left a candidate on the tiny dataset's first episodes")
+
+
 def test_the_shipped_cell_pipeline_needs_no_ground_truth_but_the_simulated_pick():
     pipe = load_pipeline("cell")
     assert pipe.generator.name == "resting_pose" and GROUND_TRUTH not in pipe.generator.inputs
