@@ -168,6 +168,7 @@ class PerceptionConfigEnv(gym.Env):
         self._mask = np.ones(len(self.action_names), np.int8)
         self._failed_pick_pose = None  # the hypothesis a pick failed on (pick masked while it stays)
         self._searched: set[int] = set()  # deterministic generator actions already called this episode
+        self._picked_without_pose = False  # a pick was refused for want of a hypothesis
 
     def _frame_changed(self) -> None:
         """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
@@ -191,11 +192,15 @@ class PerceptionConfigEnv(gym.Env):
         """The frame's mask (frame_mask); while the hypothesis is one a pick failed on, 0 for the
         pick actions; 0 for a deterministic generator already called this episode (`repeats_search`:
         the same search, the same answer); while there is no hypothesis, 0 for the refiners
-        (`refines_nothing`); each unless nothing else could run. np.int8 of n actions."""
+        (`refines_nothing`) and, once a pick was refused for want of one, for the picks too (giving
+        up once is the pick's use there: looped to max_ops it was a cell agent's way to waste the
+        candidates a refused generator call left); each unless nothing else could run. np.int8 of
+        n actions."""
         mask = self._mask.copy()
         pose = self.last_outcome.pose if self.last_outcome is not None else None
         if pose is None:
-            idle = [i for i, a in enumerate(self.pipeline.actions) if refines_nothing(a.block)]
+            idle = [i for i, a in enumerate(self.pipeline.actions) if refines_nothing(a.block)
+                    or (self._picked_without_pose and a.block.kind == Kind.PICK)]
             if idle and mask.sum() > sum(int(mask[i]) for i in idle):
                 mask[idle] = 0
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
@@ -301,6 +306,8 @@ class PerceptionConfigEnv(gym.Env):
         terminated = False
         if repeats_search(block):
             self._searched.add(a)
+        if block.kind == Kind.PICK and before is None and outcome.pose is None:
+            self._picked_without_pose = True
         if block.kind == Kind.PICK and outcome.result.ok:
             if outcome.result.picked:
                 terminated = True

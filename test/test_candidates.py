@@ -180,10 +180,10 @@ def test_a_deterministic_generator_is_masked_once_it_searched_this_episode(synth
     assert info["action_mask"].all()
 
 
-def test_without_a_hypothesis_the_refiners_are_masked_and_pick_stays(synthetic_dataset):
+def test_without_a_hypothesis_the_refiners_are_masked_and_pick_gives_up_once(synthetic_dataset):
     """After a refused generator call there is no hypothesis: an ICP can only fail (trained agents
     looped one until max_ops), so it is masked until a candidate is taken; pick (the cheap way
-    to give up), next_candidate and the generators stay."""
+    to give up) stays until it was refused once, next_candidate and the generators stay."""
     from perception_config.env import PerceptionConfigEnv, refines_nothing
 
     strict = yaml.safe_load(PIPELINE)
@@ -196,8 +196,13 @@ def test_without_a_hypothesis_the_refiners_are_masked_and_pick_stays(synthetic_d
         assert env.last_outcome.pose is None
         mask = dict(zip(names, info["action_mask"].tolist()))
         assert mask == {"icp_fine": 0, "next_candidate": 1, "global_registration": 1, "pick": 1}
+        # giving up by a pick without a pose: once (it fails in milliseconds), not again while none
+        _, _, _, _, info = env.step(names.index("pick"))
+        assert not env.last_outcome.result.ok and env.last_outcome.pose is None and not env.pick_failed
+        mask = dict(zip(names, info["action_mask"].tolist()))
+        assert mask == {"icp_fine": 0, "next_candidate": 1, "global_registration": 1, "pick": 0}
         _, _, _, _, info = env.step(names.index("next_candidate"))
-        if env.last_outcome.pose is not None:  # a candidate taken: there is something to refine
+        if env.last_outcome.pose is not None:  # a candidate taken: there is something to refine and pick
             assert info["action_mask"].all()
             return
     pytest.skip("no refused call left a candidate on the tiny dataset's first episodes")
