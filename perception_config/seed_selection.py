@@ -24,10 +24,9 @@ from typing import Any
 
 from .agents.policy_io import read_file
 from .atomic_file import atomic_write
-from .training import CHECKPOINT, CURVE, VALIDATION_CSV, train
+from .training import CHECKPOINT, CURVE, HISTORY_CSV, VALIDATION_CSV, train
 
 SEEDS_CSV = "seeds.csv"
-HISTORY_CSV = "history.csv"  # a single run's (training.py)
 SEEDS_FIELDS = ("seed", "run", "validation_cost", "validation_success", "validation_first_pick", "selected_episode",
                 "shipped")
 

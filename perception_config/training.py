@@ -75,6 +75,7 @@ POLICY_STEM = "policy"
 CHECKPOINT = "checkpoint.safetensors"
 VALIDATION_CSV = "validation.csv"
 CURVE = "learning_curve.png"
+HISTORY_CSV = "history.csv"
 HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
 
 
@@ -353,7 +354,7 @@ def train(
             extra["selected"] = {"episode": selected, "by": SELECTION, "validation": selection.best,
                                  "last": selection.history[-1]}
         save_agent(shipped, policy_path, extra)
-        _write_history_csv(arrays(), out / "history.csv")
+        _write_history_csv(arrays(), out / HISTORY_CSV)
         if val_options:
             write_validation_csv(selection.history, out / VALIDATION_CSV)
         if done:
