@@ -149,6 +149,8 @@ class RosOperators:
         hyp = Hypothesis()
         if self.stamp is not None:
             hyp.header.stamp = self.stamp
+        else:  # not resolved by an answer yet: the episode's frame (zero = the latest)
+            hyp.header.stamp.sec, hyp.header.stamp.nanosec = divmod(int(self.episode.stamp_ns), 1_000_000_000)
         hyp.header.frame_id = self.frame_id
         hyp.object_id = str(self.episode.model.obj_id)
         hyp.pose = self.pose_msg if self.pose_msg is not None else pose_to_msg(self.pose)
@@ -179,9 +181,12 @@ class RosOperators:
         else:
             req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(int(self.episode.stamp_ns), 1_000_000_000)
         res = self._call("generate", req)
-        if res.success and self.stamp is None:  # "latest" is resolved once, by the first answer
-            self.stamp = res.hypothesis.header.stamp
-            self.frame_id = res.hypothesis.header.frame_id
+        # "latest" is resolved once, by the first answer's frame: its hypothesis, or the first
+        # candidate of a refusal (next_candidate scores that candidate on the same frame)
+        answered = res.hypothesis if res.success else (res.candidates[0] if res.candidates else None)
+        if answered is not None and self.stamp is None:
+            self.stamp = answered.header.stamp
+            self.frame_id = answered.header.frame_id
         first = 1 if res.success else 0  # a refused call's candidates all wait (InProcessOperators._generate)
         try:
             self._candidates = [(float(conf), msg_to_pose(h.pose), h.pose)
