@@ -80,6 +80,27 @@ def test_voting_recovers_the_pose_of_a_clean_scan(parts, cache_folder, name):
         assert min(errors) < 0.1, (name, seed, errors)
 
 
+def test_a_vote_cut_by_its_deadline_keeps_a_spread_sample_of_the_full_votes(parts, cache_folder):
+    """Past its deadline the vote starts no new chunk: the references that voted are some of
+    the full vote's, with the very same poses and votes, spread over the whole scene (a
+    shuffled order), not the first rows of it; without a deadline nothing changes."""
+    model = parts["elbow"]
+    table, _ = ppf_model(model)
+    gt = Pose(Rotation.random(random_state=4).as_matrix(), np.array([0.01, -0.02, 0.6]))
+    scene = scene_cloud(visible_points(model, gt), table.dist_step)
+    R, t, v = vote(table, scene, ref_step=1)
+    # small chunks, so the first one is a small share of the references
+    Rc, tc, vc = vote(table, scene, ref_step=1, max_cells=20 * len(table.points) * 2 * table.n_angle,
+                      deadline=0.0)
+    assert 0 < len(vc) <= 0.5 * len(v)
+    rows = [int(np.flatnonzero(np.all(np.isclose(t, tk, atol=1e-12), axis=1))[0]) for tk in tc]
+    assert rows == sorted(rows)  # in the references' own order
+    assert np.allclose(R[rows], Rc, atol=1e-12) and np.array_equal(v[rows], vc)
+    assert max(rows) > 0.7 * len(v) and min(rows) < 0.3 * len(v)  # spread over the scene
+    R2, t2, v2 = vote(table, scene, ref_step=1, deadline=float("inf"))
+    assert np.array_equal(R, R2) and np.array_equal(t, t2) and np.array_equal(v, v2)
+
+
 def test_table_is_cached_on_disk_and_rebuilt_when_corrupt_or_stale(parts, cache_folder):
     model = parts["flange"]
     table, source = ppf_model(model, 0.06, 24)

@@ -6,7 +6,8 @@ Steps: (1) the frame's segmentation (shared with `global_registration` through t
 cache) keeps the points of object-like regions whose size fits the model (`min_extent` ..
 `max_extent` diameters: the table, bin walls and the far background go); (2) those points,
 down-sampled to `sampling_rel` diameters, vote with every `ref_step`-th of them as reference
-against the model's point pair table (built once per model and parameter set, cached on disk);
+against the model's point pair table (built once per model and parameter set, cached on disk),
+for at most half of the budget left (the references that voted by then are a uniform sample);
 (3) the reference points' poses are clustered (0.1 d, 30 deg) and the `n_clusters` strongest
 are pre-verified by rendering (`verify`: depth agreement, free-space violations, coverage of
 their regions); (4) the best `n_polish` are polished by coarse-to-fine ICP against the observed
@@ -103,7 +104,9 @@ class PointPairFeatures(Block):
             return BlockResult.fail(f"ppf: no object-like region of {c['min_extent']:.2f}-{c['max_extent']:.1f} "
                                     f"diameters ({d * 1000:.0f} mm) above the support surfaces")
         t_scene = time.perf_counter()
-        R, t, votes = vote(table, scene, c["ref_step"])
+        # the vote takes at most half of what is left: the rest verifies (a cluttered frame's
+        # full vote takes 1-2 s; its references are then a uniform sample of the scene's)
+        R, t, votes = vote(table, scene, c["ref_step"], deadline=t_scene + 0.5 * (deadline - t_scene))
         centre = model.points.mean(axis=0)
         leaders = cluster_poses(R, t, votes, centre, 0.1 * d, math.radians(30.0), c["n_clusters"],
                                model.symmetries if c["symmetric_clusters"] else None)
@@ -118,7 +121,7 @@ class PointPairFeatures(Block):
         now = time.perf_counter()
         info = {"pre_verified": [(q[0], q[2]) for q in pre],
                 "polished": [(q[0], q[1]) for q in polished], "table": source,
-                "scene_points": len(scene.points), "pose_clusters": len(leaders),
+                "scene_points": len(scene.points), "references": len(votes), "pose_clusters": len(leaders),
                 "n_verified": len(pre), "n_polished": len(polished),
                 "seconds": {"prepare": t_prep, "scene": t_scene - start - t_prep, "vote": t_vote - t_scene,
                             "verify": now - t_vote}}

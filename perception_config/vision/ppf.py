@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -228,21 +229,26 @@ def scene_cloud(points: np.ndarray, voxel: float, normal_radius: float | None = 
 
 
 def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_000_000,
-         max_cells: int = 2_000_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+         max_cells: int = 2_000_000, deadline: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hough voting: for every `ref_step`-th scene point the best (model point, alpha) and its
     votes. Returns (R (M, 3, 3), t (M, 3), votes (M,)) of the reference points' poses (model to
-    camera). Reference points are processed in chunks of about `max_votes` votes."""
+    camera), in the order of the reference points. Reference points are processed in chunks of
+    about `max_votes` votes, in a fixed shuffled order, so that at `deadline` (perf_counter; no
+    new chunk starts) the references that voted are a uniform sample of the scene's, not one
+    corner of it: a cluttered frame's vote (1-2 s) leaves the search time to verify."""
     S = len(scene.points)
     if S < 3:
         return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
     refs = np.arange(0, S, ref_step)
+    order = np.random.default_rng(len(refs)).permutation(len(refs))  # fixed: the same scene, the same order
+    refs = refs[order]
     n_alpha = table.n_angle * 2
     n_model = len(table.points)
     nbrs = scene.tree.query_ball_point(scene.points[refs], r=table.diameter)
-    out_R, out_t, out_v = [], [], []
+    out_R, out_t, out_v, out_i = [], [], [], []
     rot_s = normal_to_x(scene.normals[refs])
     lo = 0
-    while lo < len(refs):
+    while lo < len(refs) and (lo == 0 or time.perf_counter() < deadline):
         # Chunk so the expanded votes stay bounded (an estimate: pairs x a typical fan-out of 8).
         hi, pairs = lo, 0
         while hi < len(refs) and (hi == lo or (pairs * 8 < max_votes
@@ -283,10 +289,14 @@ def vote(table: PpfModel, scene: SceneCloud, ref_step: int, max_votes: int = 4_0
             out_R.append(R)
             out_t.append(t)
             out_v.append(votes.astype(np.float64))
+            out_i.append(order[lo:hi])
         lo = hi
     if not out_R:
         return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
-    return np.concatenate(out_R), np.concatenate(out_t), np.concatenate(out_v)
+    back = np.argsort(np.concatenate(out_i))  # the references' own order again
+    R, t, v = np.concatenate(out_R)[back], np.concatenate(out_t)[back], np.concatenate(out_v)[back]
+    voted = v > 0  # a reference without a vote has no pose
+    return R[voted], t[voted], v[voted]
 
 
 def canonical_poses(R: np.ndarray, t: np.ndarray, symmetries: list) -> tuple[np.ndarray, np.ndarray]:
