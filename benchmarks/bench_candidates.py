@@ -3,7 +3,7 @@ candidate within MSSD <= 0.1 d is the first (top-1) or among the first five (top
 the first is a confident wrong answer, and how long a call takes once the model is prepared.
 
     python benchmarks/bench_candidates.py [--generators resting_pose,ppf,global_registration,linemod]
-        [--out FILE.json]
+        [--pipeline cell] [--out FILE.json]
         [--default PATH]
 
 Data: the real LM-O RGB-D frame (../shared/data/lmo, 8 objects, clutter; every object, and
@@ -64,8 +64,22 @@ def frames_of(root: Path, test_split: bool) -> list:
 
 
 
-def evaluate(name: str, frames: list, min_visib: float, confident: float) -> list[dict]:
-    block = create(name)
+def pipeline_params(pipeline: str | None) -> dict[str, dict]:
+    """Each generator's parameters as `pipeline` sets them (its generator and actions, by block
+    name; the first wins), e.g. the cell's ppf at 1 s; {} without a pipeline (the defaults)."""
+    if not pipeline:
+        return {}
+    from perception_config.blocks.pipeline import load_pipeline
+
+    pipe = load_pipeline(pipeline)
+    params: dict[str, dict] = {}
+    for block in [pipe.generator] + [a.block for a in pipe.actions]:
+        params.setdefault(block.name, dict(block.config))
+    return params
+
+
+def evaluate(name: str, frames: list, min_visib: float, confident: float, params: dict | None = None) -> list[dict]:
+    block = create(name, **(params or {}))
     rows = []
     for frame in frames:
         cache: dict = {}
@@ -161,7 +175,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="prepared tables and templates kept here across runs (default: a fresh temporary folder, "
                          "so preparation is built and timed)")
     ap.add_argument("--no-rgb-only", action="store_true", help="leave out the RGB-only photographs")
+    ap.add_argument("--pipeline", default=None,
+                    help="run each generator with the parameters this pipeline gives it (e.g. 'cell': ppf within "
+                         "1 s, as the cell's agent calls it); default: the blocks' own defaults")
     args = ap.parse_args(argv)
+    params = pipeline_params(args.pipeline)
 
     import open3d as o3d
 
@@ -182,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     out: dict = {"machine": {"python": platform.python_version(), "open3d": o3d.__version__,
                              "load_average": os.getloadavg()[0], "cpus": os.cpu_count()}, "results": [],
-           "cache_reused": bool(args.cache)}  # True: the preparation times below are reads, not builds
+           "cache_reused": bool(args.cache),  # True: the preparation times below are reads, not builds
+           "pipeline": args.pipeline, "params": {n: params.get(n, {}) for n in args.generators.split(",") if n}}
     if "ppf" in args.generators:
         out["ppf_tables"] = prepare_tables({k: v[0] for k, v in sets.items()})
         t = out["ppf_tables"]
@@ -202,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     runs += [(label, frames, v, name) for label, (frames, v) in rgb_sets.items() for name in names
              if frames and not create(name).frame_lacks(frames[0])]
     for label, frames, min_visib, name in runs:
-        rows = evaluate(name, frames, min_visib, args.confident)
+        rows = evaluate(name, frames, min_visib, args.confident, params.get(name))
         summaries = [(label, summary(rows))]
         if label in rgb_sets:
             summaries.append((label.replace("all objects", "visib >= 0.3"), summary(rows, 0.3)))
