@@ -192,3 +192,11 @@ def test_real_lmo_frame_finds_most_objects(lmo_frame, cache_folder):
         r = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache, time_bounded=False))
         found += any(pose_mssd(p, o.gt, o.model) / o.model.diameter <= 0.1 for _, p in r.candidates)
     assert found >= 4, found
+    # Time-bounded (the cell calls ppf within 1 s): the vote, 0.6-1.7 s in full on this cluttered
+    # frame, stops at half the budget, so the call ends near its budget (one vote chunk or one
+    # candidate's polish late), not seconds past it.
+    budget = 0.5
+    for o in lmo_frame.objects[:3]:
+        r = PointPairFeatures(max_seconds=budget)(BlockInput(frame=lmo_frame, model=o.model, cache=cache))
+        s = r.info["seconds"]
+        assert s["vote"] <= 0.5 * budget + 0.3 and sum(s.values()) - s["prepare"] <= budget + 0.5, (o.obj_id, s)
