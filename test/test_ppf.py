@@ -192,11 +192,12 @@ def test_real_lmo_frame_finds_most_objects(lmo_frame, cache_folder):
         r = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache, time_bounded=False))
         found += any(pose_mssd(p, o.gt, o.model) / o.model.diameter <= 0.1 for _, p in r.candidates)
     assert found >= 4, found
-    # Time-bounded (the cell calls ppf within 1 s): the vote, 0.6-1.7 s in full on this cluttered
-    # frame, stops at half the budget, so the call ends near its budget (one vote chunk or one
-    # candidate's polish late), not seconds past it.
-    budget = 0.5
-    for o in lmo_frame.objects[:3]:
-        r = PointPairFeatures(max_seconds=budget)(BlockInput(frame=lmo_frame, model=o.model, cache=cache))
-        s = r.info["seconds"]
-        assert s["vote"] <= 0.5 * budget + 0.3 and sum(s.values()) - s["prepare"] <= budget + 0.5, (o.obj_id, s)
+    # Time-bounded (the cell calls ppf within 1 s): the vote, 0.6-2 s in full on this cluttered
+    # frame, gets half of the budget left. With a budget spent before the vote starts, one chunk
+    # of references votes (a deterministic check; the vote itself is tested above) and nothing is
+    # verified after the deadline: a refusal with the reason, at once.
+    o = next(o for o in lmo_frame.objects if o.obj_id == 9)  # the duck: its full vote took 1.1-1.7 s
+    full = PointPairFeatures()(BlockInput(frame=lmo_frame, model=o.model, cache=cache, time_bounded=False))
+    r = PointPairFeatures(max_seconds=0.01)(BlockInput(frame=lmo_frame, model=o.model, cache=cache))
+    assert 0 < r.info["references"] < 0.5 * full.info["references"], (r.info["references"], full.info["references"])
+    assert not r.ok and "no candidate could be verified" in r.reason
