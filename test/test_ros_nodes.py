@@ -169,13 +169,19 @@ def test_operator_services_compute_what_the_blocks_compute_in_process(ros_node, 
     from perception_config.blocks.base import create
 
     answered = cut = 0
+    requests = []
     for o in frame.objects:
         req = GenerateHypothesis.Request(object_id=str(o.obj_id), method="ppf")
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        call(ros_node, gen, req)  # the node builds each model's table: not inside a compared search's budget
+        requests.append((o, req))
+    for o, req in requests:
         res = call(ros_node, gen, req)
         want = in_process(data, frame, o, "ppf")
-        if max(res.elapsed, want.elapsed) >= 0.9 * create("ppf").config["max_seconds"]:
-            cut += 1  # a search cut by its wall-clock budget (a loaded machine) is not comparable
+        if max(res.elapsed, want.elapsed) >= 0.5 * create("ppf").config["max_seconds"]:
+            # possibly cut by its wall-clock budget (a loaded machine): not comparable. ppf's vote
+            # stops at half of the budget left, so only a call under half its budget surely ran whole.
+            cut += 1
             continue
         assert res.success == want.ok, (res.message, want.reason)
         # the ranked candidates go out with a refusal too (next_candidate may take them)
@@ -262,8 +268,8 @@ def test_next_candidate_through_ros_takes_the_generators_ranked_candidates(ros_n
                 ep = dict(model=o.model, ground_truth=o.gt, noise_lambda=0.0, seed=7, key=(0, 0, o.obj_id))
                 first = ros.start(Episode(frame=None, stamp_ns=stamp, **ep))
                 want = local.start(Episode(frame=frame, **ep))
-                if max(first.result.elapsed, want.result.elapsed) >= 0.9 * budget:
-                    cut += 1  # a search cut by its wall-clock budget is not comparable
+                if max(first.result.elapsed, want.result.elapsed) >= 0.5 * budget:
+                    cut += 1  # possibly cut by its budget (the vote stops at half of it): not comparable
                     continue
                 assert first.result.ok == want.result.ok, (first.result.reason, want.result.reason)
                 assert len(ros.candidates) == len(local.candidates)
