@@ -149,8 +149,6 @@ class RosOperators:
         hyp = Hypothesis()
         if self.stamp is not None:
             hyp.header.stamp = self.stamp
-        else:  # not resolved by an answer yet: the episode's frame (zero = the latest)
-            hyp.header.stamp.sec, hyp.header.stamp.nanosec = divmod(int(self.episode.stamp_ns), 1_000_000_000)
         hyp.header.frame_id = self.frame_id
         hyp.object_id = str(self.episode.model.obj_id)
         hyp.pose = self.pose_msg if self.pose_msg is not None else pose_to_msg(self.pose)
