@@ -9,10 +9,15 @@ import numpy as np
 from frames import box_model, default_pose, mean_point_distance, perturbed_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.blocks.chamfer import NO_TRANSLATION_PRIOR, edge_distance, prior_information, viewing_frame
+from perception_config.blocks.chamfer import edge_distance
 from perception_config.geometry import Pose, exp_so3, log_so3
 from perception_config.scene import Frame
-from perception_config.vision.pose_solver import levenberg_marquardt
+from perception_config.vision.pose_solver import (
+    NO_TRANSLATION_PRIOR,
+    levenberg_marquardt,
+    prior_information,
+    viewing_frame,
+)
 
 _perturbed, _add = perturbed_pose, mean_point_distance
 

@@ -54,7 +54,13 @@ from ..vision.edges import (
     sample_tensor,
     silhouette_points,
 )
-from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian
+from ..vision.pose_solver import (
+    LOSSES,
+    NO_TRANSLATION_PRIOR,
+    levenberg_marquardt,
+    prior_information,
+    project_with_jacobian,
+)
 from ..vision.visibility import hypothesis_rendering, visible_edges
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
 
@@ -124,31 +130,6 @@ def inner_edge_share(frame: Frame, model: ObjectModel, pose: Pose, cache: dict |
     else:
         n_seen = n_inner
     return n_seen / max(n_inner + n_outline, 1)
-
-
-def viewing_frame(t: np.ndarray) -> np.ndarray:
-    """Rows (ray, e1, e2): the viewing ray through the object origin and two image-plane directions."""
-    ray = t / np.linalg.norm(t)
-    e1 = np.cross(ray, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return np.stack([ray, e1, np.cross(ray, e1)])
-
-
-NO_TRANSLATION_PRIOR = np.zeros(3)  # levenberg_marquardt's rank-1 depth prior: the information matrix holds depth
-
-
-def prior_information(t0: np.ndarray, n: int, in_plane_deg: float, out_of_plane_deg: float,
-                      depth_mm: float) -> np.ndarray:
-    """The 6x6 information matrix (on (w, d) of pose_solver) of a Gaussian prior anchored at the
-    start: rotation about the viewing ray of `in_plane_deg`, out of the image plane of
-    `out_of_plane_deg`, and depth along the ray of `depth_mm` each cost as much as all `n`
-    residuals 1 px off; image-plane translation is free (edges observe it well). >= 1000: none."""
-    B = viewing_frame(t0)
-    weight = lambda x, unit: n / (unit * x) ** 2 if x < 1000 else 0.0  # noqa: E731
-    A = np.zeros((6, 6))
-    A[:3, :3] = B.T @ np.diag([weight(in_plane_deg, np.pi / 180), *[weight(out_of_plane_deg, np.pi / 180)] * 2]) @ B
-    A[3:, 3:] = weight(depth_mm, 1e-3) * np.outer(B[0], B[0])
-    return A
 
 
 _COMMON = (

@@ -106,6 +106,31 @@ def rotation_prior_weight(n_residuals: int, degrees: float) -> float:
     return float(np.sqrt(n_residuals) / np.radians(degrees)) if degrees < NO_PRIOR_DEG else 0.0
 
 
+def viewing_frame(t: np.ndarray) -> np.ndarray:
+    """Rows (ray, e1, e2): the viewing ray through the object origin and two image-plane directions."""
+    ray = t / np.linalg.norm(t)
+    e1 = np.cross(ray, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([ray, e1, np.cross(ray, e1)])
+
+
+NO_TRANSLATION_PRIOR = np.zeros(3)  # levenberg_marquardt's rank-1 depth prior: the information matrix holds depth
+
+
+def prior_information(t0: np.ndarray, n: int, in_plane_deg: float, out_of_plane_deg: float,
+                      depth_mm: float) -> np.ndarray:
+    """The 6x6 information matrix (on (w, d) of project_with_jacobian) of a Gaussian prior anchored at the
+    start: rotation about the viewing ray of `in_plane_deg`, out of the image plane of
+    `out_of_plane_deg`, and depth along the ray of `depth_mm` each cost as much as all `n`
+    residuals 1 px off; image-plane translation is free (edges observe it well). >= 1000: none."""
+    B = viewing_frame(t0)
+    weight = lambda x, unit: n / (unit * x) ** 2 if x < 1000 else 0.0  # noqa: E731
+    A = np.zeros((6, 6))
+    A[:3, :3] = B.T @ np.diag([weight(in_plane_deg, np.pi / 180), *[weight(out_of_plane_deg, np.pi / 180)] * 2]) @ B
+    A[3:, 3:] = weight(depth_mm, 1e-3) * np.outer(B[0], B[0])
+    return A
+
+
 def levenberg_marquardt(
     evaluate, R0: np.ndarray, t0: np.ndarray, prior: np.ndarray, huber: float,
     max_iterations: int, deadline: float, tol: float = 1e-4, anchor: np.ndarray | None = None,
