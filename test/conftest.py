@@ -127,8 +127,8 @@ def ros_node():
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """A test that talks to ROS nodes (it takes the ros_node fixture) is a `ros` test, marked or not:
-    scripts/test.sh runs those one at a time after the others."""
+    """A test that talks to ROS nodes (it takes the ros_node fixture) is a `ros` test, marked or not,
+    so `-m "not ros"` leaves out every test that starts nodes (test_score_learning's were missed)."""
     for item in items:
         if "ros_node" in getattr(item, "fixturenames", ()) and item.get_closest_marker("ros") is None:
             item.add_marker(pytest.mark.ros)
