@@ -90,6 +90,17 @@ if [ "$(cat "$VENV/.requirements.sha256" 2>/dev/null)" != "$req_hash" ]; then
     quiet_pip uninstall -q -y opencv-python-headless opencv-contrib-python-headless \
       || die "pip uninstall opencv-python-headless failed"
   fi
+  # A new venv has the interpreter's bundled pip (23.2.1 with Python 3.11.7), which refuses the
+  # hash-checked lock as soon as an index offers a release newer than the lock's of a dependency
+  # that is required with an extra (pytest-cov's coverage[toml]); the lock's own pip goes first.
+  want_pip="$(sed -n 's/^pip==\([^ ]*\).*/\1/p' "$ROOT/requirements.lock")"
+  if [ -n "$want_pip" ] && [ "$("$PY" -m pip --version | cut -d' ' -f2)" != "$want_pip" ]; then
+    say "installing pip $want_pip (the lock's, hash-checked) first"
+    pip_req="$(mktemp)"
+    awk '/^pip==/ {on = 1} on {print} on && !/\\$/ {exit}' "$ROOT/requirements.lock" > "$pip_req"
+    quiet_pip install -q --require-hashes -r "$pip_req" || { rm -f "$pip_req"; die "installing pip $want_pip failed"; }
+    rm -f "$pip_req"
+  fi
   # Exact versions, every file's sha256 checked; torch==2.13.0+cpu comes from pip's find-links folder.
   quiet_pip install -q --require-hashes -r "$ROOT/requirements.lock" || die "pip install -r requirements.lock failed"
   # A line added to requirements.txt without ./scripts/lock.sh still gets installed (unhashed);
