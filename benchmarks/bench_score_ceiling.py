@@ -49,13 +49,19 @@ BUCKETS = (0.10, 0.15, 0.20, 0.25, np.inf)
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def same_instance_auc(instance: np.ndarray, within: np.ndarray, score: np.ndarray) -> float:
-    """bench real's AUC: pairs (within, outside) of the same instance; higher scores better."""
+def _pairs(instance: np.ndarray, good: np.ndarray, bad: np.ndarray, score: np.ndarray) -> tuple[float, float]:
+    """(wins, pairs) of bench real's Mann-Whitney count over pairs (good, bad) of the same instance."""
     wins = pairs = 0.0
     for i in np.unique(instance):
         k = instance == i
-        w, p = _mann_whitney(score[k & within], score[k & ~within])
+        w, p = _mann_whitney(score[k & good], score[k & bad])
         wins, pairs = wins + w, pairs + p
+    return wins, pairs
+
+
+def same_instance_auc(instance: np.ndarray, within: np.ndarray, score: np.ndarray) -> float:
+    """bench real's AUC: pairs (within, outside) of the same instance; higher scores better."""
+    wins, pairs = _pairs(instance, within, ~within, score)
     return round(wins / pairs, 4) if pairs else float("nan")
 
 
@@ -64,11 +70,7 @@ def lost_by_bucket(instance: np.ndarray, mssd: np.ndarray, score: np.ndarray) ->
     within = mssd <= TOLERANCE
     rows, lost_total = [], 0.0
     for lo, hi in zip(BUCKETS[:-1], BUCKETS[1:]):
-        wins = pairs = 0.0
-        for i in np.unique(instance):
-            k = instance == i
-            w, p = _mann_whitney(score[k & within], score[k & (mssd > lo) & (mssd <= hi)])
-            wins, pairs = wins + w, pairs + p
+        wins, pairs = _pairs(instance, within, (mssd > lo) & (mssd <= hi), score)
         rows.append({"bad_mssd": [lo, None if np.isinf(hi) else hi], "pairs": int(pairs),
                      "auc": round(wins / pairs, 4) if pairs else None, "lost": pairs - wins})
         lost_total += pairs - wins
