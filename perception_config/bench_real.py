@@ -15,16 +15,18 @@ stays). Per lambda: `improved` (MSSD after one call strictly below the start's),
 `within_1` (after one call), `within_3` (after the last call), `reached_3` (within tolerance
 after some call of the chain: the pick-when-good view of the convergence table), the median
 MSSD / diameter and MSPD (px) after one call (the drift at lambda 0), the ok=False share with
-the reasons counted, and the median ms per call. Per object id and overall.
+the reasons counted, and the median ms per call. Per object id, per visibility (the annotated
+visib_fract in VISIBILITY_BINS buckets: on real frames occlusion is what separates the easy
+instances from the hard ones) and overall.
 
 Scores (every registered scoring block the frames can feed): poses drawn at `auc_lambdas` x
 `seeds` per object instance; AUC = the Mann-Whitney probability that a pose within tolerance
 scores better than one outside (ties 1/2, lower_is_better scores reversed, a failed call ranks
-below every value), counted over pairs of the same instance and summed per object id and
-overall; `auc_pooled` over all pairs of the dataset. With `refiner_costs`, a refiner that
-reports its cost at the start pose (BlockResult.info["cost_before"], e.g. d2co, chamfer) is
-called on the same poses and that cost ranked as a score too ("d2co:d2co_cost"; its ms are
-those of the whole refiner call).
+below every value), counted over pairs of the same instance and summed per object id, per
+visibility bucket and overall; `auc_pooled` over all pairs of the dataset. With
+`refiner_costs`, a refiner that reports its cost at the start pose
+(BlockResult.info["cost_before"], e.g. d2co, chamfer) is called on the same poses and that cost
+ranked as a score too ("d2co:d2co_cost"; its ms are those of the whole refiner call).
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ from .scene import Frame, SceneObject
 DEFAULT_LAMBDAS = (0.0, 0.1, 0.3)
 DEFAULT_AUC_LAMBDAS = (0.05, 0.1, 0.2, 0.3, 0.5)
 TOLERANCE = 0.1  # MSSD as a share of the diameter
+VISIBILITY_BINS = (0.5, 0.7, 0.85)  # visib_fract edges of the per-visibility split (occlusion is what real frames add)
 _REFINE, _SCORE = 0, 1  # purposes in the seed: refiner starts and scored poses never share a stream
 
 
@@ -75,6 +78,22 @@ def select_blocks(pipeline: Pipeline, names: Sequence[str] | None = None) -> tup
     return refiners, scorers
 
 
+def _visibility_labels(edges: Sequence[float]) -> list[str]:
+    return ([f"<{edges[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(edges, edges[1:])] + [f">={edges[-1]:g}"]
+            + ["unknown"])
+
+
+VISIBILITY_LABELS = _visibility_labels(VISIBILITY_BINS)  # the buckets in their order
+
+
+def visibility_bin(visib_fract: float | None) -> str:
+    """The per-visibility bucket of an annotated object (VISIBILITY_LABELS: "<0.5", "0.5-0.7",
+    "0.7-0.85", ">=0.85"; "unknown" without a visib_fract)."""
+    if visib_fract is None or not np.isfinite(visib_fract):
+        return VISIBILITY_LABELS[-1]
+    return VISIBILITY_LABELS[int(np.searchsorted(VISIBILITY_BINS, visib_fract, side="right"))]
+
+
 def _reason(text: str) -> str:
     """A failure reason with its numbers masked, so equal causes count together."""
     return re.sub(r"-?\d+(\.\d+)?(e-?\d+)?", "#", text)[:120]
@@ -85,6 +104,7 @@ class _RefineRecord:
     """One start of one refiner on one object instance."""
 
     obj_id: int
+    visib_bin: str
     lam_index: int
     mssd_before: float  # / diameter
     mssd_1: float
@@ -115,8 +135,8 @@ def _refine_chain(block: Block, frame: Frame, obj: SceneObject, start: Pose, rng
             mspd_1 = mspd(pose.R, pose.t, gt.R, gt.t, frame.K, model.vertices, eval_symmetries(model))
         if failures:
             break
-    return _RefineRecord(obj.obj_id, lam_index, before, errors[0], mspd_1, errors[-1] <= TOLERANCE,
-                         any(e <= TOLERANCE for e in errors), ms, failures)
+    return _RefineRecord(obj.obj_id, visibility_bin(obj.visib_fract), lam_index, before, errors[0], mspd_1,
+                         errors[-1] <= TOLERANCE, any(e <= TOLERANCE for e in errors), ms, failures)
 
 
 def _refine_stats(records: list[_RefineRecord]) -> dict[str, Any]:
@@ -164,39 +184,43 @@ class _ScoreSamples:
     block: str
     lower_is_better: bool
     from_refiner: bool  # a refiner's own cost at the pose, before it moves (info["cost_before"])
-    samples: list[tuple[int, int, float, bool]] = field(default_factory=list)  # key, obj_id, oriented value, within
+    # key, obj_id, visibility bin, oriented value, within
+    samples: list[tuple[int, int, str, float, bool]] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
     fails: int = 0
 
-    def add(self, key: int, obj_id: int, value: float, within: bool, ms: float, ok: bool) -> None:
-        self.samples.append((key, obj_id, value, within))
+    def add(self, key: int, obj_id: int, visib_bin: str, value: float, within: bool, ms: float, ok: bool) -> None:
+        self.samples.append((key, obj_id, visib_bin, value, within))
         self.ms.append(ms)
         self.fails += not ok
 
     def all_missing(self) -> bool:
-        return all(np.isnan(s[2]) for s in self.samples)
+        return all(np.isnan(s[3]) for s in self.samples)
 
     def stats(self) -> dict[str, Any]:
         return {"block": self.block, "lower_is_better": self.lower_is_better, "refiner_cost": self.from_refiner,
                 **_score_stats(self.samples, self.ms, self.fails)}
 
 
-def _score_stats(samples: list[tuple[int, int, float, bool]], ms: list[float], fails: int) -> dict[str, Any]:
-    """samples: (instance key, obj_id, oriented score (higher = better, NaN failed), within)."""
+def _score_stats(samples: list[tuple[int, int, str, float, bool]], ms: list[float], fails: int) -> dict[str, Any]:
+    """samples: (instance key, obj_id, visibility bin, oriented score (higher = better, NaN failed), within)."""
     per_inst: dict[int, list[tuple[float, bool]]] = defaultdict(list)
-    inst_obj: dict[int, int] = {}
-    for key, obj_id, value, within in samples:
+    inst_group: dict[int, tuple[int, str]] = {}
+    for key, obj_id, vbin, value, within in samples:
         per_inst[key].append((value, within))
-        inst_obj[key] = obj_id
+        inst_group[key] = (obj_id, vbin)
     per_obj: dict[int, list[float]] = defaultdict(lambda: [0.0, 0])
+    per_vis: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
     for key, vals in per_inst.items():
         v = np.array([x for x, _ in vals])
         w = np.array([y for _, y in vals])
         wins, pairs = _mann_whitney(v[w], v[~w])
-        per_obj[inst_obj[key]][0] += wins
-        per_obj[inst_obj[key]][1] += pairs
-    v = np.array([s[2] for s in samples])
-    w = np.array([s[3] for s in samples], dtype=bool)
+        obj_id, vbin = inst_group[key]
+        for acc in (per_obj[obj_id], per_vis[vbin]):
+            acc[0] += wins
+            acc[1] += pairs
+    v = np.array([s[3] for s in samples])
+    w = np.array([s[4] for s in samples], dtype=bool)
     pooled = _mann_whitney(v[w], v[~w])
     total = (sum(x[0] for x in per_obj.values()), sum(x[1] for x in per_obj.values()))
     return {
@@ -205,6 +229,8 @@ def _score_stats(samples: list[tuple[int, int, float, bool]], ms: list[float], f
         "fail_share": round(fails / max(len(ms), 1), 4),
         "median_ms": round(float(np.median(ms)), 3) if ms else None,
         "per_object": {str(k): {"auc": _auc(*x), "pairs": x[1]} for k, x in sorted(per_obj.items())},
+        "per_visibility": {k: {"auc": _auc(*per_vis[k]), "pairs": per_vis[k][1]}
+                           for k in sorted(per_vis, key=VISIBILITY_LABELS.index)},
     }
 
 
@@ -281,7 +307,8 @@ def bench_real(
                         v = v if np.isfinite(v) else np.nan
                         lower = (block.score_names[0] if is_refiner else sn) in block.lower_is_better
                         samples = score_samples.setdefault(sn, _ScoreSamples(name, lower, is_refiner))
-                        samples.add(instance_key, obj.obj_id, -v if lower else v, w, r.elapsed * 1e3, r.ok)
+                        samples.add(instance_key, obj.obj_id, visibility_bin(obj.visib_fract), -v if lower else v, w,
+                                    r.elapsed * 1e3, r.ok)
         bar.update(1)
     bar.close()
     if n_instances == 0:
@@ -293,13 +320,17 @@ def bench_real(
         if not records:
             continue
         block = refiners[name]
-        entry: dict[str, Any] = {"block": block.name, "params": dict(block.config), "overall": {}, "per_object": {}}
+        entry: dict[str, Any] = {"block": block.name, "params": dict(block.config), "overall": {}, "per_object": {},
+                                 "per_visibility": {}}
         for li, lam in enumerate(lambdas):
             at = [r for r in records if r.lam_index == li]
             entry["overall"][f"{lam:g}"] = _refine_stats(at)
             for obj_id in sorted({r.obj_id for r in at}):
                 entry["per_object"].setdefault(str(obj_id), {})[f"{lam:g}"] = _refine_stats(
                     [r for r in at if r.obj_id == obj_id])
+            for vbin in sorted({r.visib_bin for r in at}, key=VISIBILITY_LABELS.index):
+                entry["per_visibility"].setdefault(vbin, {})[f"{lam:g}"] = _refine_stats(
+                    [r for r in at if r.visib_bin == vbin])
         refiner_out[name] = entry
     scores_out = {sn: x.stats() for sn, x in score_samples.items() if not (x.from_refiner and x.all_missing())}
     return {
@@ -310,6 +341,7 @@ def bench_real(
         "instances": n_instances,
         "settings": {"seeds": seeds, "lambdas": lambdas, "auc_lambdas": auc_lambdas, "max_calls": max_calls,
                      "min_visib": min_visib, "seed": seed, "tolerance_mssd_per_diameter": TOLERANCE,
+                     "visibility_bins": list(VISIBILITY_BINS),
                      "use_depth": use_depth, "refiner_costs": refiner_costs, "pipeline": pipeline.source},
         "skipped": {n: why for n, why in skipped.items() if n not in ran},
         "refiners": refiner_out,
@@ -331,8 +363,8 @@ def _pct(x: float | None) -> str:
 
 
 def format_real(result: dict[str, Any], per_object: bool = True) -> str:
-    """Markdown tables: refiners (overall line, then per object unless `per_object` is False),
-    then scores (AUC overall, pooled and per object)."""
+    """Markdown tables: refiners (overall line, then per object unless `per_object` is False, then
+    per visibility bucket), then scores (AUC overall, pooled and per object; then per visibility)."""
     lams = [f"{x:g}" for x in result["settings"]["lambdas"]]
     k = result["settings"]["max_calls"]
     head = ["refiner", "object", "n"]
@@ -368,6 +400,8 @@ def format_real(result: dict[str, Any], per_object: bool = True) -> str:
         lines.append(row(f"**{name}**", "all", entry["overall"]))
         for obj, stats in entry["per_object"].items() if per_object else ():
             lines.append(row("", obj, stats))
+        for vbin, stats in entry.get("per_visibility", {}).items():
+            lines.append(row("", f"visib {vbin}", stats))
     if result["skipped"]:
         lines += ["", "skipped: " + ", ".join(f"{n} ({why})" for n, why in result["skipped"].items())]
     objs = sorted({o for s in result["scores"].values() for o in s["per_object"]}, key=int)
@@ -379,6 +413,14 @@ def format_real(result: dict[str, Any], per_object: bool = True) -> str:
             cells = [sn, _f2(s["auc"]), _f2(s["auc_pooled"]), *[_f2(x) for x in per], _pct(s["fail_share"]),
                      f"{s['median_ms']:.1f}" if s["median_ms"] is not None else "–"]
             lines.append("| " + " | ".join(cells) + " |")
+        per_vis = {sn: s.get("per_visibility", {}) for sn, s in result["scores"].items()}
+        bins = [b for b in VISIBILITY_LABELS if any(b in v for v in per_vis.values())]
+        if bins:
+            head = ["score", *[f"AUC visib {b} (pairs)" for b in bins]]
+            lines += ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+            for sn, v in per_vis.items():
+                cells = [f"{_f2(v.get(b, {}).get('auc'))} ({v.get(b, {}).get('pairs', 0)})" for b in bins]
+                lines.append("| " + " | ".join([sn, *cells]) + " |")
     return "\n".join(lines)
 
 

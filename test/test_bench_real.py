@@ -6,7 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from perception_config.bench_real import bench_real, format_real, save_real, select_blocks
+from perception_config.bench_real import (
+    VISIBILITY_LABELS,
+    bench_real,
+    format_real,
+    save_real,
+    select_blocks,
+    visibility_bin,
+)
 from perception_config.blocks.base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, register
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.cli import main
@@ -90,6 +97,8 @@ def test_known_blocks_on_synthetic(synthetic_dataset):
             assert all(0.0 <= x <= 1.0 for x in _shares(stats))
             assert stats["calls"] >= stats["n"] and stats["median_ms"] >= 0
         assert sum(s["n"] for o in entry["per_object"].values() for s in [o["0.3"]]) == entry["overall"]["0.3"]["n"]
+        assert sum(v["0.3"]["n"] for v in entry["per_visibility"].values()) == entry["overall"]["0.3"]["n"]
+        assert set(entry["per_visibility"]) <= set(VISIBILITY_LABELS)
     same = res["refiners"]["test_bench_unchanged"]["overall"]
     assert same["0"]["within_before"] == same["0"]["within_1"] == same["0"]["within_3"] == 1.0
     assert same["0"]["mssd_1"] == 0.0 and same["0"]["mspd_1"] == pytest.approx(0.0, abs=1e-6)
@@ -107,12 +116,23 @@ def test_known_blocks_on_synthetic(synthetic_dataset):
     assert scores["mssd_lower_better"]["auc"] == 1.0 and scores["mssd_lower_better"]["lower_is_better"]
     assert scores["mssd_higher_better"]["auc"] == 0.0 and scores["mssd_higher_better"]["auc_pooled"] == 0.0
     assert all(o["auc"] in (None, 1.0) for o in scores["minus_mssd"]["per_object"].values())
+    by_visibility = scores["minus_mssd"]["per_visibility"]
+    assert all(v["auc"] in (None, 1.0) for v in by_visibility.values())
+    assert sum(v["pairs"] for v in by_visibility.values()) == scores["minus_mssd"]["pairs"]
+    assert all(v["auc"] in (None, 0.0) for v in scores["mssd_higher_better"]["per_visibility"].values())
     assert 0.0 <= scores["psi_d"]["auc"] <= 1.0 and {"psi_d_m1", "psi_d_m2"} <= set(scores)
     # d2co's own cost at the pose (before it moves), ranked like a score; the unchanged refiner reports none.
     assert scores["d2co:d2co_cost"]["refiner_cost"] and 0.0 <= scores["d2co:d2co_cost"]["auc"] <= 1.0
     assert not any(k.startswith("test_bench_unchanged") for k in scores)
     table = format_real(res)
     assert "**test_bench_unchanged**" in table and "minus_mssd" in table
+    assert "| visib " in table and "AUC visib" in table
+
+
+def test_visibility_buckets():
+    assert VISIBILITY_LABELS == ["<0.5", "0.5-0.7", "0.7-0.85", ">=0.85", "unknown"]
+    assert [visibility_bin(v) for v in (0.3, 0.5, 0.69, 0.7, 0.85, 1.0, None, float("nan"))] == [
+        "<0.5", "0.5-0.7", "0.5-0.7", "0.7-0.85", ">=0.85", ">=0.85", "unknown", "unknown"]
 
 
 def test_reproducible_and_independent_of_the_blocks(synthetic_dataset):
