@@ -223,3 +223,23 @@ def test_refusals_name_the_reason() -> None:
     fails(frame, Pose(gt.R, [0.0, 0.0, -0.7]))  # behind the camera
     tiny = box_model(5, size=(0.002, 0.002, 0.002))  # a few pixels
     assert "pixels" in fails(frame, gt, tiny)
+
+
+def test_outline_separation_is_high_on_the_object_and_falls_off_it() -> None:
+    """The region cue chamfer's wide search is checked with: a uniform patch on a different
+    background separates (close to 1) at its pose, less a few px off, not at all on a flat image."""
+    from perception_config.vision.appearance import outline_separation
+    from perception_config.vision.region import band_width
+
+    model, pose = box_model(), Pose(np.eye(3), np.array([0.0, 0.0, 0.6]))
+    K = np.array([[600.0, 0, 160], [0, 600.0, 120], [0, 0, 1]])
+    flat = Frame(rgb=np.full((240, 320, 3), 90, np.uint8), depth=np.full((240, 320), np.nan, np.float32), K=K)
+    r = hypothesis_rendering(flat, model, pose)
+    rgb = np.full((240, 320, 3), (60, 90, 60), np.uint8)
+    rgb[r.crop_slices()][r.mask >= 0] = (200, 40, 40)
+    frame = Frame(rgb=rgb, depth=flat.depth, K=K)
+    band = band_width(r, 0.15, 10)
+    at = outline_separation(frame, r, band)
+    off = outline_separation(frame, hypothesis_rendering(frame, model, Pose(np.eye(3), pose.t + [0.006, 0, 0])), band)
+    assert at > 0.95 and off < at - 0.2, (at, off)
+    assert outline_separation(flat, r, band) == 0.0

@@ -78,6 +78,20 @@ def region_separation(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, b
     return 0.5 * (float(pf[qi].mean()) + float(1.0 - pf[qo].mean()))
 
 
+def outline_separation(frame: Frame, rendering: Rendering, band: int, bits: int = 4) -> float:
+    """The region cue at a rendered hypothesis: 2 x region_separation - 1 of its outline's inner
+    and outer `band` px bands (histograms of their own colours, `bits` per channel), 0 when the
+    two sides look alike (or a band is empty), 1 when they share no colour."""
+    if rendering.empty:
+        return 0.0
+    mask, (x0, y0, x1, y1) = padded_mask(frame, rendering, band + 1)
+    inner, outer = outline_bands(mask, band)
+    if not inner.any() or not outer.any():
+        return 0.0
+    codes = colour_codes(frame.rgb[y0:y1, x0:x1], bits)
+    return max(0.0, 2.0 * region_separation(codes, inner, outer, bits) - 1.0)
+
+
 def band_posterior(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, bits: int) -> np.ndarray:
     """Foreground posterior h_f / (h_f + h_b) of every colour bin (2^(3 bits) float64), from
     the normalised colour histograms of the inner and outer bands (+1e-4 each)."""
@@ -184,5 +198,6 @@ def shifted_edges(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, 
     return 1.0 - d.mean(axis=1) / tau
 
 
-__all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "nearest_edges", "edge_agreement",
+__all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "outline_separation", "nearest_edges",
+           "edge_agreement",
            "band_posterior", "disc_shifts", "shifted_region", "shifted_separation", "shifted_edges"]
