@@ -199,5 +199,4 @@ def shifted_edges(distance: np.ndarray, edge_angle: np.ndarray, uv: np.ndarray, 
 
 
 __all__ = ["colour_codes", "padded_mask", "outline_bands", "region_separation", "outline_separation", "nearest_edges",
-           "edge_agreement",
-           "band_posterior", "disc_shifts", "shifted_region", "shifted_separation", "shifted_edges"]
+           "edge_agreement", "band_posterior", "disc_shifts", "shifted_region", "shifted_separation", "shifted_edges"]
