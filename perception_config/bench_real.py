@@ -78,6 +78,16 @@ def select_blocks(pipeline: Pipeline, names: Sequence[str] | None = None) -> tup
     return refiners, scorers
 
 
+def refiner_starts(gt: Pose, lam: float, diameter: float, seeds: int, instance: list[int],
+                   lam_index: int) -> list[Pose]:
+    """The `seeds` refiner starts of one object instance at one lambda (the noise model around the
+    ground truth), from a generator seeded by (seed, scene, image, object index) = `instance`, the
+    purpose and the lambda's index: the same starts in every run and for every refiner. A chain's
+    call `k` from start `s` uses the generator seeded by [*instance, lam_index, s, k]."""
+    rng = np.random.default_rng([*instance, _REFINE, lam_index])
+    return [perturb(gt, lam, diameter, rng) for _ in range(seeds)]
+
+
 def _visibility_labels(edges: Sequence[float]) -> list[str]:
     return ([f"<{edges[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(edges, edges[1:])] + [f">={edges[-1]:g}"]
             + ["unknown"])
@@ -282,8 +292,7 @@ def bench_real(
             instance_key += 1
             d = obj.model.diameter
             for li, lam in enumerate(lambdas):
-                rng = np.random.default_rng([seed, scene_id, im_id, oi, _REFINE, li])
-                starts = [perturb(obj.gt, lam, d, rng) for _ in range(seeds)]
+                starts = refiner_starts(obj.gt, lam, d, seeds, [seed, scene_id, im_id, oi], li)
                 for name, block in active_ref.items():
                     for s, start in enumerate(starts):
                         refine[name].append(_refine_chain(block, frame, obj, start, [seed, scene_id, im_id, oi, li, s],
