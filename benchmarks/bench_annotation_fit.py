@@ -41,11 +41,10 @@ sys.path.insert(0, str(ROOT))
 
 from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.bench import usable_objects  # noqa: E402
-from perception_config.bench_real import DEFAULT_LAMBDAS, TOLERANCE, refiner_starts  # noqa: E402
+from perception_config.bench_real import DEFAULT_LAMBDAS, TOLERANCE, refine_chain, refiner_starts  # noqa: E402
 from perception_config.blocks import load_all  # noqa: E402
 from perception_config.blocks.base import RGB, BlockInput, Kind  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
-from perception_config.metrics import pose_mssd  # noqa: E402
 from perception_config.vision.debug_overlay import outline  # noqa: E402
 
 CUES = ("psi_rgb", "psi_rgb_region", "psi_rgb_edges")
@@ -121,17 +120,10 @@ def main() -> int:
                         starts = refiner_starts(obj.gt, lam, d, args.seeds if lam > 0 else 1,
                                                 [args.seed, scene_id, im_id, oi], li)
                         for si, start in enumerate(starts):
-                            pose = start
-                            for call in range(args.calls):
-                                r = block(BlockInput(frame=frame, model=obj.model, pose=pose, cache=cache,
-                                                     rng=np.random.default_rng([args.seed, scene_id, im_id, oi, li, si,
-                                                                                call])))
-                                if not (r.ok and r.pose is not None):
-                                    break
-                                pose = r.pose
-                            mssd = pose_mssd(pose, obj.gt, obj.model) / d
-                            chains.append({"lambda": lam, "start": si,
-                                           "mssd_start": round(float(pose_mssd(start, obj.gt, obj.model) / d), 4),
+                            rec = refine_chain(block, frame, obj, start, [args.seed, scene_id, im_id, oi, li, si],
+                                               cache, args.calls, li)
+                            pose, mssd = rec.end, rec.mssd_end
+                            chains.append({"lambda": lam, "start": si, "mssd_start": round(float(rec.mssd_before), 4),
                                            "mssd": round(float(mssd), 4),
                                            "end": image_fit(at_pose, frame, obj, pose, cache)})
                             if lam == 0 and mssd > TOLERANCE:

@@ -110,7 +110,7 @@ def _reason(text: str) -> str:
 
 
 @dataclass
-class _RefineRecord:
+class RefineRecord:
     """One start of one refiner on one object instance."""
 
     obj_id: int
@@ -121,12 +121,16 @@ class _RefineRecord:
     mspd_1: float  # px
     within_3: bool
     reached_3: bool
+    end: Pose  # after the last call
+    mssd_end: float  # / diameter, after the last call
     ms: list[float] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
 
 
-def _refine_chain(block: Block, frame: Frame, obj: SceneObject, start: Pose, rng_seed: list[int],
-                  cache: dict[str, Any], max_calls: int, lam_index: int) -> _RefineRecord:
+def refine_chain(block: Block, frame: Frame, obj: SceneObject, start: Pose, rng_seed: list[int],
+                 cache: dict[str, Any], max_calls: int, lam_index: int) -> RefineRecord:
+    """Up to `max_calls` calls of `block`, each on the previous output with the frame's shared
+    cache and a generator seeded by [*rng_seed, call] (a failed call ends the chain)."""
     model, gt = obj.model, obj.gt
     d = model.diameter
     before = pose_mssd(start, gt, model) / d
@@ -145,11 +149,11 @@ def _refine_chain(block: Block, frame: Frame, obj: SceneObject, start: Pose, rng
             mspd_1 = mspd(pose.R, pose.t, gt.R, gt.t, frame.K, model.vertices, eval_symmetries(model))
         if failures:
             break
-    return _RefineRecord(obj.obj_id, visibility_bin(obj.visib_fract), lam_index, before, errors[0], mspd_1,
-                         errors[-1] <= TOLERANCE, any(e <= TOLERANCE for e in errors), ms, failures)
+    return RefineRecord(obj.obj_id, visibility_bin(obj.visib_fract), lam_index, before, errors[0], mspd_1,
+                        errors[-1] <= TOLERANCE, any(e <= TOLERANCE for e in errors), pose, errors[-1], ms, failures)
 
 
-def _refine_stats(records: list[_RefineRecord]) -> dict[str, Any]:
+def _refine_stats(records: list[RefineRecord]) -> dict[str, Any]:
     n = len(records)
     before = np.array([r.mssd_before for r in records])
     after = np.array([r.mssd_1 for r in records])
@@ -269,7 +273,7 @@ def bench_real(
     if not keys:
         raise ValueError(f"{dataset}: no images in split {split!r}")
 
-    refine: dict[str, list[_RefineRecord]] = {n: [] for n in refiners}
+    refine: dict[str, list[RefineRecord]] = {n: [] for n in refiners}
     score_samples: dict[str, _ScoreSamples] = {}
     skipped: dict[str, str] = {}
     ran: set[str] = set()
@@ -295,7 +299,7 @@ def bench_real(
                 starts = refiner_starts(obj.gt, lam, d, seeds, [seed, scene_id, im_id, oi], li)
                 for name, block in active_ref.items():
                     for s, start in enumerate(starts):
-                        refine[name].append(_refine_chain(block, frame, obj, start, [seed, scene_id, im_id, oi, li, s],
+                        refine[name].append(refine_chain(block, frame, obj, start, [seed, scene_id, im_id, oi, li, s],
                                                           cache, max_calls, li))
             poses = []
             for li, lam in enumerate(auc_lambdas):
