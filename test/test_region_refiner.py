@@ -1,7 +1,8 @@
 """The region-based refiner (blocks/region.py, vision/region.py): the correspondence lines find a
 colour transition, the ground truth is a fixed point on a real photograph, perturbed hypotheses
-improve (synthetic and real), a call never returns a pose its own cost judges worse, and bad
-input gives ok=False with a reason within the time bound."""
+improve (synthetic and real), a call never returns a pose its own cost judges worse, bad
+input gives ok=False with a reason within the time bound, and local (per-sector) colour
+histograms are local and keep correct poses."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,7 +13,8 @@ from perception_config.blocks.base import BlockInput
 from perception_config.geometry import Pose, exp_so3, log_so3, perturb
 from perception_config.metrics import pose_mssd
 from perception_config.render import project
-from perception_config.vision.region import ColourModel, line_displacements
+from perception_config.vision.appearance import band_posterior, outline_bands
+from perception_config.vision.region import ColourModel, line_displacements, sector_posterior_map
 
 
 def _px_error(model, K, est: Pose, gt: Pose) -> float:
@@ -133,3 +135,47 @@ def test_the_out_of_plane_prior_holds_rotation_off_the_viewing_ray():
         assert _px_error(model, frame.K, r.pose, gt) < 0.7 * _px_error(model, frame.K, start, gt)
         tilts[deg] = _out_of_plane_deg(start, r.pose)
     assert tilts[0.5] < 1.0 and tilts[15.0] > 2.0 * tilts[0.5], tilts
+
+
+def test_sector_histograms_are_local():
+    """A square object of colour 1 whose background has its colour on the left and colour 2 on
+    the right: the whole bands' histograms give colour 1 the same posterior (2/3) on both sides;
+    per sector it is foreground on the right (nothing outside there shares it) and uncertain
+    (~0.5) on the left, and the map has no seam between sectors."""
+    codes = np.where(np.arange(80)[None, :] < 40, 1, 2).repeat(80, axis=0).astype(np.int32)
+    mask = np.zeros((80, 80), np.uint8)
+    mask[25:55, 25:55] = 1
+    codes[mask > 0] = 1
+    inner, outer = outline_bands(mask, 6)
+    whole = band_posterior(codes, inner, outer, 1)
+    assert abs(whole[1] - 2 / 3) < 0.01
+    pmap = sector_posterior_map(codes, inner, outer, (0, 0), codes, (0, 0), np.array([39.5, 39.5]), 1, 8, 10.0)
+    right, left = pmap[40, 52], pmap[40, 27]  # inside the object, 3 px from its right / left edge
+    assert right > 0.9 and abs(left - 0.5) < 0.1, (right, left)
+    ring = pmap[mask > 0]
+    assert ring.min() >= left - 0.05 and ring.max() <= right + 0.05
+    assert np.abs(np.diff(pmap[26, 26:54])).max() < 0.1  # along the top edge, across sector borders
+
+
+def test_sector_histograms_keep_correct_poses_on_real_photographs(lmo_rgb_frames):
+    """With local histograms (`sectors` 12) the region refiner keeps the annotated poses of the two
+    real frames within tolerance over three calls each (lmo-rgb, 2 seeds: 100 % against 94 % with
+    the whole bands' histograms), and still improves perturbed synthetic hypotheses."""
+    block = create("region", sectors=12)
+    stays = []
+    for frame in lmo_rgb_frames:
+        cache = {}
+        for obj in _visible(frame, 0.3):
+            pose = obj.gt
+            for call in range(3):
+                r = block(BlockInput(frame=frame, model=obj.model, pose=pose, cache=cache,
+                                     rng=np.random.default_rng(call), time_bounded=False))
+                assert r.ok, r.reason
+                pose = r.pose
+            stays.append(pose_mssd(pose, obj.gt, obj.model) <= 0.1 * obj.model.diameter)
+    assert len(stays) >= 10 and np.mean(stays) >= 0.95, f"{np.mean(stays):.0%} of {len(stays)} stayed"
+    model, gt = box_model(), default_pose(0.6)
+    frame = synthetic_frame([model], [gt], seed=1)
+    improved = sum(_px_error(model, frame.K, r.pose, gt) < _px_error(model, frame.K, start, gt)
+                   for start, r in refine_perturbed(block, frame, model, gt, np.random.default_rng(0)))
+    assert improved >= 8, f"region with sectors improved {improved}/10"

@@ -7,7 +7,9 @@ statistics instead of to edges:
 - `ColourModel`: foreground/background colour histograms of the start hypothesis's inner and
   outer outline bands (vision.appearance's bands and histograms) turned into a per-pixel
   foreground posterior map P_f = h_f / (h_f + h_b) over a crop around the hypothesis (0.5,
-  "no information", beyond the image).
+  "no information", beyond the image). With `sectors` the histograms are local (Tjaden et al.
+  2017's local colour histograms, here per angular sector about the silhouette's centre): a
+  cluttered background or an occluder on one side no longer sets the posterior on the others.
 - `outline_samples`: points of the rendered silhouette (vision.edges.silhouette_points), spread
   evenly along it, back-projected onto the model with the rendered depth, with the inward 2D
   normal; the silhouette is re-rendered at every iteration (its contour generator moves over
@@ -52,11 +54,18 @@ class ColourModel:
     bits: int
     codes: np.ndarray  # colour bins of the map's crop
 
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        """The posterior map's crop (x0, y0, x1, y1) in the image."""
+        return self.origin[0], self.origin[1], self.origin[0] + self.pmap.shape[1], self.origin[1] + self.pmap.shape[0]
+
     def blended(self, other: "ColourModel", weight: float) -> "ColourModel":
-        """This model with its posterior moved towards `other`'s by `weight` (same map crop): the
-        histograms re-estimated at a later pose, as RBOT updates them from frame to frame."""
+        """This model with its posterior (and map) moved towards `other`'s by `weight` (`other`
+        built on the same map crop): the histograms re-estimated at a later pose, as RBOT updates
+        them from frame to frame."""
         posterior = ((1.0 - weight) * self.posterior + weight * other.posterior).astype(np.float32)
-        return ColourModel(posterior, posterior[self.codes], self.origin, self.band, self.bits, self.codes)
+        pmap = ((1.0 - weight) * self.pmap + weight * other.pmap).astype(np.float32)
+        return ColourModel(posterior, pmap, self.origin, self.band, self.bits, self.codes)
 
 
 def band_width(rendering: Rendering, fraction: float, largest: int) -> int:
@@ -65,12 +74,46 @@ def band_width(rendering: Rendering, fraction: float, largest: int) -> int:
     return int(np.clip(round(fraction * math.sqrt(n_obj)), 2, largest)) if fraction > 0 else int(largest)
 
 
+def sector_posterior_map(codes: np.ndarray, inner: np.ndarray, outer: np.ndarray, origin: tuple[int, int],
+                         crop: np.ndarray, crop_origin: tuple[int, int], centre: np.ndarray, bits: int,
+                         sectors: int, prior_px: float) -> np.ndarray:
+    """Foreground posterior map (float32) of `crop` (colour codes, origin `crop_origin`) from
+    local histograms: the bands (of `codes`, origin `origin`) split into `sectors` angular
+    sectors about `centre` (image px), each sector's inner and outer histograms pulled towards
+    the whole bands' by `prior_px` pixels; a pixel's posterior interpolates between its two
+    nearest sectors' (no seam)."""
+    n_bins = 1 << (3 * bits)
+
+    def sector_coordinate(shape: tuple[int, ...], at: tuple[int, int]) -> np.ndarray:
+        yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+        angle = np.arctan2(yy + at[1] - centre[1], xx + at[0] - centre[0])
+        return (angle + np.pi) / (2.0 * np.pi) * sectors - 0.5  # sector k's centre at k
+
+    sector = np.floor(sector_coordinate(codes.shape, origin) + 0.5).astype(np.intp) % sectors
+
+    def histograms(band: np.ndarray) -> np.ndarray:
+        h = np.bincount(sector[band] * n_bins + codes[band], minlength=sectors * n_bins)
+        h = h.reshape(sectors, n_bins).astype(np.float64)
+        whole = h.sum(axis=0) / max(float(h.sum()), 1.0)
+        return (h + prior_px * whole) / (h.sum(axis=1, keepdims=True) + prior_px) + 1e-4
+
+    hf, hb = histograms(inner), histograms(outer)
+    posterior = (hf / (hf + hb)).astype(np.float32)
+    f = sector_coordinate(crop.shape, crop_origin)
+    k0 = np.floor(f).astype(np.intp)
+    w = (f - k0).astype(np.float32)
+    k0 %= sectors
+    return (1.0 - w) * posterior[k0, crop] + w * posterior[(k0 + 1) % sectors, crop]
+
+
 def colour_model(frame: Frame, rendering: Rendering, band: int, bits: int, margin: int,
-                 gap: float = 0.0) -> ColourModel | None:
+                 gap: float = 0.0, sectors: int = 0, sector_prior_px: float = 50.0,
+                 box: tuple[int, int, int, int] | None = None) -> ColourModel | None:
     """The colour model of the hypothesis rendered as `rendering`; the histograms come from the
     bands `gap` to `gap` + `band` px inside and outside the outline (a gap leaves out the pixels
-    that a few px of misalignment puts on the wrong side); the posterior map covers the box
-    grown by `margin` px (clipped to the image). None when a band is empty."""
+    that a few px of misalignment puts on the wrong side), per angular sector when `sectors` > 1
+    (`sector_posterior_map`); the posterior map covers `box` (x0, y0, x1, y1), by default the
+    rendering's box grown by `margin` px (clipped to the image). None when a band is empty."""
     mask, (x0, y0, x1, y1) = padded_mask(frame, rendering, int(math.ceil(gap)) + band + 1)
     inner, outer = outline_bands(mask, gap + band)
     if gap > 0:
@@ -80,11 +123,20 @@ def colour_model(frame: Frame, rendering: Rendering, band: int, bits: int, margi
         return None
     codes = colour_codes(frame.rgb[y0:y1, x0:x1], bits)
     posterior = band_posterior(codes, inner, outer, bits).astype(np.float32)
-    x, y, w, h = rendering.box
-    X0, Y0 = max(0, x - margin), max(0, y - margin)
-    X1, Y1 = min(frame.width, x + w + margin), min(frame.height, y + h + margin)
+    if box is None:
+        x, y, w, h = rendering.box
+        box = (max(0, x - margin), max(0, y - margin),
+               min(frame.width, x + w + margin), min(frame.height, y + h + margin))
+    X0, Y0, X1, Y1 = box
     crop = colour_codes(frame.rgb[Y0:Y1, X0:X1], bits)
-    return ColourModel(posterior, posterior[crop], (X0, Y0), band, bits, crop)
+    if sectors > 1:
+        ys, xs = np.nonzero(mask)
+        centre = np.array([xs.mean() + x0, ys.mean() + y0])
+        pmap = sector_posterior_map(codes, inner, outer, (x0, y0), crop, (X0, Y0), centre, bits, sectors,
+                                    sector_prior_px)
+    else:
+        pmap = posterior[crop]
+    return ColourModel(posterior, pmap, (X0, Y0), band, bits, crop)
 
 
 def region_cost(frame: Frame, rendering: Rendering, cm: ColourModel) -> float:
@@ -150,4 +202,5 @@ def line_displacements(cm: ColourModel, uv: np.ndarray, normals: np.ndarray, hal
     return mean, np.sqrt(np.maximum(var, 0.0))
 
 
-__all__ = ["ColourModel", "band_width", "colour_model", "region_cost", "outline_samples", "line_displacements"]
+__all__ = ["ColourModel", "band_width", "sector_posterior_map", "colour_model", "region_cost", "outline_samples",
+           "line_displacements"]
