@@ -43,9 +43,10 @@ from .edges import bilinear, silhouette_points
 
 @dataclass
 class ColourModel:
-    """The start hypothesis's colour statistics: the foreground posterior per colour bin, the
-    posterior map over a crop (float32, origin `origin` in the image), the band width (px) and
-    the histogram bits."""
+    """The start hypothesis's colour statistics: the foreground posterior per colour bin (always
+    the whole bands': `region_cost` judges by it), the posterior map over a crop that the lines
+    sample (float32, origin `origin` in the image; per sector when the histograms are local),
+    the band width (px) and the histogram bits."""
 
     posterior: np.ndarray
     pmap: np.ndarray
