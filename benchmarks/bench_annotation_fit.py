@@ -39,12 +39,12 @@ from PIL import Image
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.bench import usable_objects  # noqa: E402
-from perception_config.bench_real import DEFAULT_LAMBDAS, TOLERANCE, refine_chain, refiner_starts  # noqa: E402
+from perception_config.bench.blocks import usable_objects  # noqa: E402
+from perception_config.bench.real import DEFAULT_LAMBDAS, TOLERANCE, refine_chain, refiner_starts  # noqa: E402
 from perception_config.blocks import load_all  # noqa: E402
 from perception_config.blocks.base import RGB, BlockInput, Kind  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 from perception_config.vision.debug_overlay import outline  # noqa: E402
 
 CUES = ("psi_rgb", "psi_rgb_region", "psi_rgb_edges")

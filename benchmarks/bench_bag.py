@@ -28,9 +28,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.core.scene import Frame  # noqa: E402
 from perception_config.datasets.bag import iter_messages, read_bag, write_frames  # noqa: E402
-from perception_config.scene import Frame  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "lmo"
 W, H = 640, 480

@@ -38,9 +38,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.blocks.base import BlockInput, create  # noqa: E402
-from perception_config.metrics import pose_mssd  # noqa: E402
+from perception_config.core.metrics import pose_mssd  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "lmo"
 LMO_RGB = REPO.parent / "shared" / "data" / "lmo-rgb"
@@ -51,7 +51,7 @@ def frames_of(root: Path, test_split: bool) -> list:
     import warnings
 
     from perception_config.datasets.bop import BopDataset
-    from perception_config.episodes import split_image_keys
+    from perception_config.rl.episodes import split_image_keys
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the LM-O annotations' SO(3) projection warning

@@ -34,11 +34,11 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.cli import agent_params  # noqa: E402
-from perception_config.evaluation import evaluate  # noqa: E402
-from perception_config.settings import EnvSettings  # noqa: E402
-from perception_config.training import train  # noqa: E402
+from perception_config.learning.evaluation import evaluate  # noqa: E402
+from perception_config.learning.training import train  # noqa: E402
+from perception_config.rl.settings import EnvSettings  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LAMBDA = 0.5
 # 8 episodes per individual (its fitness, the mean return, is less of a lucky draw than over

@@ -33,10 +33,10 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.blocks.base import BlockInput  # noqa: E402
 from perception_config.blocks.generation import GlobalRegistration, SimulatedInit  # noqa: E402
-from perception_config.metrics import add, pose_mssd  # noqa: E402
+from perception_config.core.metrics import add, pose_mssd  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "lmo"
 

@@ -29,10 +29,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.bench_real import VISIBILITY_LABELS, visibility_bin  # noqa: E402
+from perception_config.bench.real import VISIBILITY_LABELS, visibility_bin  # noqa: E402
+from perception_config.core.render import render  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
-from perception_config.render import render  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 
 def main() -> int:

@@ -30,13 +30,14 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
+from perception_config.blocks.features import pick_features  # noqa: E402
 from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model  # noqa: E402
+from perception_config.core.geometry import perturb  # noqa: E402
+from perception_config.core.metrics import pose_mssd  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
-from perception_config.geometry import perturb  # noqa: E402
-from perception_config.metrics import pose_mssd  # noqa: E402
-from perception_config.pick_success_fit import auc, plot_reliability, score_metrics  # noqa: E402
-from perception_config.vision.pick_features import FEATURE_NAMES, pick_features  # noqa: E402
+from perception_config.learning.pick_success_fit import auc, plot_reliability, score_metrics  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
+from perception_config.vision.pick_features import FEATURE_NAMES  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 LAMBDAS = (0.1, 0.3, 0.5)

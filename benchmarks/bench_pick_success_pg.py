@@ -14,7 +14,7 @@ Reports per pipeline: pg's mean time to success over the oracle's (the README's 
 the same on the median, first-pick success and the success share. Both agents of a pipeline pay
 its scoring pass, so the oracle of the pick_success pipeline is slower too: the absolute times
 are reported beside the ratios. `--validation-fraction F` trains with validation-based policy
-selection (training.py: F of the train images held out, the greedy policy checked every K
+selection (learning/training.py: F of the train images held out, the greedy policy checked every K
 episodes, the best one shipped); the test images are the same either way. `--lr-half-life H`
 halves pg's learning rate every H training episodes, `--entropy-coef C` sets its entropy bonus
 (default 0.01; agents/policy_gradient.py). The report lists
@@ -38,9 +38,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from perception_config.agents.policy_io import policy_info  # noqa: E402
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.evaluation import evaluate  # noqa: E402
-from perception_config.training import train  # noqa: E402
+from perception_config.learning.evaluation import evaluate  # noqa: E402
+from perception_config.learning.training import train  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 
 def failures(store: Path, agent: str) -> list[dict]:

@@ -40,10 +40,10 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from perception_config import training  # noqa: E402
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.cli import agent_params  # noqa: E402
-from perception_config.evaluation import evaluate  # noqa: E402
-from perception_config.settings import EnvSettings  # noqa: E402
+from perception_config.learning.evaluation import evaluate  # noqa: E402
+from perception_config.rl.settings import EnvSettings  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 ROUND_ENDS: list[float] = []  # perf_counter at the end of every round of the running train()
 _PLAY_ROUND = training.play_round
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
 
     runner = None
     if any(w > 1 for w in workers):
-        from perception_config.ray_workers import RayRunner
+        from perception_config.learning.ray_workers import RayRunner
 
         t0 = time.perf_counter()
         runner = RayRunner(max(workers))

@@ -26,9 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.geometry import Pose, exp_so3  # noqa: E402
-from perception_config.models import ObjectModel, make_model  # noqa: E402
+from perception_config.core.geometry import Pose, exp_so3  # noqa: E402
+from perception_config.core.models import ObjectModel, make_model  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "lmo"
 W, H = 640, 480
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import open3d as o3d
 
-    from perception_config.render import render, render_box
+    from perception_config.core.render import render, render_box
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     source, models, poses, K = scene()

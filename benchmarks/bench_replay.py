@@ -41,8 +41,8 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().choice([d for d
 os.environ["PYTHONUNBUFFERED"] = "1"
 
 from bench_bag import base_frame, frames  # noqa: E402
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.datasets.bag import write_frames  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 NODE = Path(sys.executable).parent / "bag_replay_node"
 TARGET_FPS = 30.0
@@ -52,7 +52,7 @@ class Receiver:
     """Colour and depth subscriptions of this process; arrival time per stamp."""
 
     def __init__(self) -> None:
-        from perception_config.ros_environment import configure_ros_environment
+        from perception_config.launcher.ros_environment import configure_ros_environment
 
         configure_ros_environment()  # the loopback defaults, before rclpy starts
         import rclpy

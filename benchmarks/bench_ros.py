@@ -36,8 +36,8 @@ if str(REPO) not in sys.path:
 
 import rclpy  # noqa: E402
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.ros_environment import configure_ros_environment  # noqa: E402
+from perception_config.launcher.ros_environment import configure_ros_environment  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 
 def newest_policy() -> Path | None:
@@ -75,7 +75,7 @@ def publish_frames(node, ds, keys) -> dict:
 
 
 def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], list[float], bool]:
-    from perception_config.episode_loop import acting_seed, play_episode
+    from perception_config.rl.episode_loop import acting_seed, play_episode
 
     traj = play_episode(env, agent, {"episode": episode, "lambda": lam, "episode_seed": seed}, acting_seed(seed))
     # block_seconds through ROS: the operator node's own time
@@ -95,14 +95,14 @@ def main() -> int:
     args = p.parse_args()
 
     from perception_config.agents import load_agent, make_agent
+    from perception_config.agents.policy_settings import policy_settings
     from perception_config.blocks.pipeline import load_pipeline
     from perception_config.datasets.bop import BopDataset
-    from perception_config.env import PerceptionConfigEnv
-    from perception_config.episodes import EpisodeSource, split_image_keys
-    from perception_config.evaluation import episode_seed
-    from perception_config.launch import Launcher, NodeSpec
-    from perception_config.operators import Episode
-    from perception_config.policy_settings import policy_settings
+    from perception_config.launcher.launch import Launcher, NodeSpec
+    from perception_config.learning.evaluation import episode_seed
+    from perception_config.rl.env import PerceptionConfigEnv
+    from perception_config.rl.episodes import EpisodeSource, split_image_keys
+    from perception_config.rl.operators import Episode
     from perception_config.ros.ros_operators import RosOperators
 
     policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())

@@ -34,14 +34,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from perception_config.atomic_file import atomic_write  # noqa: E402
-from perception_config.bench import usable_objects  # noqa: E402
-from perception_config.bench_real import _SCORE, DEFAULT_AUC_LAMBDAS, TOLERANCE, _mann_whitney  # noqa: E402
+from perception_config.bench.blocks import usable_objects  # noqa: E402
+from perception_config.bench.real import _SCORE, DEFAULT_AUC_LAMBDAS, TOLERANCE, _mann_whitney  # noqa: E402
 from perception_config.blocks import create  # noqa: E402
 from perception_config.blocks.base import BlockInput  # noqa: E402
+from perception_config.core.geometry import perturb  # noqa: E402
+from perception_config.core.metrics import pose_mssd  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
-from perception_config.geometry import perturb  # noqa: E402
-from perception_config.metrics import pose_mssd  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 SEEDS = 5
 TRUE_LAMBDAS = (0.07, 0.1)  # the annotation's own error in the ceiling check

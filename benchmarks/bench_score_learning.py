@@ -1,4 +1,4 @@
-"""A cell that learns its pick-success score: the learner's refit (score_learning.py) as estimates come in.
+"""A cell that learns its pick-success score: the learner's refit (online/score_learner.py) as estimates come in.
 
     python benchmarks/bench_score_learning.py [--dataset data/default] [--estimates 160] [--every 20]
         [--outcomes-only] [--out benchmarks/results/score_learning_synthetic.json]
@@ -40,16 +40,16 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from perception_config.agents import make_agent  # noqa: E402
-from perception_config.atomic_file import atomic_write  # noqa: E402
 from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model, resolve_model_path  # noqa: E402
-from perception_config.env import PerceptionConfigEnv  # noqa: E402
-from perception_config.episode_loop import acting_seed, play_episode  # noqa: E402
-from perception_config.episode_store import STORE_NAME, EpisodeStore, StoreWriter, store_episode  # noqa: E402
-from perception_config.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys  # noqa: E402
-from perception_config.learn_frames import save_frame  # noqa: E402
-from perception_config.pick_success_data import featurise  # noqa: E402
-from perception_config.pick_success_fit import score_metrics  # noqa: E402
-from perception_config.score_learning import format_score_result, refit_score_once, score_versions  # noqa: E402
+from perception_config.learning.pick_success_data import featurise  # noqa: E402
+from perception_config.learning.pick_success_fit import score_metrics  # noqa: E402
+from perception_config.online.score_learner import format_score_result, refit_score_once, score_versions  # noqa: E402
+from perception_config.rl.env import PerceptionConfigEnv  # noqa: E402
+from perception_config.rl.episode_loop import acting_seed, play_episode  # noqa: E402
+from perception_config.rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys  # noqa: E402
+from perception_config.store.episode_store import STORE_NAME, EpisodeStore, StoreWriter, store_episode  # noqa: E402
+from perception_config.store.frames import save_frame  # noqa: E402
+from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LAMBDAS = (0.1, 0.3, 0.5, 0.7, 1.0)
 
@@ -159,7 +159,7 @@ def main() -> int:
               "shipped": {k: m0[k] for k in ("auc", "brier", "ece")}, "per_cycle": out_rows,
               "promotions": sum(1 for r in out_rows if r["cycle"] and r["cycle"]["outcome"] == "promoted")}
     atomic_write(args.out, json.dumps(result, indent=1, default=float) + "\n")
-    from perception_config.plots import plt, save_figure
+    from perception_config.core.plots import plt, save_figure
 
     fig, ax = plt.subplots(figsize=(7, 4))
     xs = [r["estimates"] for r in out_rows]

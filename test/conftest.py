@@ -25,7 +25,7 @@ os.environ["PERCEPTION_CONFIG_CACHE"] = _CACHE.name
 # ROS processes of this test session get a domain of their own (set before rclpy loads).
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
 os.environ["ROS_DOMAIN_ID"] = os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"]
-# The project's loopback defaults (perception_config.ros_environment), whatever the shell exported.
+# The project's loopback defaults (perception_config.launcher.ros_environment), whatever the shell exported.
 os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(Path(__file__).resolve().parents[1] / "perception_config" / "ros"
                                                   / "fastdds_profile.xml")
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
@@ -102,7 +102,7 @@ def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def make_box() -> Callable[..., "object"]:
     """Factory: an ObjectModel of a box (metres) with the given size and obj_id."""
-    from perception_config.models import make_model
+    from perception_config.core.models import make_model
 
     def make(size: tuple[float, float, float] = (0.1, 0.06, 0.04), obj_id: int = 1):
         v, f = box_mesh(size)
@@ -116,7 +116,7 @@ def ros_node():
     """One rclpy context and node for the test process (the client side of cross-process tests)."""
     import rclpy
 
-    from perception_config.ros_environment import configure_ros_environment
+    from perception_config.launcher.ros_environment import configure_ros_environment
 
     configure_ros_environment()  # the loopback defaults before rclpy.init
     rclpy.init()

@@ -7,11 +7,11 @@ from typing import Iterator
 import numpy as np
 
 from perception_config.blocks.base import Block, BlockInput, BlockResult
-from perception_config.geometry import Pose, exp_so3, perturb
-from perception_config.metrics import pose_mssd
-from perception_config.models import ObjectModel, make_model
-from perception_config.render import render
-from perception_config.scene import Frame, SceneObject
+from perception_config.core.geometry import Pose, exp_so3, perturb
+from perception_config.core.metrics import pose_mssd
+from perception_config.core.models import ObjectModel, make_model
+from perception_config.core.render import render
+from perception_config.core.scene import Frame, SceneObject
 
 K_LINEMOD = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 

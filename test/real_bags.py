@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception_config.scene import Frame
+from perception_config.core.scene import Frame
 
 NS0 = 1_720_000_000 * 10**9 + 123_456
 PERIOD_NS = 33_333_333

@@ -67,7 +67,7 @@ def pipeline_file(tmp_path_factory: pytest.TempPathFactory, text: str = PIPELINE
 
 def make_env(tmp_path_factory: pytest.TempPathFactory, text: str = PIPELINE, name: str = "pipeline.yaml", **kw: Any):
     """A cost-table PerceptionConfigEnv over the tiny dataset (deterministic)."""
-    from perception_config.env import PerceptionConfigEnv
+    from perception_config.rl.env import PerceptionConfigEnv
 
     kw.setdefault("time_mode", "cost_table")
     return PerceptionConfigEnv(tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory, text, name), **kw)
@@ -78,7 +78,7 @@ def same_run(a: Path, b: Path) -> None:
     import numpy as np
 
     from perception_config.agents.policy_io import read_file
-    from perception_config.training import CHECKPOINT
+    from perception_config.learning.training import CHECKPOINT
 
     assert (a / "history.csv").read_bytes() == (b / "history.csv").read_bytes()
     _, ta = read_file(a / CHECKPOINT)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from perception_config.agents import AGENTS, EnvSpec, PolicyError, load_agent, make_agent, oracle_search, save_agent
-from perception_config.agents.base import returns_to_go
 from perception_config.agents.policy_io import read_file
-from perception_config.episode_loop import play_episode
+from perception_config.rl.episode_loop import play_episode
+from perception_config.rl.trajectory import returns_to_go
 from rl_helpers import OTHER_PIPELINE, OTHER_SCORES_PIPELINE, make_env
 
 # (episode index, lambda, episode seed) of the tiny dataset used by several tests.

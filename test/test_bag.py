@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
+from perception_config.core.geometry import Pose, exp_so3, nearest_rotation
+from perception_config.core.scene import Frame, SceneObject
 from perception_config.datasets import bag as bagmod
 from perception_config.datasets.bag import (
     BagFormatError,
@@ -28,8 +30,6 @@ from perception_config.datasets.bag import (
     write_frames,
 )
 from perception_config.datasets.bag.definitions import WRITTEN_TYPES, definition, interfaces_msg_dir, type_hash
-from perception_config.geometry import Pose, exp_so3, nearest_rotation
-from perception_config.scene import Frame, SceneObject
 
 REPO = Path(__file__).resolve().parents[1]
 EPOCH = 1_700_000_000 * 10**9

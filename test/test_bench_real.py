@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from perception_config.bench_real import (
+from perception_config.bench.real import (
     VISIBILITY_LABELS,
     bench_real,
     format_real,
@@ -17,7 +17,7 @@ from perception_config.bench_real import (
 from perception_config.blocks.base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, register
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.cli import main
-from perception_config.metrics import pose_mssd
+from perception_config.core.metrics import pose_mssd
 
 
 def _mssd_d(inp: BlockInput) -> float:
@@ -152,7 +152,7 @@ def test_scores_only_and_lambda_zero_only_are_written(synthetic_dataset, tmp_pat
 
 
 def test_mann_whitney_counts_ties_half_and_failures_lowest():
-    from perception_config.bench_real import _mann_whitney
+    from perception_config.bench.real import _mann_whitney
 
     # 1~1 tie, 1>nan, nan~nan tie, 3 beats all three: 0.5 + 1 + 0.5 + 3 of 9 pairs
     assert _mann_whitney(np.array([1.0, np.nan, 3.0]), np.array([1.0, 2.0, np.nan])) == (5.0, 9)

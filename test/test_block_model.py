@@ -16,8 +16,8 @@ import pytest
 import perception_config.blocks as blocks_package
 from perception_config.blocks import REGISTRY, block_modules, load_all
 from perception_config.blocks.base import MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
-from perception_config.env import PerceptionConfigEnv
-from perception_config.geometry import LAMBDA_MAX, Pose, check_noise_lambda
+from perception_config.core.geometry import LAMBDA_MAX, Pose, check_noise_lambda
+from perception_config.rl.env import PerceptionConfigEnv
 from rl_helpers import tiny_dataset
 
 
@@ -108,7 +108,7 @@ def test_the_registry_refuses_a_block_that_does_not_describe_itself():
 
 def test_block_modules_are_discovered_not_listed():
     folder = Path(blocks_package.__file__).parent
-    on_disk = sorted(p.stem for p in folder.glob("*.py") if p.stem not in ("__init__", "base", "pipeline"))
+    on_disk = sorted(p.stem for p in folder.glob("*.py") if p.stem not in ("__init__", "base", "pipeline", "features"))
     assert block_modules() == on_disk
     registry = load_all()
     shipped = {name: cls for name, cls in registry.items() if cls.__module__.startswith("perception_config.blocks.")}

@@ -10,6 +10,10 @@ import numpy as np
 import pytest
 
 from frames import box_mesh
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.models import PlyError, load_model, write_ply
+from perception_config.core.render import render
+from perception_config.core.scene import Frame, SceneObject
 from perception_config.datasets.bop import (
     BopAnnotationWarning,
     BopDataset,
@@ -28,10 +32,6 @@ from perception_config.datasets.bop import (
     write_models_info,
     write_results_csv,
 )
-from perception_config.geometry import Pose, exp_so3
-from perception_config.models import PlyError, load_model, write_ply
-from perception_config.render import render
-from perception_config.scene import Frame, SceneObject
 
 W, H = 160, 120
 K = np.array([[150.0, 0.0, 80.5], [0.0, 150.0, 60.5], [0.0, 0.0, 1.0]])

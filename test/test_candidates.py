@@ -9,8 +9,8 @@ import yaml
 
 from perception_config.blocks.base import GROUND_TRUTH, Kind
 from perception_config.blocks.pipeline import load_pipeline, pipeline_from_dict
-from perception_config.geometry import rotation_angle
-from perception_config.operators import Episode, InProcessOperators
+from perception_config.core.geometry import rotation_angle
+from perception_config.rl.operators import Episode, InProcessOperators
 
 PIPELINE = """\
 generator: {block: ppf}
@@ -138,7 +138,7 @@ def test_generator_results_are_reused_for_the_same_call_with_the_time_they_took(
 
 
 def test_the_env_observes_the_waiting_candidates_only_in_pipelines_that_can_take_them(synthetic_dataset):
-    from perception_config.env import PerceptionConfigEnv
+    from perception_config.rl.env import PerceptionConfigEnv
 
     env = PerceptionConfigEnv(synthetic_dataset, pipeline_from_dict(yaml.safe_load(PIPELINE)),
                               time_mode="cost_table")
@@ -161,7 +161,7 @@ def test_a_deterministic_generator_is_masked_once_it_searched_this_episode(synth
     the first, so it is masked once called (a trained agent called it until max_ops after a
     failed pick); the randomised global_registration stays available, and a new episode
     unmasks ppf."""
-    from perception_config.env import PerceptionConfigEnv, repeats_search
+    from perception_config.rl.env import PerceptionConfigEnv, repeats_search
 
     pipe = yaml.safe_load(PIPELINE)
     pipe["actions"].insert(0, {"name": "ppf", "block": "ppf", "params": {"max_seconds": 1.0}})
@@ -184,7 +184,7 @@ def test_without_a_hypothesis_the_refiners_are_masked_and_pick_gives_up_once(syn
     """After a refused generator call there is no hypothesis: an ICP can only fail (trained agents
     looped one until max_ops), so it is masked until a candidate is taken; pick (the cheap way
     to give up) stays until it was refused once, next_candidate and the generators stay."""
-    from perception_config.env import PerceptionConfigEnv, refines_nothing
+    from perception_config.rl.env import PerceptionConfigEnv, refines_nothing
 
     strict = yaml.safe_load(PIPELINE)
     strict["generator"]["params"] = {"min_verification": 1.0}  # every call refused: no hypothesis

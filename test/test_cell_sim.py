@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from perception_config.cell_sim import (
+from perception_config.bench.cell_sim import (
     ESTIMATE_COLUMNS,
     EstimateLog,
     charged_time,
@@ -186,8 +186,8 @@ def test_summary_and_plot_of_a_constructed_learning_run(tmp_path):
 @pytest.fixture(scope="module")
 def policy(tmp_path_factory):
     """A pg policy trained briefly on the tiny dataset (cost-table time: fast, deterministic)."""
-    from perception_config.settings import EnvSettings
-    from perception_config.training import train
+    from perception_config.learning.training import train
+    from perception_config.rl.settings import EnvSettings
 
     settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
     return train(tiny_dataset(tmp_path_factory), "pg", tmp_path_factory.mktemp("policy") / "run", 16,
@@ -199,8 +199,8 @@ def policy(tmp_path_factory):
 def test_a_short_cell_run_without_learning(ros_node, tmp_path_factory, tmp_path, policy):
     from perception_config.datasets.bag import bag_info, write_bag
     from perception_config.datasets.bop import BopDataset
-    from perception_config.episode_store import EpisodeStore, policy_version
     from perception_config.ros.cell_sim_run import cell_sim
+    from perception_config.store.episode_store import EpisodeStore, policy_version
 
     root = tiny_dataset(tmp_path_factory)
     bag = tmp_path / "tiny.mcap"
@@ -252,8 +252,8 @@ def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_
     the id under which the configurator stored the estimate in <out>/learn/episodes.sqlite, whose
     charged time and outcome are the row's. A reference CSV of a previous run is reused."""
     from perception_config.datasets.bag import write_bag
-    from perception_config.episode_store import EpisodeStore
     from perception_config.ros.cell_sim_run import cell_sim
+    from perception_config.store.episode_store import EpisodeStore
 
     root = tiny_dataset(tmp_path_factory)
     bag = tmp_path / "tiny.mcap"

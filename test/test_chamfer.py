@@ -10,8 +10,8 @@ from frames import box_model, default_pose, mean_point_distance, perturbed_pose,
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
 from perception_config.blocks.chamfer import edge_distance
-from perception_config.geometry import Pose, exp_so3, log_so3
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, exp_so3, log_so3
+from perception_config.core.scene import Frame
 from perception_config.vision.pose_solver import (
     NO_TRANSLATION_PRIOR,
     levenberg_marquardt,

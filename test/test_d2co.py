@@ -15,7 +15,7 @@ from frames import (
 )
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.geometry import exp_so3
+from perception_config.core.geometry import exp_so3
 from perception_config.vision.edges import TensorCache
 from perception_config.vision.pose_solver import project_with_jacobian, update_pose
 
@@ -70,7 +70,7 @@ def test_the_region_term_is_satisfied_at_the_true_pose_and_not_at_a_shifted_one(
     """The colour-region correspondences put the outline's colour transition where the object's
     outline is: ~0 px at the truth, and they see an image-plane shift of the hypothesis."""
     from perception_config.blocks.d2co import _region_term
-    from perception_config.geometry import Pose
+    from perception_config.core.geometry import Pose
 
     model, gt = box_model(), default_pose()
     frame = synthetic_frame([model], [gt], seed=3)

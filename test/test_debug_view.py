@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from perception_config.geometry import Pose, rotation_angle
-from perception_config.render import render_box
+from perception_config.core.geometry import Pose, rotation_angle
+from perception_config.core.render import render_box
 from perception_config.vision.debug_overlay import draw_hypothesis, fit_width, info_lines
 from rl_helpers import PIPELINE, pipeline_file
 from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service

@@ -8,9 +8,9 @@ import pytest
 from frames import mean_point_distance, perturbed_pose, random_box_scene, well_visible
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.depth_refinement import DepthRefine, model_centre, shift_along_ray
-from perception_config.geometry import Pose, exp_so3, rotation_angle
-from perception_config.render import project
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, exp_so3, rotation_angle
+from perception_config.core.render import project
+from perception_config.core.scene import Frame
 
 
 def depth_error(model, a: Pose, b: Pose) -> float:

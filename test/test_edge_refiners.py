@@ -9,9 +9,9 @@ import pytest
 from frames import box_model, default_pose, refine_from_lambda, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.geometry import Pose, perturb
-from perception_config.metrics import pose_mssd
-from perception_config.render import project
+from perception_config.core.geometry import Pose, perturb
+from perception_config.core.metrics import pose_mssd
+from perception_config.core.render import project
 from perception_config.vision.edges import crop_box, directional_chamfer_tensor
 
 
@@ -183,7 +183,7 @@ def test_a_call_never_returns_a_pose_its_own_cost_judges_worse(lmo_rgb_frame, na
 
 def _sphere_model():
     """A UV sphere (r = 4 cm): no sharp edges and no inner contour at all."""
-    from perception_config.models import make_model
+    from perception_config.core.models import make_model
 
     n_lat, n_lon = 12, 24
     th = np.linspace(0, np.pi, n_lat + 1)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from frames import box_model, default_pose, synthetic_frame
-from perception_config.scene import Frame
+from perception_config.core.scene import Frame
 from perception_config.vision.edges import TensorCache, directional_chamfer_tensor, image_gradients, sample_tensor
 
 

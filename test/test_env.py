@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from perception_config.blocks import load_all
-from perception_config.env import PerceptionConfigEnv
+from perception_config.rl.env import PerceptionConfigEnv
 from rl_helpers import BITWISE_PIPELINE, make_env, pipeline_file, tiny_dataset
 
 
@@ -35,7 +35,7 @@ def test_check_env_passes_on_the_registered_env_as_a_user_makes_it(tmp_path_fact
         import warnings
         import gymnasium as gym
         from gymnasium.utils.env_checker import check_env
-        env = gym.make("perception_config.env:PerceptionConfig-v0", dataset={str(tiny_dataset(tmp_path_factory))!r},
+        env = gym.make("perception_config.rl.env:PerceptionConfig-v0", dataset={str(tiny_dataset(tmp_path_factory))!r},
                        time_mode="cost_table")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # check_env's advice to pass env.unwrapped, done next
@@ -232,7 +232,7 @@ def test_empty_dataset_is_a_clear_error(tmp_path_factory):
     with pytest.raises(ValueError, match="no usable episodes"):
         PerceptionConfigEnv(ds, pipe, image_keys=[])
     from perception_config.datasets.bop import BopDataset
-    from perception_config.episodes import EpisodeSource
+    from perception_config.rl.episodes import EpisodeSource
 
     with pytest.raises(ValueError, match="no usable episodes"):  # every object below the visibility bar
         EpisodeSource(BopDataset(ds), None, min_visib_fract=1.01)

@@ -20,9 +20,12 @@ import pytest
 
 from perception_config import cli
 from perception_config.agents import make_agent
-from perception_config.episode_loop import play_episode
-from perception_config.episode_report import export_table, store_info
-from perception_config.episode_store import (
+from perception_config.core.geometry import Pose
+from perception_config.learning.evaluation import evaluate
+from perception_config.learning.training import train
+from perception_config.rl.episode_loop import play_episode
+from perception_config.rl.settings import EnvSettings
+from perception_config.store.episode_store import (
     APPLICATION_ID,
     SCHEMA_VERSION,
     STORE_NAME,
@@ -34,10 +37,7 @@ from perception_config.episode_store import (
     record_from_trajectory,
     store_episode,
 )
-from perception_config.evaluation import evaluate
-from perception_config.geometry import Pose
-from perception_config.settings import EnvSettings
-from perception_config.training import train
+from perception_config.store.report import export_table, store_info
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,7 +117,7 @@ import sys
 import numpy as np
 sys.path.insert(0, {test!r})
 from test_episode_store import synthetic_record
-from perception_config.episode_store import EpisodeStore
+from perception_config.store.episode_store import EpisodeStore
 store = EpisodeStore({path!r})
 i = 0
 while True:

@@ -15,11 +15,11 @@ import pytest
 
 from perception_config.agents.base import EnvSpec
 from perception_config.agents.policy_io import PolicyError, save_agent
+from perception_config.agents.policy_settings import policy_settings
 from perception_config.agents.random import RandomAgent
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.datasets.bop import BopDataset, read_results_csv
-from perception_config.episodes import split_image_keys
-from perception_config.evaluation import (
+from perception_config.learning.evaluation import (
     DEFAULT_FIXED_SEQUENCES,
     bop_csv_name,
     bop_targets,
@@ -32,8 +32,8 @@ from perception_config.evaluation import (
     summarise,
     write_bop_csvs,
 )
-from perception_config.policy_settings import policy_settings
-from perception_config.settings import EnvSettings
+from perception_config.rl.episodes import split_image_keys
+from perception_config.rl.settings import EnvSettings
 
 LAMBDAS = [0.2, 0.8]
 N_EPISODES = 3
@@ -365,7 +365,7 @@ def test_cli_evaluate(dataset, tmp_path, capsys):
 
 
 def test_oracle_ratio_pairs_the_episodes_both_solved_and_counts_the_first_generator_call():
-    from perception_config.evaluation import _oracle_ratios, format_table, summarise
+    from perception_config.learning.evaluation import _oracle_ratios, format_table, summarise
 
     def ep(agent, episode, success, time, gen=0.5):
         return {"agent": agent, "lambda": 0.5, "episode": episode, "episode_seed": 10 + episode, "success": success,

@@ -11,11 +11,11 @@ import pytest
 from frames import K_LINEMOD, box_model, default_pose, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.generation import GlobalRegistration, SimulatedInit
-from perception_config.geometry import SIGMA_R, SIGMA_T, Pose, exp_so3, rotation_angle
-from perception_config.metrics import add
-from perception_config.models import MM, make_model
-from perception_config.render import MIN_Z
-from perception_config.scene import Frame
+from perception_config.core.geometry import SIGMA_R, SIGMA_T, Pose, exp_so3, rotation_angle
+from perception_config.core.metrics import add
+from perception_config.core.models import MM, make_model
+from perception_config.core.render import MIN_Z
+from perception_config.core.scene import Frame
 from perception_config.vision.colour import colours_agree
 from perception_config.vision.features import kabsch_batch
 from perception_config.vision.segmentation import fit_plane_ransac, segment_scene

@@ -17,9 +17,9 @@ from perception_config.blocks.base import BlockInput, BlockResult
 from perception_config.blocks.generation import GlobalRegistration
 from perception_config.blocks.point_pairs import PointPairFeatures
 from perception_config.blocks.resting import RestingPoseGenerator
-from perception_config.geometry import Pose, exp_so3
-from perception_config.models import ObjectModel, make_model
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.models import ObjectModel, make_model
+from perception_config.core.scene import Frame
 
 # Seconds over `max_seconds` a failing call may take: the per-frame segmentation (~0.2 s) and ppf's
 # table (built once per model, ~0.5-1 s) come before the budget, which is checked between steps.

@@ -23,7 +23,7 @@ from perception_config.datasets.bag import BagFormatError, bag_info, read_bag, w
 from perception_config.datasets.bag.type_names import check_type_name
 from perception_config.datasets.bop import BopDataset, BopFormatError
 from perception_config.datasets.image_header import MAX_IMAGE_PIXELS
-from perception_config.safe_json import loads_limited
+from perception_config.util.safe_json import loads_limited
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_bag import make_frame  # noqa: E402
@@ -390,8 +390,8 @@ def test_fuzz_bag_reader(bag_file, tmp_path):
 
 
 def test_model_and_results_files_refuse_directories(tmp_path):
+    from perception_config.core.models import PlyError, read_ply
     from perception_config.datasets.bop import read_results_csv
-    from perception_config.models import PlyError, read_ply
 
     (tmp_path / "obj.ply").mkdir()
     with pytest.raises(PlyError, match=r"obj\.ply: is a directory, not a PLY file"):

@@ -7,8 +7,8 @@ import pytest
 from frames import box_model, mean_point_distance, perturbed_pose, random_box_scene, synthetic_frame, well_visible
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.icp import IcpPointToPlane, IcpPointToPoint, distance_schedule, unoccluded
-from perception_config.geometry import Pose, exp_so3
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.scene import Frame
 
 BLOCKS = [IcpPointToPoint, IcpPointToPlane]
 

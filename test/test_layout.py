@@ -1,12 +1,15 @@
 """The package's layout rules, checked on the source (ast; nothing is imported except for the
 block check):
 
-- the module-level imports between perception_config modules have no cycle;
+- the package is a stack of layer folders (LAYERS, low to high); a module imports nothing from a
+  higher layer, and the imports between the package's modules have no cycle. Both count every
+  import: at module level, inside functions and under `if TYPE_CHECKING:`;
+- at most a handful of modules at the package root, and no source file over 500 lines;
 - only perception_config/ros/ imports rclpy, perception_config_interfaces or perception_config.ros
-  at module level (imports inside functions are how the rest reaches ROS lazily);
+  at module level (imports inside functions are how the higher layers reach ROS lazily);
 - perception_config/blocks/ holds block modules (each defines a Block subclass) plus base.py,
-  pipeline.py and __init__.py, and a block module imports no other block module (anywhere, not
-  only at module level): shared algorithms live in perception_config/vision/.
+  pipeline.py, features.py and __init__.py, and a block module imports no other block module:
+  shared algorithms live in perception_config/vision/.
 
 Module-level means executed on import: the module body, including `try`/`if` blocks and class
 bodies, but not function bodies and not `if TYPE_CHECKING:` blocks. An import of a.b.c counts as
@@ -26,7 +29,13 @@ PACKAGE = "perception_config"
 ROOT = Path(__file__).resolve().parents[1] / PACKAGE
 
 ROS_ONLY = ("rclpy", "perception_config_interfaces", f"{PACKAGE}.ros")
-BLOCKS_INFRASTRUCTURE = ("__init__", "base", "pipeline")
+# The layer folders, low to high (docs/concepts/layout.md says what lives in each). `config` holds
+# only data files; the package root's own modules (__init__, __main__) sit below everything.
+LAYERS = ("config", "util", "core", "datasets", "vision", "blocks", "rl", "bench", "agents", "store", "learning",
+          "online", "launcher", "ros", "cli")
+MAX_ROOT_MODULES = 8
+MAX_LINES = 500
+BLOCKS_INFRASTRUCTURE = ("__init__", "base", "pipeline", "features")
 
 
 def module_files() -> dict[str, Path]:
@@ -99,10 +108,21 @@ def imported_modules(name: str, path: Path, module_level: bool = True) -> set[st
     return out
 
 
-def import_graph() -> dict[str, set[str]]:
-    """Module-level import edges between the package's own modules."""
-    return {name: {m for m in imported_modules(name, path) if m in MODULES and m != name}
+def import_graph(module_level: bool = False) -> dict[str, set[str]]:
+    """Import edges between the package's own modules: every import (`module_level=True`: only
+    those executed on import)."""
+    return {name: {m for m in imported_modules(name, path, module_level) if m in MODULES and m != name}
             for name, path in MODULES.items()}
+
+
+def layer(module: str) -> int:
+    """The index of `module`'s layer in LAYERS; -1 for the package root's own modules."""
+    parts = module.split(".")
+    if len(parts) == 1 or (len(parts) == 2 and f"{PACKAGE}.{parts[1]}" in MODULES
+                           and not (ROOT / parts[1]).is_dir()):
+        return -1
+    assert parts[1] in LAYERS, f"{module}: not in a layer folder ({', '.join(LAYERS)})"
+    return LAYERS.index(parts[1])
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -138,7 +158,12 @@ def test_the_graph_sees_relative_and_absolute_imports():
     assert f"{PACKAGE}.blocks.base" in graph[f"{PACKAGE}.blocks"]  # from .base import ...
     assert f"{PACKAGE}.vision.edges" in graph[f"{PACKAGE}.blocks.d2co"]  # from ..vision.edges import ...
     assert f"{PACKAGE}.datasets.bag.writer" in graph[f"{PACKAGE}.datasets.bag"]
-    assert f"{PACKAGE}.geometry" in graph[f"{PACKAGE}.datasets.bag.frames"]  # from ...geometry import ...
+    assert f"{PACKAGE}.core.geometry" in graph[f"{PACKAGE}.datasets.bag.frames"]  # from ...core.geometry import ...
+    # an import inside a function counts, and one under TYPE_CHECKING
+    assert f"{PACKAGE}.ros.cell_sim_run" in graph[f"{PACKAGE}.cli"] or any(
+        m.startswith(f"{PACKAGE}.ros") for name, deps in graph.items() if name.startswith(f"{PACKAGE}.cli")
+        for m in deps)
+    assert f"{PACKAGE}.ros.cell_sim_run" not in import_graph(module_level=True).get(f"{PACKAGE}.cli", set())
 
 
 def test_find_cycle_reports_the_cycle():
@@ -146,9 +171,35 @@ def test_find_cycle_reports_the_cycle():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
-def test_module_level_imports_have_no_cycle():
+def test_imports_have_no_cycle():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_no_module_imports_a_higher_layer():
+    upward = [f"{name} imports {m}" for name, deps in import_graph().items() for m in sorted(deps)
+              if layer(m) > layer(name)]
+    assert not upward, "imports from a lower layer to a higher one: " + "; ".join(upward)
+
+
+def test_layer_check_catches_an_upward_import():
+    assert layer(f"{PACKAGE}.core.geometry") < layer(f"{PACKAGE}.blocks.icp") < layer(f"{PACKAGE}.ros.pick_node")
+    assert layer(PACKAGE) == -1
+    with pytest.raises(AssertionError, match="layer folder"):
+        layer(f"{PACKAGE}.nowhere.module")
+
+
+def test_a_handful_of_modules_at_the_root():
+    root = sorted(p.name for p in ROOT.glob("*.py"))
+    assert len(root) <= MAX_ROOT_MODULES, f"{len(root)} modules at the package root: {root}"
+    folders = {p.name for p in ROOT.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert folders <= set(LAYERS), f"folders outside the layers: {sorted(folders - set(LAYERS))}"
+
+
+def test_no_source_file_over_500_lines():
+    long = [f"{p.relative_to(ROOT.parent)} ({n} lines)" for p in sorted(ROOT.rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_LINES]
+    assert not long, "split along their seams: " + "; ".join(long)
 
 
 def test_only_ros_imports_ros_at_module_level():

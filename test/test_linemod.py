@@ -12,10 +12,10 @@ import pytest
 from frames import box_model, default_pose, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.templates import LineMod
-from perception_config.geometry import Pose, rotation_angle
-from perception_config.metrics import pose_mssd
-from perception_config.models import MM, make_model
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, rotation_angle
+from perception_config.core.metrics import pose_mssd
+from perception_config.core.models import MM, make_model
+from perception_config.core.scene import Frame
 from perception_config.vision import linemod as lm
 
 TINY = lm.TemplateParams(subdivisions=0, n_inplane=2, n_scales=1, min_px=60.0, max_px=60.0)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from frames import K_LINEMOD, box_mesh, box_model, default_pose, synthetic_frame
-from perception_config import metrics as M
-from perception_config.geometry import Pose, exp_so3
-from perception_config.models import make_model
-from perception_config.render import render
+from perception_config.core import metrics as M
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.models import make_model
+from perception_config.core.render import render
 
 HALF = np.array([0.04, 0.025, 0.015])  # half sizes of box_model()'s default 0.08 x 0.05 x 0.03 box
 CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * HALF
@@ -109,7 +109,7 @@ def test_symmetric_box_rotated_by_a_symmetry() -> None:
 
 def test_continuous_symmetry_is_sampled_finely_for_evaluation() -> None:
     model = cylinder()
-    assert len(model.symmetries) == 36  # models.py samples every 10 degrees
+    assert len(model.symmetries) == 36  # core/models.py samples every 10 degrees
     syms = M.eval_symmetries(model)
     assert len(syms) == math.ceil(math.pi / M.MAX_SYM_DISC_STEP)
     assert M.eval_symmetries(model) is syms  # cached

@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from frames import box_mesh
-from perception_config.geometry import Pose, exp_so3
-from perception_config.models import (
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.models import (
     MM,
     PlyError,
     load_model,

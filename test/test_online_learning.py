@@ -31,7 +31,7 @@ def stamp_ns(i: int) -> int:
 
 @pytest.fixture(scope="module")
 def data(synthetic_dataset, tmp_path_factory):
-    from perception_config.env import PerceptionConfigEnv
+    from perception_config.rl.env import PerceptionConfigEnv
 
     pipe = pipeline_file(tmp_path_factory, PIPELINE)
     env = PerceptionConfigEnv(synthetic_dataset, pipe, time_mode="cost_table", min_visib_fract=0.3)
@@ -39,7 +39,7 @@ def data(synthetic_dataset, tmp_path_factory):
 
 
 def settings_for(data, **kw):
-    from perception_config.online_learning import LearnerSettings
+    from perception_config.online.policy_learner import LearnerSettings
 
     return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), data["env"].settings.to_json(), **kw)
 
@@ -49,10 +49,10 @@ def recorded(data, tmp_path_factory):
     """Every episode of the tiny dataset played by the engineer's sequence, stored as the
     configurator stores an estimate (an episode in the store + its frame with ground truth)."""
     from perception_config.agents import make_agent
-    from perception_config.episode_loop import acting_seed, play_episode
-    from perception_config.episode_store import STORE_NAME, StoreWriter, store_episode
-    from perception_config.learn_frames import save_frame
-    from perception_config.online_learning import FRAMES
+    from perception_config.online.policy_learner import FRAMES
+    from perception_config.rl.episode_loop import acting_seed, play_episode
+    from perception_config.store.episode_store import STORE_NAME, StoreWriter, store_episode
+    from perception_config.store.frames import save_frame
 
     env = data["env"]
     out = tmp_path_factory.mktemp("recorded")
@@ -75,7 +75,7 @@ def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence
     import shutil
 
     from perception_config.agents import make_agent, save_agent
-    from perception_config.online_learning import POLICIES, PolicyVersions
+    from perception_config.online.policy_learner import POLICIES, PolicyVersions
 
     shutil.copytree(recorded, learn_dir)
     env = data["env"]
@@ -87,7 +87,7 @@ def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence
 
 # -- versions ------------------------------------------------------------------------------------
 def test_policy_versions_promote_select_roll_back_and_never_lose_a_version(tmp_path):
-    from perception_config.policy_versions import PolicyVersionError, PolicyVersions
+    from perception_config.util.versions import PolicyVersionError, PolicyVersions
 
     v = PolicyVersions(tmp_path / "policies")
     assert v.current() is None and v.list() == []
@@ -133,7 +133,7 @@ def test_policy_versions_promote_select_roll_back_and_never_lose_a_version(tmp_p
 
 
 def test_frame_files_round_trip_are_bounded_and_a_corrupt_one_is_named(tmp_path, data):
-    from perception_config.learn_frames import frame_path, load_frame, save_frame
+    from perception_config.store.frames import frame_path, load_frame, save_frame
 
     frame = data["env"].source.frame(*sorted({(e.scene_id, e.im_id) for e in data["env"].source.episodes})[0])
     gt = {o.obj_id: o.gt for o in frame.objects}
@@ -154,7 +154,7 @@ def test_a_frame_that_cannot_be_written_leaves_nothing_behind(tmp_path, data, mo
     no temporary file, the frames already kept untouched."""
     import errno
 
-    from perception_config import learn_frames
+    from perception_config.store import frames as learn_frames
 
     frame = data["env"].source.frame(*sorted({(e.scene_id, e.im_id) for e in data["env"].source.episodes})[0])
     kept = learn_frames.save_frame(tmp_path, stamp_ns(0), frame, None)
@@ -175,7 +175,7 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     frames beats it by far more than the margin and is promoted. Serving the engineer's
     icp_coarse, icp_fine, pick: a pg trained on a few episodes does worse and is discarded."""
     from perception_config.agents import load_agent
-    from perception_config.online_learning import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
+    from perception_config.online.policy_learner import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
 
     bad = tmp_path / "bad"
     n = record_like_the_configurator(bad, data, recorded, ["regenerate"])
@@ -207,9 +207,9 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
 
 
 def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data, recorded):
-    from perception_config.episode_store import STORE_NAME, EpisodeStore
-    from perception_config.learn_frames import frame_path
-    from perception_config.online_learning import FRAMES, POLICIES, PolicyVersions, format_result, learn_once
+    from perception_config.online.policy_learner import FRAMES, POLICIES, PolicyVersions, format_result, learn_once
+    from perception_config.store.episode_store import STORE_NAME, EpisodeStore
+    from perception_config.store.frames import frame_path
 
     learn = tmp_path / "learn"
     n = record_like_the_configurator(learn, data, recorded, ["icp_coarse", "icp_fine", "pick"])
@@ -308,9 +308,9 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
 
     from perception_config.agents import make_agent, save_agent
     from perception_config.datasets.bop import BopDataset
-    from perception_config.episode_store import EpisodeStore
-    from perception_config.online_learning import POLICIES, PolicyVersions
+    from perception_config.online.policy_learner import POLICIES, PolicyVersions
     from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
+    from perception_config.store.episode_store import EpisodeStore
 
     env = data["env"]
     learn = tmp_path / "learn"

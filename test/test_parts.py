@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from perception_config.core.models import sample_surface, symmetries_from_info
 from perception_config.datasets.parts import (
     MATERIALS,
     build_parts,
@@ -12,7 +13,6 @@ from perception_config.datasets.parts import (
     symmetry_transforms,
     write_models,
 )
-from perception_config.models import sample_surface, symmetries_from_info
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +94,7 @@ def test_declared_symmetries_are_real(parts):
         for T in syms[1:]:
             assert _nn_error(p, T, pts, tree) < 1.0, (p.name, T)
         # a rotation that is no symmetry moves the surface by more than 1 mm
-        from perception_config.geometry import exp_so3
+        from perception_config.core.geometry import exp_so3
 
         cont_axes = [np.asarray(c["axis"], float) for c in p.symmetries_continuous]
         for axis in np.eye(3):
@@ -119,8 +119,8 @@ def test_symmetry_counts_as_models_reads_them(parts):
 
 
 def test_write_models_is_a_bop_models_folder(tmp_path, parts):
+    from perception_config.core.models import load_model, read_ply_mesh
     from perception_config.datasets.bop import load_json, load_models_info
-    from perception_config.models import load_model, read_ply_mesh
 
     d = write_models(tmp_path / "models", parts)
     info = load_models_info(d)

@@ -13,9 +13,9 @@ import pytest
 from frames import K_LINEMOD, box_mesh, box_model, default_pose
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.pick import ExternalPick, SimulatedPick
-from perception_config.geometry import Pose, exp_so3
-from perception_config.models import make_model
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.models import make_model
+from perception_config.core.scene import Frame
 
 FLIPS = [Pose.identity()] + [Pose(exp_so3(np.pi * np.eye(3)[i]), np.zeros(3)) for i in range(3)]
 

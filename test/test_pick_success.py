@@ -10,13 +10,15 @@ import numpy as np
 import pytest
 
 from perception_config.blocks.base import BlockInput, create
+from perception_config.blocks.features import pick_features
 from perception_config.blocks.pipeline import PipelineError, load_pipeline, pipeline_from_dict
+from perception_config.core.geometry import Pose, perturb
+from perception_config.core.metrics import pose_mssd
 from perception_config.datasets.bop import BopDataset
-from perception_config.geometry import Pose, perturb
-from perception_config.metrics import pose_mssd
-from perception_config.pick_success_data import featurise, pick_label
-from perception_config.pick_success_fit import auc, score_metrics
-from perception_config.pick_success_model import (
+from perception_config.learning.pick_success_data import featurise, pick_label
+from perception_config.learning.pick_success_fit import auc, score_metrics
+from perception_config.vision.pick_features import FEATURE_NAMES, NEEDS_DEPTH, rgb_only
+from perception_config.vision.pick_success_model import (
     MODEL_FILE,
     PickSuccessModel,
     PickSuccessModelError,
@@ -25,7 +27,6 @@ from perception_config.pick_success_model import (
     fit_platt,
     robust_scaling,
 )
-from perception_config.vision.pick_features import FEATURE_NAMES, NEEDS_DEPTH, pick_features, rgb_only
 
 
 def _shifted(pose: Pose, dx: float) -> Pose:
@@ -185,7 +186,7 @@ def test_fit_score_on_a_tiny_dataset(synthetic_dataset, tmp_path, capsys):
 
 
 def test_played_rows_are_reproducible(synthetic_dataset):
-    from perception_config.pick_success_data import collect_step_rows
+    from perception_config.learning.pick_success_data import collect_step_rows
 
     a = collect_step_rows(synthetic_dataset, 4, seed=3, max_steps=3, progress=False)
     b = collect_step_rows(synthetic_dataset, 4, seed=3, max_steps=3, progress=False)
@@ -202,7 +203,7 @@ def test_fit_score_from_an_episode_store_of_a_training_run(synthetic_dataset, tm
     """The store a training run writes (episodes.sqlite) is fit-score's input: every stored
     hypothesis with a pose becomes a row labelled by the pick criterion."""
     from perception_config.cli import main
-    from perception_config.pick_success_data import load_step_rows
+    from perception_config.learning.pick_success_data import load_step_rows
 
     run = tmp_path / "run"
     assert main(["train", "--dataset", str(synthetic_dataset), "--agent", "random", "--episodes", "30",

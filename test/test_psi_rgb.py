@@ -13,9 +13,9 @@ from perception_config.blocks.appearance import PsiRgb
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.blocks.scoring import PsiC
+from perception_config.core.geometry import Pose, perturb
+from perception_config.core.scene import Frame
 from perception_config.datasets.bop import BopDataset
-from perception_config.geometry import Pose, perturb
-from perception_config.scene import Frame
 from perception_config.vision.appearance import (
     band_posterior,
     disc_shifts,

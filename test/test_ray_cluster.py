@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from perception_config.evaluation import evaluate
-from perception_config.settings import EnvSettings
-from perception_config.training import train
+from perception_config.learning.evaluation import evaluate
+from perception_config.learning.training import train
+from perception_config.rl.settings import EnvSettings
 from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
@@ -21,7 +21,7 @@ FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
 def _start_cluster(nodes: int = 2):
     """`nodes` nodes of one CPU each on this machine."""
-    from perception_config.ray_workers import loopback_only
+    from perception_config.learning.ray_workers import loopback_only
 
     loopback_only()  # the nodes on 127.0.0.1, as a local --workers run
     from ray.cluster_utils import Cluster

@@ -18,10 +18,10 @@ import pytest
 
 from perception_config.agents import EnvRecipe
 from perception_config.agents.policy_io import read_file
-from perception_config.episode_store import STORE_NAME, EpisodeStore
-from perception_config.evaluation import evaluate
-from perception_config.settings import EnvSettings
-from perception_config.training import CHECKPOINT, train
+from perception_config.learning.evaluation import evaluate
+from perception_config.learning.training import CHECKPOINT, train
+from perception_config.rl.settings import EnvSettings
+from perception_config.store.episode_store import STORE_NAME, EpisodeStore
 from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def local_ray():
     """A local Ray with 2 workers, as `--workers 2` starts it; train/evaluate reuse it."""
-    from perception_config.ray_workers import RayRunner
+    from perception_config.learning.ray_workers import RayRunner
 
     runner = RayRunner(workers=2)
     yield runner
@@ -112,7 +112,7 @@ def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg
 
 
 def test_a_failing_task_raises_with_its_traceback(local_ray, tmp_path_factory):
-    from perception_config.ray_workers import play_chunk
+    from perception_config.learning.ray_workers import play_chunk
 
     recipe = EnvRecipe(str(tiny_dataset(tmp_path_factory)), str(pipeline_file(tmp_path_factory)), settings=FAST)
     with pytest.raises(RuntimeError, match="(?s)play_chunk.*KeyError: 'no_such_agent'"):
@@ -170,9 +170,9 @@ def test_without_workers_nothing_of_ray_starts(tmp_path_factory, tmp_path):
     """train and evaluate without --workers (and with 1) in a fresh interpreter: ray is never imported."""
     code = f"""
 import sys
-from perception_config.training import train
-from perception_config.evaluation import evaluate
-from perception_config.settings import EnvSettings
+from perception_config.learning.training import train
+from perception_config.learning.evaluation import evaluate
+from perception_config.rl.settings import EnvSettings
 s = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 p = train({str(tiny_dataset(tmp_path_factory))!r}, "pg", {str(tmp_path / "run")!r}, 8, settings=s,
           pipeline={str(pipeline_file(tmp_path_factory))!r}, progress=False, agent_kwargs={{"batch_episodes": 8}})

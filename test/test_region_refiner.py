@@ -10,9 +10,9 @@ import numpy as np
 from frames import box_model, default_pose, refine_from_lambda, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.geometry import Pose, exp_so3, log_so3, perturb
-from perception_config.metrics import pose_mssd
-from perception_config.render import project
+from perception_config.core.geometry import Pose, exp_so3, log_so3, perturb
+from perception_config.core.metrics import pose_mssd
+from perception_config.core.render import project
 from perception_config.vision.appearance import band_posterior, outline_bands
 from perception_config.vision.region import ColourModel, line_displacements, sector_posterior_map
 

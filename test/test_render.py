@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from perception_config.geometry import Pose, exp_so3
-from perception_config.render import depth_to_points, project, projected_box, render, render_box
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.render import depth_to_points, project, projected_box, render, render_box
 
 K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 W, H = 640, 480

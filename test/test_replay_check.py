@@ -17,10 +17,10 @@ pytestmark = pytest.mark.ros
 @pytest.fixture(scope="module")
 def policy(tmp_path_factory):
     """A pg policy trained briefly on the tiny dataset (cost-table time: fast, deterministic)."""
-    from perception_config.training import train
+    from perception_config.learning.training import train
 
     out = tmp_path_factory.mktemp("policy") / "run"
-    from perception_config.settings import EnvSettings
+    from perception_config.rl.settings import EnvSettings
 
     settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
     return train(tiny_dataset(tmp_path_factory), "pg", out, 16, settings=settings, seed=0,
@@ -51,7 +51,7 @@ def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_fa
     assert (tmp_path / "replay_check.png").stat().st_size > 10_000
     assert (tmp_path / "logs" / "bag_replay_node.log").read_text().strip()
     # The configurator appended every estimate to <out>/episodes.sqlite, with the policy's version.
-    from perception_config.episode_store import EpisodeStore, policy_version
+    from perception_config.store.episode_store import EpisodeStore, policy_version
 
     with EpisodeStore(tmp_path / "episodes.sqlite", readonly=True) as store:
         eps = store.query("SELECT id, source, agent, policy_version, obj_id, episode_seed FROM episodes ORDER BY id")
@@ -70,7 +70,7 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
 
     from perception_config.datasets.bag import write_bag
     from perception_config.datasets.bop import BopDataset
-    from perception_config.launch import Launcher, NodeSpec
+    from perception_config.launcher.launch import Launcher, NodeSpec
 
     root = tiny_dataset(tmp_path_factory)
     ds = BopDataset(root, split="test")

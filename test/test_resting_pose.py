@@ -11,9 +11,9 @@ import pytest
 
 from frames import box_model, resting_on_plane, synthetic_frame
 from perception_config.blocks.base import BlockInput, create
-from perception_config.geometry import Pose, exp_so3
-from perception_config.metrics import pose_mssd
-from perception_config.models import make_model
+from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.metrics import pose_mssd
+from perception_config.core.models import make_model
 from perception_config.vision.ppf import canonical_poses
 from perception_config.vision.resting_poses import (
     moved_in_plane,
@@ -138,8 +138,8 @@ def test_the_sweep_turns_a_flange_back_onto_its_bolt_holes():
     aside: its six-fold symmetric disc agrees with the depth almost as well, only the bolt holes
     tell (ICP leaves such a turn where it is). The sweep's best verifying pose is within MSSD
     0.1 d (the 6-fold symmetry counted); the wrong start is not."""
+    from perception_config.core.models import MM
     from perception_config.datasets.parts import build_parts
-    from perception_config.models import MM
     from perception_config.vision.segmentation import frame_segmentation
     from perception_config.vision.verification import verify
 
@@ -172,8 +172,8 @@ def test_a_candidate_floating_a_little_is_settled_onto_the_table():
     pixels' and the sensor's noise too: 0.1 d, which the pick's MSSD counts in full): moved
     down onto the table, and the verification at a third of the tolerance, which judges the
     move, prefers it there; a gap of a third of the diameter (stacked) is left alone."""
+    from perception_config.core.models import MM
     from perception_config.datasets.parts import build_parts
-    from perception_config.models import MM
     from perception_config.vision.segmentation import frame_segmentation
     from perception_config.vision.verification import verify
 

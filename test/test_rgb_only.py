@@ -11,12 +11,12 @@ import pytest
 import yaml
 
 from perception_config.agents import AGENTS, make_agent
-from perception_config.agents.base import allowed_actions
 from perception_config.blocks.base import BlockInput, create
 from perception_config.blocks.pipeline import pipeline_from_dict
 from perception_config.datasets.bop import BopDataset
-from perception_config.env import PerceptionConfigEnv
-from perception_config.episode_loop import play_episode
+from perception_config.rl.env import PerceptionConfigEnv
+from perception_config.rl.episode_loop import play_episode
+from perception_config.rl.trajectory import allowed_actions
 
 # Depth actions (icp_coarse, depth_refine), an RGB action (d2co) and the two that always run.
 RGB_PIPELINE = """\
@@ -221,9 +221,9 @@ def test_fixed_pipeline_skips_actions_that_cannot_run(env):
 # --------------------------------------------------------------------------- train, evaluate, bench, show
 
 def test_train_and_evaluate_on_an_rgb_only_dataset(rgb_dataset, pipeline_path, tmp_path):
-    from perception_config.evaluation import evaluate
-    from perception_config.settings import EnvSettings
-    from perception_config.training import train
+    from perception_config.learning.evaluation import evaluate
+    from perception_config.learning.training import train
+    from perception_config.rl.settings import EnvSettings
 
     settings = EnvSettings().replace(time_mode="cost_table", max_ops=5)
     policy = train(rgb_dataset, "pg", tmp_path / "run", 8, settings=settings, pipeline=pipeline_path, workers=1,
@@ -325,7 +325,7 @@ def test_the_shipped_rgb_pipeline_by_name(rgb_dataset, tmp_path):
     """`--pipeline rgb` names the shipped RGB pipeline: no action needs depth, so nothing is
     masked on an RGB-only dataset; launch passes the name on; an unknown name lists the shipped."""
     from perception_config.blocks.pipeline import load_pipeline, shipped_pipelines
-    from perception_config.launch import resolve_nodes
+    from perception_config.launcher.launch import resolve_nodes
 
     assert {"default", "rgb"} <= set(shipped_pipelines())
     pipe = load_pipeline(Path("rgb"))

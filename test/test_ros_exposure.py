@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from perception_config.ros_shm import clean_stale_fastdds_shm
+from perception_config.launcher.fastdds_shm import clean_stale_fastdds_shm
 from ros_helpers import NodeProcess, wait_for_service
 
 pytestmark = pytest.mark.ros

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from perception_config.geometry import Pose, exp_so3, rotation_angle
+from perception_config.core.geometry import Pose, exp_so3, rotation_angle
 from ros_helpers import NodeProcess, call, wait_for_service
 
 
@@ -33,7 +33,7 @@ def test_interfaces_import_with_fields():
 
 
 def test_environment_defaults_are_loopback_and_respect_the_user():
-    from perception_config.ros_environment import FASTDDS_PROFILE, configure_ros_environment
+    from perception_config.launcher.ros_environment import FASTDDS_PROFILE, configure_ros_environment
 
     env = configure_ros_environment({})
     assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"  # the shipped profile decides
@@ -51,7 +51,7 @@ def test_environment_defaults_are_loopback_and_respect_the_user():
 def test_a_pose_reads_back_from_its_message_as_operators_keep_it():
     """geometry.as_transmitted is bit for bit what a receiver of the message reconstructs, so the
     in-process operators and a chain of nodes work on the same poses."""
-    from perception_config.geometry import as_transmitted
+    from perception_config.core.geometry import as_transmitted
     from perception_config.ros.conversions import msg_to_pose, pose_to_msg
 
     rng = np.random.default_rng(3)
@@ -68,7 +68,7 @@ def test_a_pose_reads_back_from_its_message_as_operators_keep_it():
 @pytest.fixture(scope="module")
 def generation_node(tmp_path_factory):
     from frames import box_mesh
-    from perception_config.models import write_ply
+    from perception_config.core.models import write_ply
 
     models = tmp_path_factory.mktemp("models")
     info = {}

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from frames import perturbed_pose
-from perception_config.geometry import Pose, rotation_angle
+from perception_config.core.geometry import Pose, rotation_angle
 from rl_helpers import PIPELINE, pipeline_file
 from ros_helpers import NodeProcess, call, publish_when_matched, record_estimates, wait_for_service
 
@@ -249,7 +249,7 @@ def test_next_candidate_through_ros_takes_the_generators_ranked_candidates(ros_n
 
     from perception_config.blocks.base import create
     from perception_config.blocks.pipeline import pipeline_from_dict
-    from perception_config.operators import Episode, InProcessOperators
+    from perception_config.rl.operators import Episode, InProcessOperators
     from perception_config.ros.ros_operators import RosOperators
 
     operator_clients(ros_node, cell)  # every service answers
@@ -307,9 +307,9 @@ def test_configurator_runs_the_same_episodes_as_in_process(ros_node, cell, data,
     from perception_config_interfaces.srv import EstimatePose
 
     from perception_config.agents import make_agent
-    from perception_config.env import PerceptionConfigEnv
-    from perception_config.episode_loop import acting_seed, play_episode
-    from perception_config.episode_store import EpisodeStore
+    from perception_config.rl.env import PerceptionConfigEnv
+    from perception_config.rl.episode_loop import acting_seed, play_episode
+    from perception_config.store.episode_store import EpisodeStore
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     traces, poses = record_estimates(ros_node, request)

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from perception_config.core.geometry import Pose, exp_so3, rotation_angle
+from perception_config.core.scene import Frame, SceneObject
 from perception_config.datasets.bag import RECORDING_EPOCH_NS, read_bag, write_frames
-from perception_config.geometry import Pose, exp_so3, rotation_angle
-from perception_config.scene import Frame, SceneObject
 from ros_helpers import VENV_BIN, NodeProcess, ros_test_env
 
 pytestmark = pytest.mark.ros

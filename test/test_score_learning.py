@@ -35,7 +35,7 @@ def stamp_ns(i: int) -> int:
 
 @pytest.fixture(scope="module")
 def data(synthetic_dataset, tmp_path_factory):
-    from perception_config.env import PerceptionConfigEnv
+    from perception_config.rl.env import PerceptionConfigEnv
 
     pipe = pipeline_file(tmp_path_factory, SCORED_PIPELINE, name="scored.yaml")
     env = PerceptionConfigEnv(synthetic_dataset, pipe, time_mode="cost_table", min_visib_fract=0.3)
@@ -47,10 +47,10 @@ def recorded(data, tmp_path_factory):
     """Every episode of the tiny dataset three times (three stamps per image), played by a random masked
     policy, stored as the configurator stores an estimate; frames with their ground truth."""
     from perception_config.agents import make_agent
-    from perception_config.episode_loop import acting_seed, play_episode
-    from perception_config.episode_store import STORE_NAME, StoreWriter, store_episode
-    from perception_config.learn_frames import save_frame
-    from perception_config.online_learning import FRAMES
+    from perception_config.online.policy_learner import FRAMES
+    from perception_config.rl.episode_loop import acting_seed, play_episode
+    from perception_config.store.episode_store import STORE_NAME, StoreWriter, store_episode
+    from perception_config.store.frames import save_frame
 
     env = data["env"]
     out = tmp_path_factory.mktemp("score_recorded")
@@ -73,7 +73,7 @@ def overconfident_model(path: Path) -> Path:
     from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model, resolve_model_path
 
     shipped = load_model(str(resolve_model_path(SHIPPED_MODEL)))
-    from perception_config.pick_success_model import PickSuccessModel
+    from perception_config.vision.pick_success_model import PickSuccessModel
 
     bad = PickSuccessModel(shipped.feature_names, shipped.median, shipped.spread, shipped.layers)
     bad.calibration = OVERCONFIDENT
@@ -82,7 +82,7 @@ def overconfident_model(path: Path) -> Path:
 
 
 def learn_dir_with(tmp_path: Path, recorded: Path, serving_model: Path) -> Path:
-    from perception_config.score_learning import score_versions
+    from perception_config.online.score_learner import score_versions
 
     learn_dir = tmp_path / "learn"
     shutil.copytree(recorded, learn_dir)
@@ -94,10 +94,10 @@ def test_rows_of_kept_frames_are_labelled_by_ground_truth_or_by_the_robot(tmp_pa
     """A kept frame with ground truth labels every hypothesis; a frame kept without it (a real
     cell) labels only the picked hypotheses, by the robot's outcome, which also wins over the
     ground truth's verdict; a frame pruned from the ring drops its rows; no models: named."""
-    from perception_config.episode_store import STORE_NAME, EpisodeStore
-    from perception_config.learn_frames import frame_path, load_frame, save_frame
-    from perception_config.online_learning import FRAMES
-    from perception_config.pick_success_data import featurise, load_step_rows
+    from perception_config.learning.pick_success_data import featurise, load_step_rows
+    from perception_config.online.policy_learner import FRAMES
+    from perception_config.store.episode_store import STORE_NAME, EpisodeStore
+    from perception_config.store.frames import frame_path, load_frame, save_frame
 
     learn_dir = tmp_path / "learn"
     shutil.copytree(recorded, learn_dir)
@@ -141,7 +141,7 @@ def test_an_overconfident_score_is_replaced_and_an_equal_candidate_discarded(tmp
     it, and back on a rollback. The next cycle's candidate is no better than v0001: discarded."""
     from perception_config.blocks.base import BlockInput
     from perception_config.blocks.pick_success import PickSuccess
-    from perception_config.score_learning import format_score_result, refit_score_once, score_versions
+    from perception_config.online.score_learner import format_score_result, refit_score_once, score_versions
 
     learn_dir = learn_dir_with(tmp_path, recorded, overconfident_model(tmp_path / "bad.safetensors"))
     models = data["root"] / "models"
@@ -180,8 +180,8 @@ def test_an_overconfident_score_is_replaced_and_an_equal_candidate_discarded(tmp
 
 
 def test_a_score_cycle_that_cannot_fit_is_one_line_and_changes_nothing(tmp_path, data, recorded):
-    from perception_config.episode_store import STORE_NAME
-    from perception_config.score_learning import format_score_result, refit_score_once, score_versions
+    from perception_config.online.score_learner import format_score_result, refit_score_once, score_versions
+    from perception_config.store.episode_store import STORE_NAME
 
     learn_dir = learn_dir_with(tmp_path, recorded, overconfident_model(tmp_path / "bad.safetensors"))
     models = data["root"] / "models"
@@ -229,8 +229,8 @@ def test_scoring_node_follows_the_score_versions(ros_node, data, tmp_path):
 
     from perception_config.blocks.base import BlockInput
     from perception_config.blocks.pick_success import SHIPPED_MODEL, PickSuccess, resolve_model_path
+    from perception_config.online.score_learner import score_versions
     from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
-    from perception_config.score_learning import score_versions
 
     versions = score_versions(tmp_path / "learn")
     versions.promote(resolve_model_path(SHIPPED_MODEL), {"start": "shipped"})
@@ -284,7 +284,7 @@ def test_the_configurator_writes_score_version_0_and_pins_score_versions(ros_nod
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
 
-    from perception_config.score_learning import score_versions
+    from perception_config.online.score_learner import score_versions
 
     learn_dir = tmp_path / "learn"
     node = NodeProcess("configurator_node", {"models_dir": data["root"] / "models", "pipeline": data["pipeline"],

@@ -9,9 +9,9 @@ from frames import box_model, perturbed_pose, random_box_scene, well_visible
 from perception_config.blocks.appearance import PsiRgb
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.scoring import IcpFitness, PsiC, PsiD
-from perception_config.geometry import Pose
-from perception_config.render import project, render
-from perception_config.scene import Frame
+from perception_config.core.geometry import Pose
+from perception_config.core.render import project, render
+from perception_config.core.scene import Frame
 from perception_config.vision.edges import image_derivatives, projected_directions
 
 SCORERS = {"psi_d": PsiD, "psi_c": PsiC, "icp_fitness": IcpFitness, "psi_rgb": PsiRgb}

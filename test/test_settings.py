@@ -5,8 +5,8 @@ import os
 
 import pytest
 
-from perception_config.atomic_file import atomic_output, atomic_write
-from perception_config.settings import EnvSettings, settings_from_policy_meta
+from perception_config.rl.settings import EnvSettings, settings_from_policy_meta
+from perception_config.util.atomic_file import atomic_output, atomic_write
 
 
 def test_settings_round_trip_and_defaults():

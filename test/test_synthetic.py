@@ -24,7 +24,7 @@ def bop(synthetic_dataset):
 def _rendered_images(bop):
     """Each image of the dataset: its frame, its scene_gt_info entries, and a render of its objects
     alone (no bin)."""
-    from perception_config.render import render
+    from perception_config.core.render import render
 
     for s, i in bop.image_keys():
         f = bop.load_frame(s, i)
@@ -103,7 +103,7 @@ def test_scenes_keep_their_arrangement_across_views(bop):
 
 
 def test_gt_centres_project_inside_the_image(bop):
-    from perception_config.render import project
+    from perception_config.core.render import project
 
     for s, i in bop.image_keys():
         for obj_id, pose in bop.gt(s, i):
@@ -115,8 +115,8 @@ def test_gt_centres_project_inside_the_image(bop):
 
 def test_gt_info_matches_masks(bop):
     """px counts and boxes re-rendered here agree with scene_gt_info; visibility is exact."""
+    from perception_config.core.render import render_box
     from perception_config.datasets.bop import compute_gt_info
-    from perception_config.render import render_box
 
     diffs = []
     for f, infos, r in _rendered_images(bop):

@@ -8,12 +8,12 @@ import signal
 import numpy as np
 import pytest
 
-from perception_config import training
 from perception_config.agents import load_agent, make_agent
 from perception_config.agents.policy_io import read_file
-from perception_config.episode_loop import play_episode
-from perception_config.settings import EnvSettings, settings_from_policy_meta
-from perception_config.training import CHECKPOINT, CURVE, train
+from perception_config.learning import training
+from perception_config.learning.training import CHECKPOINT, CURVE, train
+from perception_config.rl.episode_loop import play_episode
+from perception_config.rl.settings import EnvSettings, settings_from_policy_meta
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)

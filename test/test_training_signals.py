@@ -19,8 +19,8 @@ import pytest
 
 from perception_config.agents import load_agent
 from perception_config.agents.policy_io import read_file
-from perception_config.settings import EnvSettings
-from perception_config.training import CHECKPOINT, CURVE, train
+from perception_config.learning.training import CHECKPOINT, CURVE, train
+from perception_config.rl.settings import EnvSettings
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)  # the CLI run's settings

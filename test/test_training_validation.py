@@ -1,4 +1,4 @@
-"""Validation-based policy selection (validation.py, training.py): the shipped policy is the
+"""Validation-based policy selection (learning/validation.py, learning/training.py): the shipped policy is the
 validation-best one, the validation images are disjoint from the training and test images,
 and a resumed run selects exactly as the uninterrupted one."""
 from __future__ import annotations
@@ -12,11 +12,11 @@ import pytest
 from perception_config import cli
 from perception_config.agents import load_agent, make_agent
 from perception_config.agents.policy_io import PolicyError, read_file
-from perception_config.episode_loop import acting_seed, play_episode
-from perception_config.seed_selection import SEEDS_CSV, train_seeds, validated
-from perception_config.settings import EnvSettings
-from perception_config.training import CHECKPOINT, VALIDATION_CSV, train
-from perception_config.validation import TENSOR_PREFIX, default_lambdas, split_validation, validation_episodes
+from perception_config.learning.seed_selection import SEEDS_CSV, train_seeds, validated
+from perception_config.learning.training import CHECKPOINT, VALIDATION_CSV, train
+from perception_config.learning.validation import TENSOR_PREFIX, default_lambdas, split_validation, validation_episodes
+from perception_config.rl.episode_loop import acting_seed, play_episode
+from perception_config.rl.settings import EnvSettings
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
 # A short lambda range with expensive refinements: the untrained policy is poor, so the checks differ.
@@ -133,7 +133,7 @@ def test_cli_train_flags(tmp_path_factory, tmp_path, capsys):
 
 def test_seeds_ship_the_run_of_lowest_validation_cost(tmp_path_factory, tmp_path, capsys):
     """`train --seeds N`: one run per seed in OUT/seed-<s>/, the validation-best shipped
-    (seed_selection.py); a resumed call over finished runs trains nothing and ships the same."""
+    (learning/seed_selection.py); a resumed call over finished runs trains nothing and ships the same."""
     out = tmp_path / "seeds"
     args = ["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out), "--episodes", "16",
             "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",

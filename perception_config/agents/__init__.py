@@ -4,7 +4,7 @@
 The spec is an `EnvSpec` (or an environment, from which it is taken). Policies are saved with
 `save_agent(agent, path)` and loaded with `load_agent(path, env)` (policy_io.py: safetensors /
 JSON, checked against the environment's action set and observation layout, never unpickled).
-Episodes are played by perception_config.episode_loop.play_episode.
+Episodes are played by perception_config.rl.episode_loop.play_episode.
 """
 from __future__ import annotations
 

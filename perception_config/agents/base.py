@@ -5,7 +5,7 @@ the environment object, so a policy can run against either operator backend (in-
 ROS) and in worker processes. The exception is the oracle, which searches the live episode.
 
 `EnvRecipe` is the picklable way to build the same environment again in a worker process.
-Episodes are played by perception_config.episode_loop.play_episode; policies are saved and
+Episodes are played by perception_config.rl.episode_loop.play_episode; policies are saved and
 loaded by policy_io.py.
 """
 from __future__ import annotations
@@ -13,15 +13,13 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
-from ..settings import EnvSettings
+from ..rl.settings import EnvSettings
+from ..rl.trajectory import Trajectory
 from .hparams import SEED
-
-if TYPE_CHECKING:
-    from ..episode_loop import Trajectory
 
 
 @dataclass(frozen=True)
@@ -83,7 +81,7 @@ class EnvRecipe:
     use_depth: bool = True  # False: the dataset read as RGB-only (BopDataset(use_depth=False))
 
     def make(self) -> Any:
-        from ..env import PerceptionConfigEnv  # gymnasium and the blocks: only where an env is built
+        from ..rl.env import PerceptionConfigEnv  # gymnasium and the blocks: only where an env is built
 
         keys = [tuple(k) for k in self.image_keys] if self.image_keys is not None else None
         return PerceptionConfigEnv(Path(self.dataset), self.pipeline, self.settings, split=self.split, image_keys=keys,
@@ -93,7 +91,7 @@ class EnvRecipe:
 class Agent:
     """The agent interface. Subclasses set `kind` and implement `act`.
 
-    Training protocol (perception_config.training): the trainer asks `actors()` for the
+    Training protocol (perception_config.learning.training): the trainer asks `actors()` for the
     policies to run this round, runs each on `episodes_per_actor` episodes (all actors on the
     same episodes), and hands the trajectories to `update`. `explore` is True while training
     (sample / take random actions) and False when a loaded policy is evaluated (greedy).
@@ -172,29 +170,3 @@ class Agent:
 
     def load_checkpoint(self, tensors: dict[str, np.ndarray], state: dict[str, Any]) -> None:
         """Restore what `checkpoint` returned (the policy itself is restored before)."""
-
-
-def allowed_actions(info: Any, n_actions: int) -> np.ndarray | None:
-    """The actions that can run, as a bool array of `n_actions`, from the env's
-    `info["action_mask"]`; None when there is no mask, when every action can run, or when none
-    can (then nothing is masked): an agent acts exactly as without a mask, with the same random
-    draws, whenever the mask does not restrict it."""
-    mask = info.get("action_mask") if isinstance(info, dict) else None
-    if mask is None:
-        return None
-    m = np.asarray(mask).reshape(-1) != 0
-    if m.shape != (n_actions,):
-        raise ValueError(f"info['action_mask'] has {m.size} entries, the agent has {n_actions} actions")
-    if m.all() or not m.any():
-        return None
-    return m
-
-
-def returns_to_go(rewards: np.ndarray, gamma: float = 1.0) -> np.ndarray:
-    """G_t = sum_{k >= t} gamma^(k-t) r_k."""
-    out = np.zeros(len(rewards), np.float64)
-    running = 0.0
-    for t in range(len(rewards) - 1, -1, -1):
-        running = rewards[t] + gamma * running
-        out[t] = running
-    return out

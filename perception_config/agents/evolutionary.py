@@ -4,7 +4,7 @@ Network (numpy only): logits = W3 tanh(W2 tanh(W1 s + b1) + b2) + b3; the action
 argmax (a deterministic policy: the evolution, not the policy, explores) over the actions that
 can run (`info["action_mask"]`).
 
-One generation (the trainer runs it, see perception_config.training):
+One generation (the trainer runs it, see perception_config.learning.training):
 1. every one of the `population` individuals plays the same `episodes_per_generation`
    episodes (same frames, objects, lambdas and episode seeds: a fair comparison); the
    trainer spreads these episodes over worker processes;
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec, allowed_actions
+from ..rl.trajectory import Trajectory, allowed_actions
+from .base import Agent, EnvSpec
 from .hparams import SEED, Float, Int, IntList
 
 Weights = list[np.ndarray]  # [W1, b1, W2, b2, W3, b3]

@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Agent, EnvSpec, allowed_actions
+from ..rl.trajectory import allowed_actions
+from .base import Agent, EnvSpec
 from .hparams import SEED, Choice, Int, StrList
 
 DEFAULT_SEQUENCE = ("icp_coarse", "icp_fine", "pick")

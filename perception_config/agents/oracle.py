@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import rotation_angle
+from ..core.geometry import rotation_angle
 from .base import Agent, EnvSpec
 from .hparams import SEED, Float, Int
 

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec, allowed_actions, returns_to_go
+from ..rl.trajectory import Trajectory, allowed_actions, returns_to_go
+from .base import Agent, EnvSpec
 from .hparams import SEED, Choice, Float, Int
 
 MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare

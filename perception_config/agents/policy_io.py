@@ -10,21 +10,21 @@ agent's memory), the action set the policy was trained for (pipeline.describe()[
 and the observation layout (env.observation_layout). `load_agent(path, env)` refuses a file
 whose action set or observation layout differs from the environment's, saying what differs:
 a policy's output index i means "action i of the set it was trained with", nothing else.
-Writes are atomic (perception_config.atomic_file). The metadata's `extra` holds what training
+Writes are atomic (perception_config.util.atomic_file). The metadata's `extra` holds what training
 records: the environment settings (`env_settings`), the split, the pipeline.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..atomic_file import atomic_write
-from ..safe_json import JsonLimitError, loads_limited, read_limited
-from ..settings import MAX_OPS_LIMIT, settings_from_policy_meta
+from ..rl.settings import MAX_OPS_LIMIT, settings_from_policy_meta
+from ..util.atomic_file import atomic_write
+from ..util.checksum import CHECKSUM_KEY, content_checksum
+from ..util.safe_json import JsonLimitError, loads_limited, read_limited
 from .base import Agent, EnvSpec
 from .hparams import check_hparams
 from .registry import AGENTS
@@ -32,7 +32,6 @@ from .registry import AGENTS
 FORMAT = "perception_config.policy"
 VERSION = 1
 META_KEY = "perception_config"
-CHECKSUM_KEY = "sha256"  # metadata entry: sha256 of the canonical metadata and the tensors (content_checksum)
 MAX_POLICY_BYTES = 256 * 1024 * 1024  # a policy/checkpoint file larger than this is refused before reading
 MAX_HEADER_BYTES = 16 * 1024 * 1024  # the safetensors header (tensor table + metadata JSON)
 MAX_JSON_DEPTH = 32  # nesting of the metadata JSON (what training writes nests <= 8 levels)
@@ -43,19 +42,6 @@ _DTYPES = {"F16": 2, "BF16": 2, "F32": 4, "F64": 8, "I8": 1, "I16": 2, "I32": 4,
 
 class PolicyError(ValueError):
     """A policy or checkpoint file that cannot be used here; the message names the file."""
-
-
-def content_checksum(meta: dict[str, Any], tensors: dict[str, np.ndarray]) -> str:
-    """sha256 over the canonical metadata JSON (without its checksum entry) and every tensor's
-    name, dtype, shape and bytes, in name order."""
-    h = hashlib.sha256()
-    body = {k: v for k, v in meta.items() if k != CHECKSUM_KEY}
-    h.update(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
-    for name in sorted(tensors):
-        a = np.ascontiguousarray(tensors[name])
-        h.update(f"\0{name}\0{a.dtype.str}\0{a.shape}\0".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
 
 
 def write_file(path: str | Path, meta: dict[str, Any], tensors: dict[str, np.ndarray] | None = None) -> Path:
@@ -152,7 +138,7 @@ def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     Checked in this order, so nothing large is allocated for a hostile file: a regular file of
     at most MAX_POLICY_BYTES; the JSON (metadata, safetensors header) at most MAX_JSON_DEPTH
     levels deep; the tensor table (dtypes, shapes against offsets and file size); the metadata
-    schema (check_meta_schema) and the environment settings it records (settings.py bounds);
+    schema (check_meta_schema) and the environment settings it records (rl/settings.py bounds);
     the content checksum; every tensor except the training history finite.
     Files written before the checksum existed have none: they are accepted with the other checks.
     """

@@ -6,7 +6,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Agent, allowed_actions
+from ..rl.trajectory import allowed_actions
+from .base import Agent
 
 
 class RandomAgent(Agent):

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from ..episode_loop import Trajectory
-from .base import Agent, EnvSpec, allowed_actions, returns_to_go
+from ..rl.trajectory import Trajectory, allowed_actions, returns_to_go
+from .base import Agent, EnvSpec
 from .hparams import SEED, Float, Int
 
 Key = tuple[int, ...]

@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from ..render import project
+from ..core.render import project
 from ..vision.appearance import (
     band_posterior,
     colour_codes,

@@ -12,18 +12,22 @@ frame (`Frame.depth` None): `frame_lacks` says which blocks cannot run on a fram
 """
 from __future__ import annotations
 
+import importlib
 import math
+import pkgutil
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from enum import Enum
+from importlib.metadata import entry_points
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.scene import Frame
 
 
 class Kind(str, Enum):
@@ -138,7 +142,7 @@ class Block(ABC):
     name: ClassVar[str]
     inputs: ClassVar[tuple[str, ...]] = ()
     params: ClassVar[tuple[Param, ...]] = ()
-    # Seconds charged for one call in the environment's cost-table mode (settings.py): about
+    # Seconds charged for one call in the environment's cost-table mode (rl/settings.py): about
     # the block's median on one core (benchmarks/results/blocks.json). Every block declares it.
     default_cost: ClassVar[float]
     # Names of the scores this block puts in BlockResult.scores (the observation layout of the
@@ -245,9 +249,31 @@ def register(cls: type[Block]) -> type[Block]:
 
 def create(name: str, **params: Any) -> Block:
     """Instantiate a registered block with parameter overrides."""
-    from . import load_all  # the block modules register themselves on import
-
-    load_all()
+    load_all()  # the block modules register themselves on import
     if name not in REGISTRY:
         raise ValueError(f"unknown block {name!r}; known blocks: {', '.join(sorted(REGISTRY))}")
     return REGISTRY[name](**params)
+
+
+# --------------------------------------------------------------------------- discovery
+ENTRY_POINT_GROUP = "perception_config.blocks"
+_NOT_BLOCK_MODULES = frozenset({"base", "pipeline", "features"})
+
+
+def block_modules() -> list[str]:
+    """The modules of this package that define blocks (every module but base, pipeline and features)."""
+    here = [str(Path(__file__).parent)]
+    return sorted(m.name for m in pkgutil.iter_modules(here) if m.name not in _NOT_BLOCK_MODULES)
+
+
+def load_all() -> dict[str, type[Block]]:
+    """Import every block module (they register themselves) and return the registry."""
+    for module in block_modules():
+        importlib.import_module(f"{__package__}.{module}")
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            ep.load()
+        except Exception as exc:  # a broken plug-in names itself instead of a bare traceback
+            raise ImportError(f"block plug-in {ep.name!r} ({ep.value}, entry point group {ENTRY_POINT_GROUP}) "
+                              f"failed to load: {type(exc).__name__}: {exc}") from exc
+    return REGISTRY

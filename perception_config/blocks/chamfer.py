@@ -49,10 +49,10 @@ import time
 import cv2
 import numpy as np
 
-from ..geometry import Pose, exp_so3
-from ..models import ObjectModel
-from ..render import projected_box
-from ..scene import Frame
+from ..core.geometry import Pose, exp_so3
+from ..core.models import ObjectModel
+from ..core.render import projected_box
+from ..core.scene import Frame
 from ..vision.appearance import outline_separation
 from ..vision.edges import (
     TensorCache,

@@ -45,8 +45,8 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose
-from ..render import projected_box
+from ..core.geometry import Pose
+from ..core.render import projected_box
 from ..vision.edges import TensorCache, edge_refinement_problem, model_contour, sample_tensor
 from ..vision.pose_solver import LOSSES, levenberg_marquardt, project_with_jacobian, robust_rho, rotation_prior_weight
 from ..vision.region import ColourModel, band_width, colour_model, line_displacements, outline_samples

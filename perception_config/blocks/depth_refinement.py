@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.scene import Frame
 from ..vision.visibility import hypothesis_rendering
 from .base import DEPTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
 

@@ -38,9 +38,9 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from ..geometry import LAMBDA_MAX, SIGMA_R, SIGMA_T, Pose, perturb
-from ..models import ObjectModel, model_defect
-from ..render import MIN_Z, render_box
+from ..core.geometry import LAMBDA_MAX, SIGMA_R, SIGMA_T, Pose, perturb
+from ..core.models import ObjectModel, model_defect
+from ..core.render import MIN_Z, render_box
 from ..vision.colour import colour_similarity
 from ..vision.features import (
     ModelFeatures,

@@ -30,7 +30,7 @@ from typing import ClassVar
 import numpy as np
 import open3d as o3d
 
-from ..geometry import Pose
+from ..core.geometry import Pose
 from ..vision.visibility import scene_patch, visible_surface
 from .base import DEPTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
 

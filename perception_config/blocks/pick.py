@@ -17,10 +17,10 @@ from typing import Any, Callable, ClassVar, Protocol
 
 import numpy as np
 
-from ..geometry import Pose
-from ..metrics import eval_symmetries, pose_mssd
-from ..models import ObjectModel
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.metrics import eval_symmetries, pose_mssd
+from ..core.models import ObjectModel
+from ..core.scene import Frame
 from .base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
 
 GT_ROTATION_TOL = 1e-2  # as datasets/bop.py checks annotated rotations

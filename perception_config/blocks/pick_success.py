@@ -4,7 +4,7 @@
 pipeline's scores at their default parameters, depth residual statistics, outline-to-edge
 agreement, visible fraction; the depth ones NaN on an RGB-only frame, which the model was
 trained to expect) and returns the calibrated probability of a model fitted with
-`perception-config fit-score` (pick_success_model.py). Unlike the other scores it answers the
+`perception-config fit-score` (vision/pick_success_model.py). Unlike the other scores it answers the
 question an agent asks before a pick in the pick's own terms (symmetry-aware MSSD <= 0.1 x
 diameter), so "pick when pick_success is high" is a rule an agent can learn quickly.
 
@@ -15,7 +15,7 @@ command in its metrics.json). A missing, corrupt or mismatched model is refused 
 is built (a pipeline that names it does not load), with the file named; an empty `model` is
 refused too, so a pipeline cannot run a score that has no model behind it.
 
-The `versions` parameter follows online learning (online_learning.py): a folder of score
+The `versions` parameter follows online learning (online/policy_learner.py): a folder of score
 versions (policy_versions.PolicyVersions, `<learn_dir>/pick_success/`). While it holds a version,
 the version it selects serves instead of `model`, checked before each scoring (a stat of the
 index), so a promotion or a rollback reaches every node that scores without a restart; until
@@ -27,10 +27,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ..pick_success_model import PickSuccessModel, PickSuccessModelError
-from ..policy_versions import PolicyVersionError, PolicyVersions
-from ..vision.pick_features import pick_features
+from ..util.versions import PolicyVersionError, PolicyVersions
+from ..vision.pick_success_model import PickSuccessModel, PickSuccessModelError
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
+from .features import pick_features
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 SHIPPED_MODEL = "pick_success/pick_success.safetensors"  # in CONFIG_DIR: fitted on the synthetic default dataset

@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose
-from ..models import model_defect
+from ..core.geometry import Pose
+from ..core.models import model_defect
 from ..vision.features import flipped, principal_flips
 from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
 from ..vision.segmentation import frame_segmentation, too_small

@@ -18,8 +18,8 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose
-from ..render import projected_box
+from ..core.geometry import Pose
+from ..core.render import projected_box
 from ..vision.edges import edge_refinement_problem
 from ..vision.pose_solver import (
     LOSSES,

@@ -32,7 +32,7 @@ import math
 import threading
 import time
 
-from ..models import ObjectModel, model_defect
+from ..core.models import ObjectModel, model_defect
 from ..vision.resting_poses import (
     RestingPose,
     plane_basis,

@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from ..geometry import Pose, exp_so3
-from ..render import render_box
+from ..core.geometry import Pose, exp_so3
+from ..core.render import render_box
 from ..vision.linemod import (
     TemplateParams,
     depth_agreement,

@@ -9,12 +9,12 @@ Layout (bop_toolkit docs/bop_datasets_format.md):
                                  /rgb/<im 6 digits>.png|jpg, depth/<im>.png (uint16 * depth_scale = mm)
 
 Inside the code everything is metres (poses, depth, model vertices, diameters); `models_info`
-stays in mm as BOP defines it (models.py converts it when preparing a model). Bad input raises
+stays in mm as BOP defines it (core/models.py converts it when preparing a model). Bad input raises
 `BopFormatError` (a ValueError) or FileNotFoundError with the offending file in the message:
 a reader never returns silently wrong data, so a wrong depth_scale fails loudly rather than
 putting every object ten times too far away.
 
-Writers are atomic (atomic_file.py), so a reader never sees half a JSON file.
+Writers are atomic (util/atomic_file.py), so a reader never sees half a JSON file.
 A generator writing many frames uses `SceneWriter`, which writes each image at once and the
 scene's JSON files once at close; `write_frame` is the one-off convenience.
 """
@@ -33,11 +33,12 @@ from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
 import cv2
 import numpy as np
 
-from ..atomic_file import atomic_write
-from ..geometry import Pose, nearest_rotation
-from ..models import MM, ObjectModel, load_model
-from ..safe_json import JsonLimitError, read_json_file, read_limited
-from ..scene import Frame, SceneObject
+from ..core.geometry import Pose, nearest_rotation
+from ..core.models import MM, ObjectModel, load_model
+from ..core.scene import Frame, SceneObject
+from ..util.atomic_file import atomic_write
+from ..util.safe_json import JsonLimitError, read_json_file, read_limited
+from .errors import BopAnnotationWarning, BopFormatError
 from .image_header import MAX_IMAGE_BYTES, check_image_header
 
 DEFAULT_FRAME_RATE = 10.0  # Hz: stamps of BOP frames without timing are im_id / rate
@@ -56,21 +57,13 @@ ROTATION_SILENT = 1e-3
 _GT_INFO_KEYS = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
 
 
-class BopFormatError(ValueError):
-    """A BOP file that is missing required content or holds impossible values."""
-
-
-class BopAnnotationWarning(UserWarning):
-    """A BOP file whose values were repaired on reading (rotations projected onto SO(3))."""
-
-
 # --------------------------------------------------------------------------- small I/O helpers
 
 
 def load_json(path: str | os.PathLike) -> Any:
     """JSON content of a BOP file; FileNotFoundError / BopFormatError naming the file.
 
-    Read through perception_config.safe_json: a regular file (not a directory or a special
+    Read through perception_config.util.safe_json: a regular file (not a directory or a special
     file) of at most MAX_JSON_BYTES, nested at most MAX_JSON_DEPTH levels, checked before parsing."""
     try:
         return read_json_file(path, MAX_JSON_BYTES, MAX_JSON_DEPTH, what="BOP file")
@@ -504,7 +497,7 @@ def scene_dir(root: str | os.PathLike, split: str, scene_id: int) -> Path:
 class BopDataset:
     """A BOP dataset split: scenes, images, frames in metres, and its object models.
 
-    Scene JSON files are read once per scene and kept; models are prepared once (models.py
+    Scene JSON files are read once per scene and kept; models are prepared once (core/models.py
     caches them per file). Frames get stamp = im_id / frame_rate (BOP has no timing)."""
 
     def __init__(
@@ -852,7 +845,7 @@ def compute_gt_info(frame: Frame, delta: float = 0.015) -> list[dict[str, Any]]:
     bbox_obj may extend outside the image (rendered into a 3x larger virtual image). An
     RGB-only frame (depth None) is compared with the depth of all its objects rendered together
     (occlusion among the annotated objects; clutter that is not annotated is not seen)."""
-    from ..render import render, render_box
+    from ..core.render import render, render_box
 
     H, W = frame.height, frame.width
     K = frame.K

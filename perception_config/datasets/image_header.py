@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import struct
 
+from .errors import BopFormatError
+
 MAX_IMAGE_SIDE = 16384  # pixels: a side longer than this is refused before decoding
 MAX_IMAGE_PIXELS = 8192 * 8192  # 64 Mi pixels (e.g. 8192 x 8192): more is refused before decoding
 MAX_IMAGE_BYTES = 256 * 1024 * 1024  # an image file larger than this is refused before reading
@@ -20,8 +22,6 @@ _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 
 
 
 def _error(path: str | os.PathLike, msg: str) -> Exception:
-    from .bop import BopFormatError  # bop.py imports this module
-
     return BopFormatError(f"{path}: {msg}")
 
 

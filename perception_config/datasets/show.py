@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic_file import atomic_write
+from ..util.atomic_file import atomic_write
 
 __all__ = ["show_frame", "object_colour"]
 
@@ -60,7 +60,7 @@ def show_frame(
     labelled as such, and overlays the full silhouettes on the left."""
     import cv2
 
-    from ..render import render
+    from ..core.render import render
     from .bop import BopDataset
 
     ds = BopDataset(dataset, split, use_depth=use_depth)

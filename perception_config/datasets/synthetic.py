@@ -57,9 +57,9 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic_file import atomic_write
-from ..geometry import Pose
-from ..safe_json import read_json_file
+from ..core.geometry import Pose
+from ..util.atomic_file import atomic_write
+from ..util.safe_json import read_json_file
 from . import sensor
 
 __all__ = ["generate", "LINEMOD_K", "DEPTH_SCALE", "stable_poses", "GENERATOR_NAME", "LAST_STATS"]
@@ -382,7 +382,7 @@ def _render_image(
 ) -> tuple[np.ndarray, np.ndarray, list[Pose], list[dict[str, Any]]]:
     import open3d as o3d
 
-    from ..render import render, render_box
+    from ..core.render import render, render_box
     from .parts import MATERIALS
 
     c2w = w2c.inverse()
@@ -528,7 +528,7 @@ def _bbox(xs: np.ndarray, ys: np.ndarray) -> list[int]:
 
 
 def _prepare_models(models_out: Path, models_dir: Path | None) -> list[_Obj]:
-    from ..models import load_model
+    from ..core.models import load_model
     from .bop import load_json, load_models_info, save_json
     from .parts import build_parts, write_models
 
@@ -604,7 +604,7 @@ def generate(
     parts (copied into out/models). An existing `out` is replaced only when it is an empty
     folder or a dataset this generator wrote; anything else raises ValueError.
     """
-    from ..scene import Frame, SceneObject
+    from ..core.scene import Frame, SceneObject
     from .bop import SceneWriter
 
     out = Path(out)

@@ -71,8 +71,8 @@ from ..datasets.bag import BagTruncatedWarning, bag_info, first_messages, iter_m
 from ..datasets.bag.messages import compressed_image_fields
 from ..datasets.bag.topics import COMPRESSED_IMAGE
 from ..datasets.bag.type_names import check_type_name
-from ..ros_environment import configure_ros_environment
-from ..ros_shm import clean_stale_fastdds_shm
+from ..launcher.fastdds_shm import clean_stale_fastdds_shm
+from ..launcher.ros_environment import configure_ros_environment
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 ACK_TIMEOUT_S = 5.0

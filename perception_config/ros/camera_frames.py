@@ -31,8 +31,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
+from ..core.scene import Frame
 from ..datasets.bag import image_msg_to_depth, image_msg_to_rgb
-from ..scene import Frame
 from .request_fields import parse_stamp
 from .stamp_cache import StampCache
 

@@ -1,5 +1,5 @@
 """`perception-config cell-sim`: a simulated robot cell through the nodes (the record, figures
-and verdict are perception_config/cell_sim.py).
+and verdict are perception_config/bench/cell_sim.py).
 
     perception-config cell-sim --dataset data/default --start fixed \\
         --reference runs/demo-pg/policy.safetensors --estimates 300 --out outputs/cell
@@ -52,10 +52,8 @@ from std_msgs.msg import String
 from tqdm import tqdm
 
 from ..agents.fixed import DEFAULT_SEQUENCE
-from ..atomic_file import atomic_write
-from ..blocks.base import Kind
-from ..blocks.pipeline import load_pipeline
-from ..cell_sim import (
+from ..agents.policy_settings import is_policy_file, policy_settings
+from ..bench.cell_sim import (
     DEFAULT_TOLERANCE,
     DEFAULT_WINDOW,
     EstimateLog,
@@ -69,16 +67,18 @@ from ..cell_sim import (
     rolling_mean,
     summarise,
 )
+from ..blocks.base import Kind
+from ..blocks.pipeline import load_pipeline
 from ..datasets.bag import bag_info
 from ..datasets.bop import BopDataset
-from ..episode_store import STORE_NAME, policy_version
-from ..episodes import split_image_keys
-from ..evaluation import episode_seed
-from ..launch import Launcher, default_models
-from ..policy_settings import is_policy_file, policy_settings
-from ..ros_environment import configure_ros_environment
-from ..score_learning import SCORES
-from ..stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from ..launcher.launch import Launcher, default_models
+from ..launcher.ros_environment import configure_ros_environment
+from ..learning.evaluation import episode_seed
+from ..online.score_learner import SCORES
+from ..rl.episodes import split_image_keys
+from ..store.episode_store import STORE_NAME, policy_version
+from ..util.atomic_file import atomic_write
+from ..util.stop_signals import Interrupted, StopRequested, StopSignals, signal_name
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
 

@@ -42,7 +42,7 @@ Parameters:
                     each built only while it has a subscriber
   debug_image_max_width   the debug image is scaled down to this width (640; 0 = full size)
   marker_max_triangles    the marker mesh is decimated to at most this many triangles (500)
-  episode_store     an episodes.sqlite file (episode_store.py) to which every estimate's episode is
+  episode_store     an episodes.sqlite file (store/episode_store.py) to which every estimate's episode is
                     appended (frame stamp, object, lambda, generator, every operator with its scores,
                     pose, times and outcome, the pick's result, the policy version); "" (default) =
                     off: a node has no run folder of its own, so where the store lives is the
@@ -53,7 +53,7 @@ Parameters:
                     estimate is answered as usual
   pick_source       who answers the pick_node's picks, recorded with each pick: "simulated" (default)
                     or "robot" (pick_node's robot_service set)
-  learn             online learning (ros/learning.py, online_learning.py): every estimate is stored
+  learn             online learning (ros/learning.py, online/policy_learner.py): every estimate is stored
                     with its frame in `learn_dir`, a learner process trains candidates and promotes
                     those that beat the serving version on a replay of stored episodes; the serving
                     policy is swapped between estimates (false)
@@ -69,7 +69,7 @@ Parameters:
   policy_version    (learn) pin a kept version at run time (`ros2 param set ... policy_version v0002`);
                     "" = the newest promoted; an unknown version is refused with the kept ones
   score_version     (learn, a pipeline with pick_success) the same for the learned pick-success score:
-                    versions in `learn_dir`/pick_success/ (score_learning.py), followed by the
+                    versions in `learn_dir`/pick_success/ (online/score_learner.py), followed by the
                     operator nodes whose `pick_success_versions` names that folder
 Topics: `perception/policy_version` (std_msgs/String, transient local): the serving version after
 every change. Service `report_pick_outcome` (ReportPickOutcome): the robot's pick result for an
@@ -109,14 +109,21 @@ from std_msgs.msg import Header, String
 
 from ..agents import load_agent, make_agent
 from ..agents.fixed import DEFAULT_SEQUENCE
+from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import load_pipeline, pipeline_reference
+from ..core.geometry import check_noise_lambda
 from ..datasets.bop import ModelFolder
-from ..env import PerceptionConfigEnv
-from ..episode_loop import acting_seed, play_episode
-from ..episode_store import PICK_SOURCES, STORE_NAME, EpisodeStoreError, StoreWriter, policy_version, store_episode
-from ..geometry import check_noise_lambda
-from ..operators import Episode
-from ..policy_settings import policy_settings
+from ..rl.env import PerceptionConfigEnv
+from ..rl.episode_loop import acting_seed, play_episode
+from ..rl.operators import Episode
+from ..store.episode_store import (
+    PICK_SOURCES,
+    STORE_NAME,
+    EpisodeStoreError,
+    StoreWriter,
+    policy_version,
+    store_episode,
+)
 from .camera_frames import camera_qos, stamp_text
 from .debug_view import DebugView
 from .learning import NodeLearning, version_qos

@@ -8,10 +8,10 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose as PoseMsg
 
-from ..geometry import Pose, matrix_from_quaternion, quaternion_from_matrix
+from ..core.geometry import Pose, matrix_from_quaternion, quaternion_from_matrix
 
 if TYPE_CHECKING:
-    from ..scene import Frame
+    from ..core.scene import Frame
 
 
 def pose_to_msg(pose: Pose) -> PoseMsg:

@@ -39,9 +39,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
 from ..datasets.bag import image_msg_to_rgb, rgb_to_image_fields
-from ..geometry import Pose
-from ..models import ObjectModel
 from ..vision.debug_overlay import draw_hypothesis, info_lines
 from .camera_frames import camera_qos, stamp_text
 from .conversions import msg_to_pose, stamp_to_nanoseconds

@@ -22,7 +22,7 @@ import numpy as np
 from perception_config_interfaces.srv import GenerateHypothesis
 
 from ..blocks.base import Kind
-from ..geometry import check_noise_lambda
+from ..core.geometry import check_noise_lambda
 from .conversions import stamp_to_nanoseconds
 from .operator_node import OperatorNode, answered_pose, make_hypothesis, spin
 from .request_fields import parse_method, parse_object_id, parse_stamp

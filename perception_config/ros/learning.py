@@ -7,10 +7,10 @@
   candidates against the version that actually serves.
 - Frames: the configurator subscribes to the camera (camera_frames.CameraFrames, a small cache)
   and to `perception/ground_truth`; after each estimate its frame and the frame's ground truth
-  (when replayed) are written to `<learn_dir>/frames/` by a saver thread (learn_frames.py), after
+  (when replayed) are written to `<learn_dir>/frames/` by a saver thread (store/frames.py), after
   the answer is on its way: the estimate never waits for the disk.
 - The pick-success score (a pipeline that scores pick_success): version 0 of
-  `<learn_dir>/pick_success/` is the pipeline's model (score_learning.py); `score_version` pins
+  `<learn_dir>/pick_success/` is the pipeline's model (online/score_learner.py); `score_version` pins
   one. The operator nodes follow that folder themselves (their `pick_success_versions`).
 - The learner (online_learning.run_learner) runs in a separate process (multiprocessing spawn,
   niced, one thread), reads the store and the frames, and promotes new versions. This node
@@ -35,11 +35,17 @@ from std_msgs.msg import String
 from ..agents import Agent, load_agent, make_agent
 from ..agents.policy_io import save_agent
 from ..blocks.pipeline import pipeline_reference
-from ..env import PerceptionConfigEnv
-from ..learn_frames import FRAME_RING, save_frame
-from ..online_learning import FRAMES, POLICIES, LearnerSettings, format_result, run_learner
-from ..policy_versions import PolicyVersionError, PolicyVersions
-from ..score_learning import SCORES, format_score_result, initial_score_version, pick_success_block, score_versions
+from ..online.policy_learner import FRAMES, POLICIES, LearnerSettings, format_result, run_learner
+from ..online.score_learner import (
+    SCORES,
+    format_score_result,
+    initial_score_version,
+    pick_success_block,
+    score_versions,
+)
+from ..rl.env import PerceptionConfigEnv
+from ..store.frames import FRAME_RING, save_frame
+from ..util.versions import PolicyVersionError, PolicyVersions
 from .camera_frames import CameraFrame, CameraFrames, stamp_text
 from .conversions import msg_to_pose
 from .request_fields import parse_stamp

@@ -55,12 +55,12 @@ from std_msgs.msg import Header
 from ..blocks.base import DEPTH, GROUND_TRUTH, RGB, Block, BlockInput, BlockResult, Kind, create
 from ..blocks.pick_success import PickSuccess, follow_score_versions
 from ..blocks.pipeline import load_pipeline
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
 from ..datasets.bop import ModelFolder
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..operators import FrameCaches
-from ..ros_environment import configure_ros_environment
-from ..ros_shm import clean_stale_fastdds_shm
+from ..launcher.fastdds_shm import clean_stale_fastdds_shm
+from ..launcher.ros_environment import configure_ros_environment
+from ..rl.operators import FrameCaches
 from .camera_frames import CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 from .request_fields import excerpt, parse_method, parse_object_id, parse_stamp

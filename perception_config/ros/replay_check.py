@@ -19,7 +19,7 @@ agreement is counted, not assumed); the success rates are compared against the b
 noise of `images` episodes. Time: the operators' seconds (each call plus the scoring after
 it) and the whole estimate's wall time, ROS over in-process. Writes `<out>/results.json`,
 `<out>/episodes.jsonl` and `<out>/replay_check.png`; the configurator appends its episodes to
-`<out>/episodes.sqlite` (the episode store, episode_store.py).
+`<out>/episodes.sqlite` (the episode store, store/episode_store.py).
 """
 from __future__ import annotations
 
@@ -35,18 +35,18 @@ import rclpy
 from tqdm import tqdm
 
 from ..agents import load_agent, make_agent
-from ..atomic_file import atomic_output, atomic_write
+from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import pipeline_reference
 from ..datasets.bag import RECORDING_EPOCH_NS, write_frames
 from ..datasets.bop import BopDataset
-from ..env import PerceptionConfigEnv
-from ..episode_loop import acting_seed, play_episode
-from ..episode_store import STORE_NAME
-from ..episodes import split_image_keys
-from ..evaluation import episode_seed
-from ..launch import Launcher, NodeSpec
-from ..policy_settings import policy_settings
-from ..ros_environment import configure_ros_environment
+from ..launcher.launch import Launcher, NodeSpec
+from ..launcher.ros_environment import configure_ros_environment
+from ..learning.evaluation import episode_seed
+from ..rl.env import PerceptionConfigEnv
+from ..rl.episode_loop import acting_seed, play_episode
+from ..rl.episodes import split_image_keys
+from ..store.episode_store import STORE_NAME
+from ..util.atomic_file import atomic_output, atomic_write
 from .estimate_client import EstimateClient
 
 RECORD_RATE_HZ = 10.0

@@ -1,4 +1,4 @@
-"""The ROS backend of the environment's Operators interface (perception_config/operators.py).
+"""The ROS backend of the environment's Operators interface (perception_config/rl/operators.py).
 
 The same calls InProcessOperators makes, as service requests to the operator nodes: the
 generator at the start and for a generation action (generate_hypothesis), a refinement action
@@ -50,8 +50,8 @@ from rclpy.executors import SingleThreadedExecutor
 
 from ..blocks.base import BlockInput, BlockResult, Kind
 from ..blocks.pipeline import Pipeline
-from ..geometry import Pose
-from ..operators import Episode, StepOutcome, draw_seed, refiner_stream
+from ..core.geometry import Pose
+from ..rl.operators import Episode, StepOutcome, draw_seed, refiner_stream
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 
 SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis",
@@ -72,7 +72,7 @@ class DeadlineReached(OperatorCallError):
 
 class RosOperators:
     """The environment's operator backend over ROS 2: generator, refiner, scoring and pick calls
-    are service requests to the operator nodes, with the same seeds as in-process (operators.py).
+    are service requests to the operator nodes, with the same seeds as in-process (rl/operators.py).
     The clients live on a private node whose executor the calling thread spins itself."""
 
     def __init__(self, pipeline: Pipeline, node_name: str = "operator_clients", timeout: float = 10.0,

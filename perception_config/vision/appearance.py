@@ -40,8 +40,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..render import Rendering
-from ..scene import Frame
+from ..core.render import Rendering
+from ..core.scene import Frame
 
 
 def colour_codes(rgb: np.ndarray, bits: int) -> np.ndarray:

@@ -13,8 +13,8 @@ import weakref
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..models import ObjectModel
-from ..scene import Frame
+from ..core.models import ObjectModel
+from ..core.scene import Frame
 from .features import MODEL_CACHE_LOCK
 from .segmentation import Cluster
 

@@ -14,9 +14,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import render_box
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import render_box
 
 PICKED_RGB = (40, 220, 60)  # the outline of a hypothesis the robot picked: green
 NOT_PICKED_RGB = (255, 150, 0)  # of one it did not (yet): orange

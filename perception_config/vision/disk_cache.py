@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic_file import atomic_output
-from ..models import ObjectModel
+from ..core.models import ObjectModel
+from ..util.atomic_file import atomic_output
 
 
 def cache_dir() -> Path:

@@ -28,10 +28,10 @@ import weakref
 import cv2
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import Box, Rendering
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import Box, Rendering
+from ..core.scene import Frame
 from .visibility import hypothesis_rendering, visible_edges
 
 _GRAD_KEY = "scoring:gradients:gauss1:sobel3"

@@ -20,8 +20,8 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from ..geometry import Pose
-from ..models import ObjectModel
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
 
 
 def point_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
@@ -217,7 +217,7 @@ def distance_field(model: ObjectModel, cells: int = 64, margin: int = 6) -> Dist
         return f
     from scipy.ndimage import distance_transform_edt
 
-    from ..models import face_normals, sample_surface
+    from ..core.models import face_normals, sample_surface
 
     cell = model.diameter / cells
     _, area = face_normals(model.vertices, model.faces)

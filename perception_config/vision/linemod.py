@@ -1,7 +1,7 @@
 """LINE-MOD template matching (Hinterstoisser et al. 2012, OpenCV's cv2.linemod): the appearance-
 based, ground-truth-free candidate source of the `linemod` generator (blocks/templates.py).
 
-Templates: the model rendered (render.py) with a reference camera (focal `REF_FOCAL`, the object's
+Templates: the model rendered (core/render.py) with a reference camera (focal `REF_FOCAL`, the object's
 centre on the optical axis) from the vertices of an icosphere (`subdivisions`) times `n_inplane`
 rotations about the optical axis, at `n_scales` apparent sizes (the diameter spanning `min_px` ..
 `max_px` pixels, geometric steps): LINE-MOD has no scale search. The colour image given to the
@@ -32,9 +32,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import render_box
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import render_box
 from .disk_cache import cache_dir, load_npz, model_digest, store_npz
 
 LINEMOD_FORMAT = 1  # bump when the cached content changes: old files are rebuilt

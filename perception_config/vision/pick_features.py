@@ -1,4 +1,5 @@
-"""Features of a hypothesis for the learned pick-success score (blocks/pick_success.py).
+"""Features of a hypothesis for the learned pick-success score (blocks/pick_success.py; the scores
+themselves come from the scoring blocks, run by blocks/features.py).
 
 What a pick succeeds on is the pose error (symmetry-aware MSSD <= 0.1 x diameter), which no
 score sees; these features are the evidence a frame gives about it, as plain floats (NaN where
@@ -31,14 +32,13 @@ call costs 20-40 ms.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import project
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import project
+from ..core.scene import Frame
 from .appearance import edge_agreement, nearest_edges
 from .edges import canny_edges, silhouette_points
 from .visibility import hypothesis_rendering, visible_surface
@@ -64,38 +64,6 @@ NEEDS_DEPTH: frozenset[str] = frozenset({"psi_d", "psi_d_m1", "psi_d_m2", "icp_f
 EDGE_TAU = 10.0  # px: truncation of the outline-to-edge distance (as psi_rgb)
 EDGE_FINE_TAU = 4.0  # px: the orientation-aware agreement at a tighter truncation than psi_rgb_edges' 10 px
 EDGE_MAX_ANGLE = math.radians(22.5)  # edge direction mismatch beyond which an edge does not count (as psi_rgb)
-_SCORERS_KEY = "pick_features:scorers"
-_scorers: dict[str, Any] = {}
-
-
-def _score_blocks() -> dict[str, Any]:
-    """The scoring blocks at their default parameters, created once per process."""
-    if not _scorers:
-        from ..blocks.base import create
-
-        for block in dict.fromkeys(b for _, b in SCORE_FEATURES):
-            _scorers[block] = create(block)
-    return _scorers
-
-
-def pipeline_scores(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None) -> tuple[dict[str, float], dict]:
-    """The scores of SCORE_FEATURES at `pose` (NaN where a block cannot run, e.g. psi_d on an
-    RGB-only frame) and psi_rgb's info (its best-fit shift)."""
-    from ..blocks.base import BlockInput
-
-    inp = BlockInput(frame=frame, model=model, pose=pose, cache=cache if cache is not None else {})
-    out: dict[str, float] = {}
-    rgb_info: dict = {}
-    for name, block in _score_blocks().items():
-        r = block(inp)
-        for score in block.score_names:
-            v = r.scores.get(score, math.nan) if r.ok else math.nan
-            out[score] = float(v) if v is not None and math.isfinite(v) else math.nan
-        if name == "psi_rgb" and r.ok:
-            rgb_info = r.info
-    return out, rgb_info
-
-
 def depth_residuals(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None) -> dict[str, float]:
     """DEPTH_FEATURES (module docstring); all NaN on an RGB-only frame or an empty rendering."""
     out = dict.fromkeys(DEPTH_FEATURES, math.nan)
@@ -164,19 +132,11 @@ def visibility(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None)
     return {"in_image": float(inside.mean()), "visible_share": float(min(1.0, vis / facing)) if facing else math.nan}
 
 
-def pick_features(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None,
-                  use_depth: bool = True) -> dict[str, float]:
+def features_from_scores(frame: Frame, model: ObjectModel, pose: Pose, scores: dict[str, float],
+                         rgb_info: dict, cache: dict) -> dict[str, float]:
     """Every feature of FEATURE_NAMES for the hypothesis `pose` of `model` in `frame` (NaN where
-    the frame cannot tell). `use_depth=False` treats the frame as RGB-only (the depth features
-    NaN) without copying it. `cache`: the frame's shared cache (BlockInput.cache)."""
-    if cache is None:
-        cache = {}
-    if not use_depth and frame.depth is not None:
-        from dataclasses import replace
-
-        frame = replace(frame, depth=None)
-        cache = {}  # the caches hold depth-derived entries keyed by pose only
-    scores, rgb_info = pipeline_scores(frame, model, pose, cache)
+    the frame cannot tell), given the scoring blocks' `scores` and psi_rgb's `rgb_info` at that
+    pose (blocks.features.pick_features runs them). `cache`: the frame's shared cache."""
     out = {n: scores.get(n, math.nan) for n, _ in SCORE_FEATURES}
     out.update(depth_residuals(frame, model, pose, cache))
     shift = rgb_info.get("shift_px")
@@ -193,5 +153,5 @@ def rgb_only(features: dict[str, float]) -> dict[str, float]:
     return {n: (math.nan if n in NEEDS_DEPTH else v) for n, v in features.items()}
 
 
-__all__ = ["FEATURE_NAMES", "NEEDS_DEPTH", "SCORE_FEATURES", "pick_features", "rgb_only", "pipeline_scores",
-           "depth_residuals", "outline_edges", "visibility"]
+__all__ = ["FEATURE_NAMES", "NEEDS_DEPTH", "SCORE_FEATURES", "features_from_scores", "rgb_only", "depth_residuals",
+           "outline_edges", "visibility"]

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ..geometry import exp_so3, log_so3
+from ..core.geometry import exp_so3, log_so3
 
 LOSSES = ("huber", "geman_mcclure", "tukey")
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..models import ObjectModel
+from ..core.models import ObjectModel
 from .disk_cache import cache_dir, load_npz, model_digest, store_npz
 
 PPF_FORMAT = 2  # bump when the table's content or layout changes: old cache files are rebuilt

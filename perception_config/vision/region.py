@@ -34,9 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import Pose
-from ..render import Rendering
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.render import Rendering
+from ..core.scene import Frame
 from .appearance import band_posterior, colour_codes, outline_bands, padded_mask, region_separation
 from .edges import bilinear, silhouette_points
 

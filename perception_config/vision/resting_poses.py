@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..geometry import Pose
-from ..models import ObjectModel
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
 from .features import DistanceField
 
 MAX_SAMPLES = 150  # model and region points per comparison: enough to tell turns apart, cheap to query

@@ -14,7 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..scene import Frame
+from ..core.scene import Frame
 
 MIN_DEPTH_JUMP = 0.008  # metres: neighbour differences below this are noise or slanted surfaces
 # An object spanning fewer pixels covers fewer than the 40 a region needs (segment_scene's

@@ -17,10 +17,10 @@ import time
 import numpy as np
 import open3d as o3d
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import Rendering, project, render_box
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import Rendering, project, render_box
+from ..core.scene import Frame
 from .colour import chromaticity, colours_agree, model_point_colours
 from .features import point_cloud
 from .segmentation import Segmentation, dominant_label

@@ -25,10 +25,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..geometry import Pose
-from ..models import ObjectModel
-from ..render import Box, Rendering, project, projected_box, render_box
-from ..scene import Frame
+from ..core.geometry import Pose
+from ..core.models import ObjectModel
+from ..core.render import Box, Rendering, project, projected_box, render_box
+from ..core.scene import Frame
 
 _RENDER_KEY = "visibility:render"  # list of (model, R bytes, t bytes, Rendering), newest last
 _SURFACE_KEY = "visibility:surface"

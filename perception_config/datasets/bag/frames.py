@@ -30,8 +30,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ...geometry import Pose, matrix_from_quaternion
-from ...scene import Frame, SceneObject
+from ...core.geometry import Pose, matrix_from_quaternion
+from ...core.scene import Frame, SceneObject
 from .errors import BagFormatError, BagTruncatedError, BagTruncatedWarning, BagWarning, ImageFormatError
 from .mcap_reader import make_decoder, schema_name
 from .messages import header_stamp_ns, image_msg_to_depth, image_msg_to_rgb

@@ -63,9 +63,9 @@ from typing import Any, Callable, Iterable
 
 import yaml
 
-from ...atomic_file import atomic_write
-from ...geometry import nearest_rotation, quaternion_from_matrix
-from ...scene import Frame
+from ...core.geometry import nearest_rotation, quaternion_from_matrix
+from ...core.scene import Frame
+from ...util.atomic_file import atomic_write
 from .definitions import definition, type_hash
 from .errors import BagWriteInterrupted
 from .messages import OPTICAL_FRAME, camera_info_fields, depth_to_image_fields, header_fields, rgb_to_image_fields

@@ -1,0 +1,6 @@
+"""`python -m perception_config.cli ...`: the same as `perception-config ...`."""
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,2 @@
+"""Starting the nodes: node resolution, the process supervisor, the ROS environment and Fast DDS
+shared-memory housekeeping (no rclpy here)."""

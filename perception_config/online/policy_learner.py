@@ -1,0 +1,308 @@
+"""Online learning behind the configurator: train candidates on stored estimates, promote only winners.
+
+The configurator (`learn: true`, ros/configurator_node.py) stores every estimate in
+`<learn_dir>/episodes.sqlite` (store/episode_store.py) and its camera frame in `<learn_dir>/frames/`
+(store/frames.py). This module is the other half, run in a separate process (`run_learner`,
+started with multiprocessing "spawn", niced, torch and Open3D on one thread) so that it never
+delays `estimate_pose`: it only reads the store and the frames and writes policy files.
+
+One learning cycle, every `every` new stored estimates (`learn_once`):
+1. the replayable episodes: stored configurator estimates whose frame file is kept and carries
+   the estimated object's ground truth (the simulated initialisation and the simulated pick
+   need it; a robot cell without ground truth records its estimates and pick outcomes, but
+   they cannot be replayed: no candidate is trained on them and the policy stays as it is);
+2. a candidate: REINFORCE (agents/policy_gradient.py, trained with training.play_round and the
+   agent's own update, the same code as `perception-config train`) continued from the serving
+   version's weights, or a fresh pg when the serving version has none (the fixed pipeline); it
+   plays `train_episodes` episodes on the stored frames with fresh episode seeds;
+3. the replay check: the serving version and the candidate (both greedy) play the newest
+   `check_episodes` stored episodes in-process, same operators, same frames, same lambda, the
+   stored episode seeds and acting seeds (episode_loop.acting_seed); time is the cost table
+   (env time_mode "cost_table"), so both are charged the same seconds for the same actions and
+   the comparison is deterministic, not a race against the machine's load. Cost = the env's:
+   charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
+4. promotion only if cost(candidate) < (1 - margin) x cost(serving): the file is kept as the next
+   version (policy_versions.PolicyVersions); otherwise the candidate is deleted.
+Each cycle reports one line (`format_result`), the line the configurator logs:
+    learner: candidate from N episodes: cost X vs serving Y -> promoted vN | discarded
+A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line
+`learner: no candidate: <reason>; serving vN unchanged`; the worker keeps running.
+
+When the pipeline scores pick_success, each cycle first refits that score (online/score_learner.py:
+candidates checked on held-out stored frames, promoted by the same margin, versions in
+`<learn_dir>/pick_success/`), then trains the policy candidate on the score that then serves.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..agents import Agent, EnvSpec, make_agent
+from ..agents.policy_io import load_agent, policy_info, save_agent
+from ..blocks.pick_success import follow_score_versions
+from ..blocks.pipeline import load_pipeline
+from ..datasets.bop import ModelFolder
+from ..rl.env import PerceptionConfigEnv
+from ..rl.episode_loop import acting_seed, play_episode
+from ..rl.operators import Episode
+from ..rl.settings import EnvSettings
+from ..store.episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
+from ..store.frames import frame_path, load_frame
+from ..util.versions import PolicyVersionError, PolicyVersions
+from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
+
+__all__ = ["PolicyVersions", "LearnerSettings", "learn_once", "run_learner", "format_result"]
+
+POLICIES = "policies"
+FRAMES = "frames"
+LEARNER_LOG = "learner.log"
+CANDIDATES = "candidates"
+MIN_EPISODES = 2  # replayable episodes a candidate needs at least
+
+
+@dataclass
+class LearnerSettings:
+    """What the learner needs to rebuild the configurator's environment in-process."""
+
+    models_dir: str
+    pipeline: str | None  # a pipeline reference (blocks.pipeline.pipeline_reference) or None: the default
+    env_settings: dict[str, Any]  # EnvSettings.to_json() of the serving environment
+    margin: float = 0.05
+    every: int = 20
+    train_episodes: int = 200
+    check_episodes: int = 40
+    seed: int = 0
+    poll_seconds: float = 1.0
+    extra: dict[str, Any] = field(default_factory=dict)  # recorded in each candidate's metadata
+
+    def env(self, learn_dir: str | Path | None = None) -> PerceptionConfigEnv:
+        """The serving environment in cost-table time; its pick_success score follows the score
+        versions of `learn_dir` (online/score_learner.py)."""
+        settings = EnvSettings.from_json(self.env_settings, "learner settings").replace(time_mode="cost_table")
+        pipeline = load_pipeline(self.pipeline)
+        if learn_dir is not None:
+            follow_score_versions(pipeline, Path(learn_dir) / SCORES)
+        return PerceptionConfigEnv(None, pipeline, settings)
+
+
+class LearnError(RuntimeError):
+    """A cycle that produced no candidate; the message says why."""
+
+
+# -- the stored episodes ---------------------------------------------------------------------
+def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None = None,
+                        log: Callable[[str], None] = lambda s: None) -> tuple[list[Episode], int]:
+    """The stored configurator estimates that can be replayed in-process (frame kept, with the
+    object's ground truth), newest last, at most `limit` (the newest); and how many estimates
+    were looked at."""
+    try:
+        with EpisodeStore(learn_dir / STORE_NAME, readonly=True, busy_timeout=2.0) as store:
+            rows = store.query(
+                "SELECT id, frame_stamp_ns, obj_id, noise_lambda, episode_seed FROM episodes "
+                "WHERE source = 'configurator' AND frame_stamp_ns IS NOT NULL AND episode_seed IS NOT NULL "
+                "AND obj_id IS NOT NULL ORDER BY id DESC")
+    except (sqlite3.Error, OSError, EpisodeStoreError) as exc:
+        raise LearnError(f"episode store {learn_dir / STORE_NAME} cannot be read: {exc}") from None
+    frames: dict[int, Any] = {}
+    out: list[Episode] = []
+    for eid, stamp, obj_id, lam, seed in rows:
+        if limit is not None and len(out) >= limit:
+            break
+        if stamp not in frames:
+            path = frame_path(learn_dir / FRAMES, stamp)
+            frames[stamp] = None
+            if path.exists():
+                try:
+                    frames[stamp] = load_frame(path)
+                except ValueError as exc:
+                    log(f"learner: skipped {exc}")
+        loaded = frames[stamp]
+        if loaded is None or int(obj_id) not in loaded[1]:
+            continue  # no frame kept, or no ground truth for this object: not replayable
+        frame, gt = loaded
+        model = models.model(str(obj_id))
+        out.append(Episode(frame=frame, model=model, ground_truth=gt[int(obj_id)],
+                           noise_lambda=float(lam if lam is not None else 0.5), seed=int(seed),
+                           key=(0, int(eid), int(obj_id)), stamp_ns=int(stamp)))
+    out.reverse()
+    return out, len(rows)
+
+
+# -- candidate and replay check ------------------------------------------------------------------
+def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list[Episode], n_episodes: int,
+                    seed: int, stop: Callable[[], bool] | None = None) -> Agent:
+    """REINFORCE continued from the serving version's weights (a fresh pg when it has none) on
+    `n_episodes` episodes drawn from `episodes` with fresh episode seeds; greedy when returned.
+    `stop` is asked before each round (LearnError when it says so)."""
+    from ..learning.training import play_round
+
+    spec = EnvSpec.from_env(env)
+    if policy_info(serving_file).get("agent") == "pg":
+        learner = load_agent(serving_file, spec, explore=True)
+    else:
+        learner = make_agent("pg", spec, seed=seed)
+    learner.explore = True
+    rng = np.random.default_rng(seed)
+    done = 0
+    while done < n_episodes:
+        if stop is not None and stop():
+            raise LearnError(f"stopped after {done} of {n_episodes} training episodes")
+        k = learner.episodes_per_actor
+        picks = rng.integers(len(episodes), size=k)
+        options = [{"episode": dataclasses.replace(episodes[i], seed=int(rng.integers(1, 2**31)))} for i in picks]
+        act_seeds = rng.integers(2**31, size=(len(learner.actors()), k))
+        learner.update(play_round(env, learner.actors(), options, act_seeds))
+        done += k
+    learner.explore = False
+    return learner
+
+
+def replay_cost(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode]) -> float:
+    """Mean cost (charged seconds + failed picks + truncation) of `agent` on the stored episodes,
+    each with its stored episode seed and the acting seed derived from it."""
+    costs = [play_episode(env, agent, {"episode": ep}, acting_seed(ep.seed)).cost for ep in episodes]
+    return float(np.mean(costs))
+
+
+def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, extra: dict[str, Any]) -> Path:
+    folder = learn_dir / CANDIDATES
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "candidate.safetensors"
+    save_agent(agent, path, {"env_settings": settings.env_settings, "pipeline": settings.pipeline,
+                             **settings.extra, **extra})
+    return path
+
+
+def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[str], None] = lambda s: None,
+               env: PerceptionConfigEnv | None = None, models: ModelFolder | None = None,
+               stop: Callable[[], bool] | None = None) -> dict[str, Any]:
+    """One cycle (module docstring); the result: outcome "promoted" | "discarded" | "failed",
+    episodes, cost, serving_cost, serving (version), version (promoted), reason (failed)."""
+    learn_dir = Path(learn_dir)
+    versions = PolicyVersions(learn_dir / POLICIES)
+    serving = None
+    try:
+        serving = versions.current()
+        if serving is None:
+            raise LearnError(f"no serving version in {versions.folder}")
+        serving_file = versions.path(serving)
+        env = env or settings.env(learn_dir)
+        models = models or ModelFolder(settings.models_dir)
+        episodes, looked = replayable_episodes(learn_dir, models, log=log)
+        if len(episodes) < MIN_EPISODES:
+            raise LearnError(f"{len(episodes)} of {looked} stored estimates can be replayed (a kept frame with the "
+                             f"object's ground truth); at least {MIN_EPISODES} needed")
+        check = episodes[-settings.check_episodes:]
+        started = time.perf_counter()
+        candidate = train_candidate(env, serving_file, episodes, settings.train_episodes, settings.seed + len(episodes),
+                                    stop)
+        serving_agent = load_agent(serving_file, env)
+        serving_cost = replay_cost(env, serving_agent, check)
+        cost = replay_cost(env, candidate, check)
+        result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(episodes),
+                  "train_episodes": settings.train_episodes, "cost": cost, "serving_cost": serving_cost,
+                  "serving": serving, "margin": settings.margin, "seconds": time.perf_counter() - started}
+        path = _save_candidate(candidate, learn_dir, settings, {"learned_from": serving, "replay_check": result})
+        if cost < (1.0 - settings.margin) * serving_cost:
+            result["version"] = versions.promote(path, result)
+            result["outcome"] = "promoted"
+        path.unlink(missing_ok=True)
+        return result
+    except (LearnError, PolicyVersionError, EpisodeStoreError, sqlite3.Error, OSError, ValueError, RuntimeError,
+            KeyError, IndexError) as exc:
+        return {"outcome": "failed", "serving": serving, "reason": f"{type(exc).__name__}: {exc}"[:500]}
+
+
+def format_result(r: dict[str, Any]) -> str:
+    """The learner's one line per cycle (the configurator logs it; the cell simulation parses it)."""
+    if r["outcome"] == "failed":
+        return f"learner: no candidate: {r['reason']}; serving {r.get('serving') or 'nothing'} unchanged"
+    verdict = f"promoted {r['version']}" if r["outcome"] == "promoted" else "discarded"
+    return (f"learner: candidate from {r['episodes']} episodes: cost {r['cost']:.3f} vs serving "
+            f"{r['serving_cost']:.3f} -> {verdict}")
+
+
+# -- the worker process ----------------------------------------------------------------------
+def _stored_count(learn_dir: Path) -> int | None:
+    try:
+        with EpisodeStore(learn_dir / STORE_NAME, readonly=True, busy_timeout=1.0) as store:
+            return int(store.query("SELECT COUNT(*) FROM episodes WHERE source = 'configurator'")[0][0])
+    except (sqlite3.Error, OSError, EpisodeStoreError):
+        return None
+
+
+def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any = None, stop: Any = None,
+                nice: int = 10) -> None:
+    """The worker process: every `settings.every` new stored estimates one `learn_once`; each
+    result goes to `results` (a multiprocessing queue, read by the configurator) and, as its
+    line, to `<learn_dir>/learner.log`. Ends when `stop` (an Event) is set or the parent dies."""
+    learn_dir = Path(learn_dir)
+    parent = os.getppid()
+    # A launcher stops a node with SIGINT to its whole process group: the configurator ends this
+    # process through `stop` (or its death), so Ctrl-C is not ours to handle; SIGTERM still ends it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(nice)
+    except OSError:
+        pass
+    import torch
+
+    torch.set_num_threads(1)
+    from ..util.open3d_threads import open3d_single_thread
+
+    def log(line: str) -> None:
+        try:
+            with open(learn_dir / LEARNER_LOG, "a") as f:
+                f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
+        except OSError:
+            pass
+
+    def report(kind: str, payload: dict[str, Any]) -> None:
+        if results is not None:
+            try:
+                results.put((kind, payload))
+            except (OSError, ValueError):
+                pass
+
+    def stopped() -> bool:
+        return (stop is not None and stop.is_set()) or os.getppid() != parent
+
+    env = None
+    models = None
+    last = None
+    log(f"learner: started (pid {os.getpid()}, nice {nice}), a candidate every {settings.every} new estimates")
+    while not stopped():
+        count = _stored_count(learn_dir)
+        if count is not None and last is None:
+            last = count  # the first cycle comes `every` estimates after the worker started
+        if count is not None and count - last >= settings.every:
+            last = count
+            report("status", {"state": "training", "stored": count})
+            log(f"learner: training a candidate ({count} estimates stored)")
+            try:
+                if env is None:
+                    env, models = settings.env(learn_dir), ModelFolder(settings.models_dir)
+                if pick_success_block(env.pipeline) is not None:
+                    with open3d_single_thread(True):
+                        scored = refit_score_once(learn_dir, settings.models_dir, settings.margin, settings.seed, log)
+                    log(format_score_result(scored))
+                    report("result", scored)
+                with open3d_single_thread(True):
+                    result = learn_once(learn_dir, settings, log, env=env, models=models, stop=stopped)
+            except Exception as exc:  # noqa: BLE001  (the worker must survive any bad cycle)
+                result = {"outcome": "failed", "serving": None, "reason": f"{type(exc).__name__}: {exc}"[:500]}
+            log(format_result(result))
+            report("result", result)
+            report("status", {"state": "idle", "stored": count})
+        if stop is not None:
+            stop.wait(settings.poll_seconds)
+        else:
+            time.sleep(settings.poll_seconds)
