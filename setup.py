@@ -150,6 +150,8 @@ setup(
         "trimesh>=4.0", "zstandard>=0.22", "lz4>=4.3", "gymnasium>=1.0", "torch==2.13.0", "safetensors>=0.4",
         "pyarrow>=14", "ray==2.58.0",
     ],
+    # The documentation (docs/): `pip install .[docs]`, then `sphinx-build docs docs/_build/html`.
+    extras_require={"docs": ["sphinx>=8", "myst-parser>=4"]},
     zip_safe=False,
     maintainer="perception_config developers",
     maintainer_email="dev@perception-config.invalid",
