@@ -79,6 +79,9 @@ if [ ! -x "$PY" ] || ! "$PY" -c 'import sys' >/dev/null 2>&1; then
   "$PYTHON_BIN" -m venv "$VENV"
 fi
 export PIP_DISABLE_PIP_VERSION_CHECK=1
+# Two set-ups at once (two shells, or a test run beside a demo) take turns on the venv.
+exec 9>"$VENV/.setup.lock"
+flock 9
 
 hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -d' ' -f1; }
 req_hash="$(hash_of "$ROOT/requirements.lock" "$ROOT/requirements.txt")"
@@ -123,4 +126,6 @@ if [ "$(cat "$VENV/.package.sha256" 2>/dev/null)" != "$pkg_hash" ] \
     || die "perception_config_interfaces does not import after the install"
   echo "$pkg_hash" > "$VENV/.package.sha256"
 fi
+flock -u 9
+exec 9>&-
 export PATH="$VENV/bin:$PATH"
