@@ -247,7 +247,7 @@ def test_a_short_cell_run_without_learning(ros_node, tmp_path_factory, tmp_path,
 
 @pytest.mark.ros
 def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_path_factory, tmp_path, policy):
-    """With learning (the configurator of issue 16 item 3): learn, learn_dir, learn_start and learn_every
+    """With learning (the configurator's online learning): learn, learn_dir, learn_start and learn_every
     reach the configurator; version 0 (the fixed start) serves, each row carries it (from the trace) and
     the id under which the configurator stored the estimate in <out>/learn/episodes.sqlite, whose
     charged time and outcome are the row's. A reference CSV of a previous run is reused."""

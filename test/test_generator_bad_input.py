@@ -1,5 +1,5 @@
 """Bad input for the ground-truth-free generators `ppf`, `global_registration` and `resting_pose`
-(issue 13): a
+(what a cell without ground truth may meet): a
 model that cannot be prepared (degenerate, tiny, without normals), a model of millions of faces,
 an empty or all-background scene, an object out of view, a frame without depth. Each answers
 ok=False with a reason naming the problem, within the block's time bound (plus MARGIN), and never

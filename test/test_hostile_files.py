@@ -1,4 +1,4 @@
-"""Hostile files: crafted and fuzzed policy files, BOP scenes and bags (issue 14, items 3, 4, 7).
+"""Hostile files: crafted and fuzzed policy files, BOP scenes and bags (nothing read from disk is trusted).
 
 Every input either loads or raises the module's documented error (PolicyError, BopFormatError,
 BagFormatError), within a bounded time and memory. The fuzz tests are seeded and stop after

@@ -1,4 +1,4 @@
-"""Online learning (issue 16 item 3): policy versions, the learner's candidates and replay check,
+"""Online learning in the configurator: policy versions, the learner's candidates and replay check,
 and the configurator with `learn:=true` as an OS process over Fast DDS.
 
 The learner's tests record estimates the way the configurator does (an episode in the store with

@@ -208,7 +208,7 @@ def test_topic_choice_prefers_raw_images_and_knows_openni():
 
 
 def test_the_issue_recording_rgb_only_image_raw(tmp_path, capsys):
-    """Issue 15's recording: sensor_msgs/Image on /camera/image_raw, message-level zstd, the type
+    """A driver's recording as reported by a user: sensor_msgs/Image on /camera/image_raw, message-level zstd, the type
     written `sensor_msgs/Image`; bag info named no colour topic and the reader returned the
     compressed payloads."""
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer

@@ -1,4 +1,4 @@
-"""`resting_pose` (issue 13): the stable faces of a part, the planar alignment, and the generator
+"""`resting_pose` (the cell's generator): the stable faces of a part, the planar alignment, and the generator
 on parts lying on a plane: a box turned on a table, the synthetic default's parts (objects on
 the table in clutter), the real LM-O frame; symmetric poses of a ppf vote cluster as one."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The learner refits the pick-success score (issue 16 item 3): rows of the configurator's store
+"""The learner refits the pick-success score online: rows of the configurator's store
 and kept frames (labelled by ground truth or by the robot's pick outcome), a miscalibrated
 serving score replaced by a better candidate, an equal one discarded, a failing cycle that
 changes nothing, and nodes that follow the score versions (in-process and scoring_node over

@@ -3,7 +3,7 @@ the run through the nodes is perception_config/ros/cell_sim_run.py).
 
 A cell replays a bag in a loop through the nodes and estimates every object of the frames it
 sees, one estimate after the other, with the simulated pick; the configurator may learn while
-it serves (issue 16: `learn`, online/policy_learner.py). This module holds what does not need ROS:
+it serves (`learn`, online/policy_learner.py). This module holds what does not need ROS:
 
 - the per-estimate record (`ESTIMATE_COLUMNS`) and its CSV (`EstimateLog`: each row flushed to
   `estimates.csv.part` as it comes, so Ctrl-C or a crash keeps what ran; the finished file

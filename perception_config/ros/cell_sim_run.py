@@ -15,7 +15,7 @@ and verdict are perception_config/bench/cell_sim.py).
    and its frames, lambda and charged time would not be the cell's.
 3. The cell: generation/refinement/scoring/pick nodes, the configurator serving the start
    (`fixed`: the fixed sequence, `untrained`: a fresh pg policy (learning only), or a policy
-   file) with `learn:=true` (the learner of issue 16, its state in `<out>/learn`) unless
+   file) with `learn:=true` (the online learner, its state in `<out>/learn`) unless
    `--no-learn`, and bag_replay_node with `loop:=true`, each its own process (the launcher,
    loopback ROS defaults). This process sees every replayed frame's ground truth and, whenever
    the previous frame's estimates are done, takes the next frame that arrives which it has not
