@@ -60,6 +60,9 @@ class FrameError:
     problem: str
 
 
+CAMERA_QOS = ("reliable", "sensor_data")  # the camera_qos parameter's choices (camera_qos below)
+
+
 def camera_qos(name: str) -> QoSProfile:
     """`reliable` (default: matches rosbag2 play, our replay node and most drivers) or
     `sensor_data` (best effort: also matches drivers that publish best effort)."""

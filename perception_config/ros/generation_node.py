@@ -6,9 +6,7 @@ ground truth replayed on `perception/ground_truth` (ObjectPoses) by the lambda n
 in the paper's systematic evaluation; it needs no camera frame. `global_registration` and `ppf` find
 the object in the camera frame named by `frame.stamp` (zero = the latest).
 
-Parameters (besides those of every operator node, see operator_node.py):
-  default_method  generator used when a request's method is empty (the pipeline's generator)
-  default_lambda  noise level of simulated_init when a request's noise_lambda is negative (0.5)
+Parameters: PARAMETERS below (those of every operator node and two defaults of a request).
 A request's seed makes simulated_init reproducible (0 = draw one); with `score` the hypothesis
 comes back scored by the pipeline's scoring set (the camera frame is then needed too). The
 ground-truth-free generators also answer their ranked candidates (`candidates`, `confidences`),
@@ -22,19 +20,25 @@ import numpy as np
 from perception_config_interfaces.srv import GenerateHypothesis
 
 from ..blocks.base import Kind
-from ..core.geometry import check_noise_lambda
+from ..core.geometry import LAMBDA_MAX, check_noise_lambda
 from .conversions import stamp_to_nanoseconds
-from .operator_node import OperatorNode, answered_pose, make_hypothesis, spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, make_hypothesis, spin
+from .parameters import NodeParameter
 from .request_fields import parse_method, parse_object_id, parse_stamp
+
+PARAMETERS = OPERATOR_PARAMETERS + (
+    NodeParameter("default_method", "", "generator used when a request's method is empty "
+                  "(\"\" = the pipeline's generator)"),
+    NodeParameter("default_lambda", 0.5, "noise level of simulated_init when a request's noise_lambda is negative",
+                  limits=(0.0, LAMBDA_MAX)),
+)
 
 
 class GenerationNode(OperatorNode):
     """Serves `generate_hypothesis`: the pipeline's generators on a cached camera frame."""
 
     def __init__(self) -> None:
-        super().__init__("generation_node", ground_truth=True)
-        self.declare_parameter("default_method", "")
-        self.declare_parameter("default_lambda", 0.5)
+        super().__init__("generation_node", PARAMETERS, ground_truth=True)
         self._rng = np.random.default_rng()
         self.serve(GenerateHypothesis, "generate_hypothesis", self._on_generate)
         self.get_logger().info("serving generate_hypothesis "

@@ -1,25 +1,10 @@
 """What the four operator nodes share: parameters, models, camera frames, ground truth, answering.
 
-Every operator node declares these parameters (and its own):
-  models_dir     BOP models folder (models_info.json + obj_XXXXXX.ply); required to serve
-  pipeline       pipeline YAML or a shipped pipeline's name ('rgb'): its actions are served by name
-                 (empty = the built-in default)
-  cache_size     camera frames (and ground-truth messages) kept, by stamp (30)
-  frame_timeout  seconds a request waits for a frame that has not arrived yet (1.0)
-  camera_qos     reliable | sensor_data (best effort), for the camera subscriptions
-  sync_tolerance seconds between colour and depth stamps still paired (0 = equal stamps)
-  use_depth      true (default): frames are colour + depth + camera_info; false: an RGB-only
-                 camera, frames of colour + camera_info alone (no depth subscription), and a
-                 block that needs depth answers success=false "... needs depth"
+Every operator node declares OPERATOR_PARAMETERS (below) and its own; `ros2 param describe`
+gives each one's description, type and range.
 
 A request names its frame by stamp (a hypothesis' header.stamp; zero = the latest frame). The
 blocks run in the service callback; their per-frame precomputations are kept per cached frame.
-
-  request_queue  requests that may wait while one is served (10); one more is answered at once
-                 with success=false "busy: N requests queued (request_queue=M)"
-  pick_success_versions  a folder of pick-success score versions (online learning,
-                 `<learn_dir>/pick_success`; "" = none): the pipeline's pick_success scores follow
-                 its selected version, checked before each scoring (blocks/pick_success.py)
 
 Threads: a single-threaded executor takes every request as it arrives and sends every answer
 (rclpy's multi-threaded executor's thread hand-offs cost more per service call than they bring;
@@ -46,6 +31,7 @@ import rclpy
 from geometry_msgs.msg import Pose as PoseMsg
 from perception_config_interfaces.msg import Hypothesis, ObjectPoses
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -61,13 +47,37 @@ from ..datasets.bop import ModelFolder
 from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
 from ..rl.operators import FrameCaches
-from .camera_frames import CameraFrames, FrameNotReady, stamp_text
+from .camera_frames import CAMERA_QOS, CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+from .parameters import INT_MAX, NodeParameter, declare
 from .request_fields import excerpt, parse_method, parse_object_id, parse_stamp
-from .request_queue import RequestQueue, service_qos
+from .request_queue import MAX_REQUEST_QUEUE, RequestQueue, service_qos
 from .stamp_cache import StampCache
 
 MAX_BLOCKS = 32  # blocks kept by (method, noise_lambda), least recently used dropped first
+
+OPERATOR_PARAMETERS = (
+    NodeParameter("models_dir", "", "BOP models folder (models_info.json + obj_XXXXXX.ply); required to serve",
+                  read_only=True),
+    NodeParameter("pipeline", "", "pipeline YAML or a shipped pipeline's name ('rgb'): its actions are served by "
+                  "name (empty = the built-in default)", read_only=True),
+    NodeParameter("cache_size", 30, "camera frames (and ground-truth messages) kept, by stamp",
+                  limits=(1, INT_MAX), read_only=True),
+    NodeParameter("frame_timeout", 1.0, "seconds a request waits for a frame that has not arrived yet"),
+    NodeParameter("camera_qos", "reliable", "QoS of the camera subscriptions: reliable, or sensor_data "
+                  "(best effort)", read_only=True, choices=CAMERA_QOS),
+    NodeParameter("sync_tolerance", 0.0, "seconds between colour and depth stamps still paired (0 = equal stamps)",
+                  limits=(0.0, math.inf), read_only=True),
+    NodeParameter("use_depth", True, "true: frames are colour + depth + camera_info; false: an RGB-only camera, "
+                  "frames of colour + camera_info alone (no depth subscription), and a block that needs depth "
+                  "answers success=false \"... needs depth\"", read_only=True),
+    NodeParameter("request_queue", 10, "requests that may wait while one is served; one more is answered at once "
+                  "with success=false \"busy: N requests queued (request_queue=M)\"",
+                  limits=(0, MAX_REQUEST_QUEUE), read_only=True),
+    NodeParameter("pick_success_versions", "", "a folder of pick-success score versions (online learning, "
+                  "`<learn_dir>/pick_success`; \"\" = none): the pipeline's pick_success scores follow its "
+                  "selected version, checked before each scoring (blocks/pick_success.py)", read_only=True),
+)
 
 
 class OperatorNode(Node):
@@ -75,17 +85,10 @@ class OperatorNode(Node):
     the camera frame cache (and replayed ground truth) by stamp, awaiting a frame not yet
     arrived, and answering every request (success=false with a message on bad input)."""
 
-    def __init__(self, name: str, *, ground_truth: bool = False) -> None:
+    def __init__(self, name: str, parameters: tuple[NodeParameter, ...], *, ground_truth: bool = False) -> None:
+        """`parameters`: the node's, OPERATOR_PARAMETERS first."""
         super().__init__(name)
-        self.declare_parameter("models_dir", "")
-        self.declare_parameter("pipeline", "")
-        self.declare_parameter("cache_size", 30)
-        self.declare_parameter("frame_timeout", 1.0)
-        self.declare_parameter("camera_qos", "reliable")
-        self.declare_parameter("sync_tolerance", 0.0)
-        self.declare_parameter("use_depth", True)
-        self.declare_parameter("request_queue", 10)
-        self.declare_parameter("pick_success_versions", "")
+        declare(self, parameters)
 
         self.pipeline = load_pipeline(self.param("pipeline") or None)
         self.score_versions = str(self.param("pick_success_versions"))
@@ -385,7 +388,7 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     try:
         try:
             node = node_factory()
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, ParameterException) as exc:  # the last: a value outside its range
             rclpy.logging.get_logger("perception_config").fatal(f"cannot start: {exc}")
             raise SystemExit(2) from None
         executor = executor_factory()

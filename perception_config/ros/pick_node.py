@@ -7,9 +7,7 @@ and its answer returned (success=false when the robot does not answer within `ro
 
 `success` says the request was handled, `picked` whether the object was picked.
 
-Parameters (besides those of every operator node, operator_node.py):
-  robot_service  name of the robot cell's Pick service ("" = simulated pick)
-  robot_timeout  seconds to wait for the robot's answer (30.0)
+Parameters: PARAMETERS below (those of every operator node and the robot's service).
 """
 from __future__ import annotations
 
@@ -19,16 +17,21 @@ from perception_config_interfaces.srv import Pick
 from rclpy.task import Future
 
 from ..blocks.base import Kind
-from .operator_node import OperatorNode, hypothesis_pose, spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose, spin
+from .parameters import NodeParameter
+
+PARAMETERS = OPERATOR_PARAMETERS + (
+    NodeParameter("robot_service", "", "name of the robot cell's Pick service (\"\" = simulated pick)",
+                  read_only=True),
+    NodeParameter("robot_timeout", 30.0, "seconds to wait for the robot's answer"),
+)
 
 
 class PickNode(OperatorNode):
     """Serves `pick`: simulated from the replayed ground truth, or forwarded to the robot."""
 
     def __init__(self) -> None:
-        super().__init__("pick_node", ground_truth=True)
-        self.declare_parameter("robot_service", "")
-        self.declare_parameter("robot_timeout", 30.0)
+        super().__init__("pick_node", PARAMETERS, ground_truth=True)
         robot = self.param("robot_service")
         self._robot = self.create_client(Pick, robot, callback_group=self._wait_group) if robot else None
         picks = [a.name for a in self.pipeline.actions if a.kind == Kind.PICK]

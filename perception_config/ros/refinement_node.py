@@ -7,7 +7,7 @@ depth where the model is, diverged) answers success=false with its reason; the h
 then the one sent. `seed` seeds a stochastic refiner (D2CO samples model contour points;
 0 = draw one). With `score` the result comes back scored by the pipeline's scoring set.
 
-Parameters: those of every operator node (operator_node.py).
+Parameters: PARAMETERS below, those of every operator node.
 """
 from __future__ import annotations
 
@@ -15,15 +15,17 @@ import numpy as np
 from perception_config_interfaces.srv import RefineHypothesis
 
 from ..blocks.base import Kind
-from .operator_node import OperatorNode, answered_pose, hypothesis_pose, make_hypothesis, spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, hypothesis_pose, make_hypothesis, spin
 from .request_fields import parse_method
+
+PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own
 
 
 class RefinementNode(OperatorNode):
     """Serves `refine_hypothesis`: the pipeline's refiners on a cached camera frame."""
 
     def __init__(self) -> None:
-        super().__init__("refinement_node")
+        super().__init__("refinement_node", PARAMETERS)
         self.serve(RefineHypothesis, "refine_hypothesis", self._on_refine)
         actions = [a.name for a in self.pipeline.actions if a.kind == Kind.REFINEMENT]
         self.get_logger().info(f"serving refine_hypothesis ({', '.join(actions)})")

@@ -6,22 +6,24 @@ cannot score this hypothesis (e.g. it projects outside the image) gives NaN for 
 as in-process, and is named in the message; the request still succeeds. At most 16 methods,
 each named once (request_fields.MAX_METHODS).
 
-Parameters: those of every operator node (operator_node.py).
+Parameters: PARAMETERS below, those of every operator node.
 """
 from __future__ import annotations
 
 from perception_config_interfaces.srv import ScoreHypothesis
 
 from ..blocks.base import Kind
-from .operator_node import OperatorNode, hypothesis_pose, make_hypothesis, spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose, make_hypothesis, spin
 from .request_fields import parse_methods
+
+PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own
 
 
 class ScoringNode(OperatorNode):
     """Serves `score_hypothesis`: the pipeline's scoring set on a cached camera frame."""
 
     def __init__(self) -> None:
-        super().__init__("scoring_node")
+        super().__init__("scoring_node", PARAMETERS)
         self.serve(ScoreHypothesis, "score_hypothesis", self._on_score)
         self.get_logger().info(f"serving score_hypothesis ({', '.join(self.pipeline.score_names)})")
 

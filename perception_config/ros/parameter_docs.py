@@ -1,0 +1,21 @@
+"""The nodes' parameters as a table for the generated reference, read from the very
+NodeParameter specs the nodes declare (parameters.py): what `ros2 param describe` shows,
+without a running ROS graph."""
+from __future__ import annotations
+
+from typing import Any
+
+from . import generation_node, pick_node, refinement_node, scoring_node
+
+
+def node_parameter_table() -> dict[str, list[dict[str, Any]]]:
+    """Node executable name -> one row per parameter, in declaration order: name, type,
+    default (None: not set), description, range ("[low, high]", "inf" = no upper limit;
+    "" = none) and read_only (read only at start-up)."""
+    nodes = {
+        "generation_node": generation_node.PARAMETERS,
+        "refinement_node": refinement_node.PARAMETERS,
+        "scoring_node": scoring_node.PARAMETERS,
+        "pick_node": pick_node.PARAMETERS,
+    }
+    return {node: [p.row() for p in parameters] for node, parameters in nodes.items()}
