@@ -11,7 +11,8 @@ import pytest
 
 from frames import box_mesh
 from perception_config.core.geometry import Pose, exp_so3
-from perception_config.core.models import PlyError, load_model, write_ply
+from perception_config.core.models import load_model
+from perception_config.core.ply import PlyError, write_ply
 from perception_config.core.render import render
 from perception_config.core.scene import Frame, SceneObject
 from perception_config.datasets.bop import (

@@ -11,9 +11,9 @@ import pytest
 from frames import K_LINEMOD, box_model, default_pose, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.generation import GlobalRegistration, SimulatedInit
-from perception_config.core.geometry import SIGMA_R, SIGMA_T, Pose, exp_so3, rotation_angle
+from perception_config.core.geometry import MM, SIGMA_R, SIGMA_T, Pose, exp_so3, rotation_angle
 from perception_config.core.metrics import add
-from perception_config.core.models import MM, make_model
+from perception_config.core.models import make_model
 from perception_config.core.render import MIN_Z
 from perception_config.core.scene import Frame
 from perception_config.vision.colour import colours_agree

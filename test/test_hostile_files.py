@@ -390,7 +390,7 @@ def test_fuzz_bag_reader(bag_file, tmp_path):
 
 
 def test_model_and_results_files_refuse_directories(tmp_path):
-    from perception_config.core.models import PlyError, read_ply
+    from perception_config.core.ply import PlyError, read_ply
     from perception_config.datasets.bop import read_results_csv
 
     (tmp_path / "obj.ply").mkdir()

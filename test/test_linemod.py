@@ -12,9 +12,9 @@ import pytest
 from frames import box_model, default_pose, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.templates import LineMod
-from perception_config.core.geometry import Pose, rotation_angle
+from perception_config.core.geometry import MM, Pose, rotation_angle
 from perception_config.core.metrics import pose_mssd
-from perception_config.core.models import MM, make_model
+from perception_config.core.models import make_model
 from perception_config.core.scene import Frame
 from perception_config.vision import linemod as lm
 

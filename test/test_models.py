@@ -10,17 +10,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from frames import box_mesh
-from perception_config.core.geometry import Pose, exp_so3
-from perception_config.core.models import (
-    MM,
-    PlyError,
-    load_model,
-    make_model,
-    read_ply_mesh,
-    sharp_edges,
-    symmetries_from_info,
-    write_ply,
-)
+from perception_config.core.geometry import MM, Pose, exp_so3
+from perception_config.core.mesh import sharp_edges
+from perception_config.core.models import load_model, make_model
+from perception_config.core.ply import PlyError, read_ply_mesh, write_ply
+from perception_config.core.symmetry import symmetries_from_info
 
 LMO_IDS = [1, 5, 6, 8, 9, 10, 11, 12]
 

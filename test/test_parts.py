@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception_config.core.models import sample_surface, symmetries_from_info
+from perception_config.core.mesh import sample_surface
+from perception_config.core.symmetry import symmetries_from_info
 from perception_config.datasets.parts import (
     MATERIALS,
     build_parts,
@@ -119,7 +120,8 @@ def test_symmetry_counts_as_models_reads_them(parts):
 
 
 def test_write_models_is_a_bop_models_folder(tmp_path, parts):
-    from perception_config.core.models import load_model, read_ply_mesh
+    from perception_config.core.models import load_model
+    from perception_config.core.ply import read_ply_mesh
     from perception_config.datasets.bop import load_json, load_models_info
 
     d = write_models(tmp_path / "models", parts)

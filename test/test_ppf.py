@@ -10,9 +10,9 @@ from scipy.spatial.transform import Rotation
 from frames import box_model, default_pose, synthetic_frame
 from perception_config.blocks.base import REGISTRY, BlockInput, Kind
 from perception_config.blocks.point_pairs import PointPairFeatures
-from perception_config.core.geometry import Pose
+from perception_config.core.geometry import MM, Pose
 from perception_config.core.metrics import pose_mssd
-from perception_config.core.models import MM, make_model
+from perception_config.core.models import make_model
 from perception_config.core.scene import Frame
 from perception_config.vision import ppf
 from perception_config.vision.ppf import cluster_poses, ppf_model, prepare_model, scene_cloud, vote

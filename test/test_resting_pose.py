@@ -138,7 +138,7 @@ def test_the_sweep_turns_a_flange_back_onto_its_bolt_holes():
     aside: its six-fold symmetric disc agrees with the depth almost as well, only the bolt holes
     tell (ICP leaves such a turn where it is). The sweep's best verifying pose is within MSSD
     0.1 d (the 6-fold symmetry counted); the wrong start is not."""
-    from perception_config.core.models import MM
+    from perception_config.core.geometry import MM
     from perception_config.datasets.parts import build_parts
     from perception_config.vision.segmentation import frame_segmentation
     from perception_config.vision.verification import verify
@@ -172,7 +172,7 @@ def test_a_candidate_floating_a_little_is_settled_onto_the_table():
     pixels' and the sensor's noise too: 0.1 d, which the pick's MSSD counts in full): moved
     down onto the table, and the verification at a third of the tolerance, which judges the
     move, prefers it there; a gap of a third of the diameter (stacked) is left alone."""
-    from perception_config.core.models import MM
+    from perception_config.core.geometry import MM
     from perception_config.datasets.parts import build_parts
     from perception_config.vision.segmentation import frame_segmentation
     from perception_config.vision.verification import verify

@@ -68,7 +68,7 @@ def test_a_pose_reads_back_from_its_message_as_operators_keep_it():
 @pytest.fixture(scope="module")
 def generation_node(tmp_path_factory):
     from frames import box_mesh
-    from perception_config.core.models import write_ply
+    from perception_config.core.ply import write_ply
 
     models = tmp_path_factory.mktemp("models")
     info = {}

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+MM = 1e-3  # metres per millimetre: BOP files are in mm
 SIGMA_R = 0.35  # rad, rotation noise at lambda = 1
 SIGMA_T = 0.15  # share of the object diameter, translation noise at lambda = 1
 LAMBDA_MAX = 2.0  # the largest noise level anything accepts (the paper sweeps 0.1 .. 1.0)

@@ -27,8 +27,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .geometry import Pose
-from .models import ObjectModel, symmetries_from_info
+from .models import ObjectModel
 from .render import projected_box, render
+from .symmetry import symmetries_from_info
 
 # BOP 2019+ evaluation settings, converted to metres where they carry a unit.
 VSD_DELTA = 0.015  # m: tolerance of the visibility test (BOP: 15 mm)

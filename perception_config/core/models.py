@@ -2,25 +2,15 @@
 
 Everything every block needs about an object is computed here once per model file and cached,
 so refinement and scoring never touch a mesh file in their hot loop. Units are metres inside
-the code; BOP PLY files are millimetres and are converted when read.
-
-PLY files are read and written with trimesh (ascii and binary, any property order, optional
-normals and colours); its failures become PlyError naming the file. trimesh is imported only
-when a file is read or written.
-
-Surface sampling stays our own: with trimesh's sampler (trimesh.sample.sample_surface, area
-weighted, barycentric normals) feeding the surface distance field, global registration found the
-procedural bracket in 11-12 of 16 sample sets instead of 16 of 16 (measured 2026-12-02 over
-three field seeds). Sharp edges stay our own too: they include boundary and non-manifold edges
-(outlines for the edge refiners), which trimesh's face-adjacency angles do not cover.
+the code; BOP PLY files are millimetres and are converted when read. The pieces live beside:
+PLY files in core/ply.py, mesh helpers (normals, samples, hull, diameter, sharp edges) in
+core/mesh.py, symmetries in core/symmetry.py.
 """
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
-import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -28,30 +18,24 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..util.atomic_file import atomic_write
-from ..util.safe_json import JsonLimitError, read_limited
-from .geometry import Pose
-
-MM = 1e-3  # metres per millimetre: BOP files are in mm
+from .geometry import MM, Pose
+from .mesh import (
+    DEFAULT_EDGE_ANGLE_DEG,
+    MAX_HULL_INPUT,
+    convex_hull_points,
+    max_pairwise_distance,
+    normalize,
+    sample_edges,
+    sample_surface,
+    sharp_edges,
+    vertex_normals,
+)
+from .ply import PlyError, read_ply_mesh
+from .symmetry import DEFAULT_CONT_STEP_DEG, symmetries_from_info
 
 DEFAULT_N_POINTS = 3000  # surface samples per model: enough for ICP and scores, cheap to transform
-DEFAULT_CONT_STEP_DEG = 10.0  # sampling step of continuous symmetries
-DEFAULT_EDGE_ANGLE_DEG = 30.0  # dihedral angle above which a mesh edge counts as sharp
 DEFAULT_MAX_EDGE_POINTS = 2000
-# Beyond these counts a scanned or finely subdivided mesh (millions of faces) is summarised, so it is
-# prepared in seconds: qhull took 20 s on the 1M vertices of a fine sphere, all on its hull, and the
-# diameter is quadratic in the hull's size (43 s for 90k points). Every LM-O model is far below both.
-MAX_HULL_INPUT = 100_000  # vertices beyond which the convex hull is that of a subset ...
-HULL_SUBSET = 20_000  # ... of about this many (qhull: ~1 s for 100k vertices all on the hull)
-MAX_DIAMETER_POINTS = 10_000  # points the diameter is computed over exactly
 COLLINEAR = 1e-4  # samples spread less than this share of the diameter across their line: degenerate
-
-
-MAX_PLY_BYTES = 1024**3  # a model file larger than this (1 GiB) is refused before reading
-
-
-class PlyError(ValueError):
-    """A PLY file that cannot be read as a triangle mesh; the message names the file."""
 
 
 @dataclass(eq=False)
@@ -96,320 +80,6 @@ class ObjectModel:
         return self.bbox_min + idx * self.bbox_size
 
 
-# --------------------------------------------------------------------------- PLY reading and writing
-
-
-def _load_ply_kwargs(path: Path) -> dict[str, Any]:
-    """trimesh's PLY loader on the file's bytes (size-limited read first), with its failures turned
-    into PlyError naming the file; checks that every element has the record count its header says."""
-    try:  # a regular file (not a directory, FIFO or device) of at most MAX_PLY_BYTES
-        data = read_limited(path, MAX_PLY_BYTES, "PLY file")
-    except FileNotFoundError:
-        raise FileNotFoundError(f"PLY file not found: {path}") from None
-    except JsonLimitError as exc:
-        raise PlyError(str(exc)) from None
-    if not data.startswith(b"ply") or b"end_header" not in data:
-        raise PlyError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
-    fmt = next((ln.split()[1:2] for ln in data[:data.find(b"end_header")].split(b"\n") if ln.startswith(b"format")), [])
-    if not fmt or fmt[0] not in (b"ascii", b"binary_little_endian", b"binary_big_endian"):
-        # trimesh would read any other format as binary and report a size mismatch
-        raise PlyError(f"{path}: unknown PLY format {fmt[0].decode(errors='replace') if fmt else '(none)'!r}")
-    from trimesh.exchange.ply import load_ply  # lazy: trimesh is only needed when a file is read
-
-    try:
-        with warnings.catch_warnings():  # numpy warns on partial ascii rows; the count check reports them
-            warnings.simplefilter("ignore")
-            kwargs = load_ply(io.BytesIO(data), fix_texture=False, skip_materials=True)
-    except Exception as exc:  # trimesh raises ValueError, KeyError, IndexError, ... on malformed files
-        text = str(exc)
-        if "unexpected length" in text:
-            raise PlyError(f"{path}: truncated (or with extra bytes): the binary body's size is not what the "
-                           "header describes") from None
-        if isinstance(exc, KeyError):
-            raise PlyError(f"{path}: bad PLY header: unknown type or element {text}") from None
-        raise PlyError(f"{path}: malformed PLY ({type(exc).__name__}: {text})") from None
-    for name, el in kwargs["metadata"]["_ply_raw"].items():
-        got = _record_count(el.get("data"))
-        if el.get("length", 0) and got != el["length"]:
-            raise PlyError(f"{path}: truncated: element '{name}' has {got} of {el['length']} records")
-    return kwargs
-
-
-def _record_count(data: Any) -> int:
-    if data is None:
-        return 0
-    if isinstance(data, dict):
-        return min((len(v) for v in data.values()), default=0)
-    return len(data)
-
-
-def _element_columns(data: Any) -> dict[str, np.ndarray]:
-    """{property: array} of one element of trimesh's raw PLY structure (list properties: the lists)."""
-    if isinstance(data, dict):  # ascii: scalar properties come as (n, 1) columns
-        return {k: v[:, 0] if isinstance(v, np.ndarray) and v.ndim == 2 and v.shape[1] == 1 else v
-                for k, v in data.items()}
-    out = {}
-    for name in data.dtype.names or ():
-        col = data[name]
-        out[name] = col["f1"] if col.dtype.names and "f1" in col.dtype.names else col
-    return out
-
-
-def read_ply(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
-    """Read a PLY file (trimesh) into {element: {property: array}}; a list property is a 2D array
-    (one row per record) or a list of arrays when the lengths differ.
-
-    Raises PlyError naming the file for anything malformed (bad header, truncated body, bad token).
-    """
-    path = Path(path)
-    raw = _load_ply_kwargs(path)["metadata"]["_ply_raw"]
-    return {name: _element_columns(el.get("data")) if el.get("data") is not None else {} for name, el in raw.items()}
-
-
-def read_ply_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Triangle mesh of a PLY file (trimesh) in file units: vertices (N,3) float64, faces (M,3) int32,
-    vertex normals (N,3) or None, vertex colours (N,3) uint8 or None. Quads are split in two.
-    """
-    path = Path(path)
-    kwargs = _load_ply_kwargs(path)
-    raw = kwargs["metadata"]["_ply_raw"]
-    vertex = raw.get("vertex")
-    if vertex is None or not all(k in vertex["properties"] for k in "xyz"):
-        raise PlyError(f"{path}: no 'vertex' element with x, y, z")
-    vertices = np.asarray(kwargs.get("vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    if len(vertices) == 0 or not np.all(np.isfinite(vertices)):
-        raise PlyError(f"{path}: vertices are empty or not finite")
-    normals = kwargs.get("vertex_normals")
-    normals = None if normals is None else np.asarray(normals, dtype=np.float64)
-    colors = None
-    columns = _element_columns(vertex["data"])
-    for names in (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(k in columns for k in names):
-            c = np.stack([np.asarray(columns[k]) for k in names], axis=1)
-            if c.dtype.kind == "f":  # float colours in [0, 1]
-                c = np.clip(c * 255.0 + 0.5, 0, 255)
-            colors = c.astype(np.uint8)
-            break
-    face = raw.get("face")
-    if face is None or not any(k in face["properties"] for k in ("vertex_indices", "vertex_index")):
-        raise PlyError(f"{path}: no 'face' element with vertex_indices (a model needs triangles)")
-    faces = kwargs.get("faces")
-    if faces is None or len(faces) == 0:
-        raise PlyError(f"{path}: mesh has no faces")
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise PlyError(f"{path}: face index out of range [0, {len(vertices)})")
-    return vertices, faces.astype(np.int32), normals, colors
-
-
-def write_ply(
-    path: str | os.PathLike,
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    normals: np.ndarray | None = None,
-    colors: np.ndarray | None = None,
-    binary: bool = True,
-) -> None:
-    """Write a triangle mesh as PLY (trimesh's exporter) in the caller's units (BOP model files are
-    mm), with optional vertex normals and uint8 colours (written as red, green, blue, alpha=255);
-    atomic (util/atomic_file.py)."""
-    import trimesh
-    from trimesh.exchange.ply import export_ply
-
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    mesh = trimesh.Trimesh(
-        vertices=v, faces=f, process=False, validate=False,
-        vertex_normals=None if normals is None else np.asarray(normals, dtype=np.float64).reshape(-1, 3),
-        vertex_colors=None if colors is None else np.asarray(colors, dtype=np.uint8).reshape(-1, 3),
-    )
-    data = export_ply(mesh, encoding="binary" if binary else "ascii", vertex_normal=normals is not None,
-                      include_attributes=False)
-    atomic_write(Path(path), data)
-
-
-# --------------------------------------------------------------------------- mesh helpers
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit face normals (M,3) (zero for degenerate faces) and face areas (M,)."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    n = np.cross(b - a, c - a)
-    norm = np.linalg.norm(n, axis=1)
-    area = 0.5 * norm
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = np.where(norm[:, None] > 0, n / norm[:, None], 0.0)
-    return n, area
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals, for meshes whose file carries none. Summed by bincount in
-    the order np.add.at would (corner 0 of every face, then 1, then 2): the same bits, without
-    add.at's slow loop (a second for 2M faces)."""
-    fn, area = face_normals(vertices, faces)
-    weighted = np.tile(fn * area[:, None], (3, 1))
-    index = faces.T.ravel()
-    acc = np.stack([np.bincount(index, weighted[:, k], len(vertices)) for k in range(3)], axis=1)
-    return _normalize(acc)
-
-
-def _normalize(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, v / n, 0.0)
-
-
-def sample_surface(
-    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, n: int, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """n points uniform over the surface area, with barycentrically interpolated vertex normals
-    (smoother than face normals on scanned meshes). Deterministic for a given seed."""
-    rng = np.random.default_rng(seed)
-    fn, area = face_normals(vertices, faces)
-    if area.sum() <= 0:
-        raise ValueError("mesh has zero surface area")
-    fi = rng.choice(len(faces), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1.0 - s, s * (1.0 - r2), s * r2], axis=1)  # uniform barycentric weights
-    tri = faces[fi]
-    pts = np.einsum("nk,nkd->nd", w, vertices[tri])
-    nrm = _normalize(np.einsum("nk,nkd->nd", w, normals[tri]))
-    bad = np.linalg.norm(nrm, axis=1) < 0.5  # opposing vertex normals: use the face normal
-    nrm[bad] = fn[fi[bad]]
-    return pts, nrm
-
-
-def convex_hull_points(vertices: np.ndarray, max_input: int = MAX_HULL_INPUT) -> np.ndarray:
-    """Vertices of the convex hull (falls back to all vertices for flat/degenerate meshes). Beyond
-    `max_input` vertices, the hull of a subset: the vertices extreme along 128 directions and
-    about HULL_SUBSET more spread evenly over the mesh. It lies inside the true hull by a fraction
-    of their spacing (at most 0.07 mm on the 2M-face part of test_generator_bad_input; projected
-    boxes keep a pixel of margin)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    subset = vertices
-    if len(vertices) > max_input:
-        dirs = _fibonacci_directions(128).astype(np.float32)
-        top, arg = np.full(len(dirs), -np.inf), np.zeros(len(dirs), np.int64)
-        for i in range(0, len(vertices), 50_000):  # in blocks: (50k, 128) projections at a time
-            proj = vertices[i:i + 50_000].astype(np.float32) @ dirs.T
-            k = np.argmax(proj, axis=0)
-            better = proj[k, np.arange(len(dirs))] > top
-            top[better], arg[better] = proj[k[better], np.flatnonzero(better)], i + k[better]
-        subset = vertices[np.union1d(arg, _spread_subset(vertices, HULL_SUBSET))]
-    try:
-        return subset[ConvexHull(subset).vertices]
-    except (QhullError, ValueError):
-        return subset
-
-
-def _spread_subset(points: np.ndarray, n: int) -> np.ndarray:
-    """Indices of about `n` (at most 2 n) points spread evenly over the space they take: the
-    first point in each cell of a grid, the cell sized from the count of occupied cells at a
-    first size (a surface's count grows as 1 / cell^2)."""
-    lo = points.min(axis=0)
-    size = float(np.linalg.norm(points.max(axis=0) - lo)) / 100.0 or 1.0
-    for _ in range(3):
-        cell = np.floor((points - lo) / size).astype(np.int64)  # < 2^21 per axis: 100 cells or fewer
-        _, first = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_index=True)
-        if len(first) <= 2 * n:
-            break
-        size *= math.sqrt(len(first) / n)
-    return first if len(first) <= 2 * n else first[:: -(-len(first) // n)]
-
-
-def _fibonacci_directions(n: int) -> np.ndarray:
-    """(n, 3) unit vectors spread evenly over the sphere."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    r = np.sqrt(1.0 - z**2)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def max_pairwise_distance(points: np.ndarray, max_points: int = MAX_DIAMETER_POINTS) -> float:
-    """Largest distance between two points, in blocks to bound memory. Beyond `max_points` (the
-    hull of a finely tessellated round part), the largest over an even subset, then grown by
-    walking from an end of the best pair to the farthest point of the whole set, and from there
-    on, until it no longer grows: short of the exact value by a sliver of the subset's spacing."""
-    from scipy.spatial.distance import cdist
-
-    pts = points if len(points) <= max_points else points[:: -(-len(points) // max_points)]
-    best, end = 0.0, 0
-    for i in range(0, len(pts), 2048):
-        d = cdist(pts[i:i + 2048], pts, "sqeuclidean")
-        k = int(np.argmax(d))
-        if d.flat[k] > best:
-            best, end = float(d.flat[k]), i + k // len(pts)
-    if pts is not points:
-        a = pts[end]
-        while True:
-            d = np.sum((points - a) ** 2, axis=1)
-            k = int(np.argmax(d))
-            if d[k] <= best:
-                break
-            best, a = float(d[k]), points[k]
-    return math.sqrt(best)
-
-
-def sharp_edges(
-    vertices: np.ndarray, faces: np.ndarray, angle_deg: float = DEFAULT_EDGE_ANGLE_DEG
-) -> np.ndarray:
-    """(K, 2) vertex index pairs of mesh edges whose dihedral angle exceeds angle_deg.
-
-    Boundary edges of open meshes (one adjacent face) count as sharp: they are outlines.
-    Edges with more than two faces are sharp when any adjacent pair exceeds the angle.
-    """
-    fn, _ = face_normals(vertices, faces)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
-    e.sort(axis=1)
-    face_of = np.tile(np.arange(len(faces)), 3)
-    key = e[:, 0] * len(vertices) + e[:, 1]
-    order = np.argsort(key, kind="stable")
-    key, e, face_of = key[order], e[order], face_of[order]
-    first = np.r_[True, key[1:] != key[:-1]]
-    starts = np.flatnonzero(first)
-    counts = np.diff(np.r_[starts, len(key)])
-    cos_thr = math.cos(math.radians(angle_deg))
-    # Compare each half-edge's face with the first face of its group (covers 2-face edges exactly).
-    group = np.cumsum(first) - 1
-    cosang = np.einsum("ij,ij->i", fn[face_of], fn[face_of[starts[group]]])
-    sharp_member = (cosang < cos_thr) & ~first
-    sharp_group = np.zeros(len(starts), dtype=bool)
-    sharp_group[group[sharp_member]] = True
-    sharp_group |= counts == 1
-    return e[starts[sharp_group]]
-
-
-def sample_edges(
-    vertices: np.ndarray, edges: np.ndarray, spacing: float, max_points: int, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Points evenly spaced (about `spacing`) along edges, with unit edge directions; at most
-    max_points (a seeded subset when more)."""
-    if len(edges) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-    d = b - a
-    length = np.linalg.norm(d, axis=1)
-    keep = length > 0
-    a, d, length = a[keep], d[keep], length[keep]
-    total = float(length.sum())
-    if total <= 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    spacing = max(spacing, total / (4 * max_points))  # do not build a huge array first
-    k = np.maximum(1, np.round(length / spacing).astype(np.int64))
-    ei = np.repeat(np.arange(len(length)), k)
-    # position (i + 0.5) / k along each edge
-    offs = np.arange(len(ei)) - np.repeat(np.cumsum(k) - k, k)
-    s = (offs + 0.5) / k[ei]
-    pts = a[ei] + s[:, None] * d[ei]
-    dirs = d[ei] / length[ei, None]
-    if len(pts) > max_points:
-        sel = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
-        pts, dirs = pts[sel], dirs[sel]
-    return pts, dirs
-
 
 def model_defect(model: ObjectModel) -> str:
     """Why `model` cannot be matched against a depth image, or '' when it can: no size, surface
@@ -432,40 +102,6 @@ def model_defect(model: ObjectModel) -> str:
         return f"{name} has no normals: {int(np.sum(~unit))} of its {len(nrm)} surface samples have none"
     return ""
 
-
-# --------------------------------------------------------------------------- symmetries
-
-
-def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by `angle` (rad) about the unit vector `axis`."""
-    from .geometry import exp_so3
-
-    axis = np.asarray(axis, dtype=np.float64)
-    return exp_so3(axis / np.linalg.norm(axis) * angle)
-
-
-def symmetries_from_info(info: Mapping[str, Any] | None, cont_step_deg: float = DEFAULT_CONT_STEP_DEG) -> list[Pose]:
-    """Symmetry transformations (model frame, metres) of a BOP models_info entry (mm).
-
-    As bop_toolkit's get_symmetry_transformations: the discrete ones (identity first) each
-    combined with every sample of the continuous ones, which are sampled every cont_step_deg.
-    """
-    disc = [Pose.identity()]
-    cont: list[Pose] = []
-    if info:
-        for sym in info.get("symmetries_discrete", []) or []:
-            T = np.asarray(sym, dtype=np.float64).reshape(4, 4)
-            disc.append(Pose(T[:3, :3], T[:3, 3] * MM))
-        steps = max(1, int(round(360.0 / cont_step_deg)))
-        for sym in info.get("symmetries_continuous", []) or []:
-            axis = np.asarray(sym["axis"], dtype=np.float64)
-            offset = np.asarray(sym["offset"], dtype=np.float64) * MM
-            for i in range(steps):  # i = 0 is the identity, kept so discrete ones survive alone
-                R = axis_angle_matrix(axis, 2.0 * np.pi * i / steps)
-                cont.append(Pose(R, offset - R @ offset))
-    if not cont:
-        return disc
-    return [c.compose(d) for d in disc for c in cont]
 
 
 # --------------------------------------------------------------------------- model preparation
@@ -501,7 +137,7 @@ def make_model(
     if normals is None or np.asarray(normals).shape != vertices.shape:
         normals = vertex_normals(vertices, faces)
     else:
-        normals = _normalize(np.asarray(normals, dtype=np.float64))
+        normals = normalize(np.asarray(normals, dtype=np.float64))
         if np.any(np.linalg.norm(normals, axis=1) == 0):  # fill zero normals from the faces
             computed = vertex_normals(vertices, faces)
             zero = np.linalg.norm(normals, axis=1) == 0
@@ -579,13 +215,5 @@ def _load_model_cached(
         raise PlyError(f"{path}: {e}") from None
 
 
-def clear_model_cache() -> None:
-    """Forget prepared models (e.g. in long-running processes after replacing datasets)."""
-    _load_model_cached.cache_clear()
 
-
-__all__ = [
-    "ObjectModel", "PlyError", "read_ply", "read_ply_mesh", "write_ply", "load_model", "make_model",
-    "symmetries_from_info", "sample_surface", "sharp_edges", "sample_edges", "vertex_normals",
-    "face_normals", "convex_hull_points", "max_pairwise_distance", "clear_model_cache", "model_defect", "MM",
-]
+__all__ = ["ObjectModel", "load_model", "make_model", "model_defect", "DEFAULT_N_POINTS"]

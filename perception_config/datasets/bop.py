@@ -33,8 +33,8 @@ from typing import Any, Iterable, Iterator, Literal, Mapping, Sequence
 import cv2
 import numpy as np
 
-from ..core.geometry import Pose, nearest_rotation
-from ..core.models import MM, ObjectModel, load_model
+from ..core.geometry import MM, Pose, nearest_rotation
+from ..core.models import ObjectModel, load_model
 from ..core.scene import Frame, SceneObject
 from ..util.atomic_file import atomic_write
 from ..util.safe_json import JsonLimitError, read_json_file, read_limited

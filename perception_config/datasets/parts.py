@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..core.models import write_ply
+from ..core.ply import write_ply
 
 __all__ = [
     "Part", "build_parts", "part_names", "write_models", "models_info_entry",

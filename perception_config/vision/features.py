@@ -217,7 +217,7 @@ def distance_field(model: ObjectModel, cells: int = 64, margin: int = 6) -> Dist
         return f
     from scipy.ndimage import distance_transform_edt
 
-    from ..core.models import face_normals, sample_surface
+    from ..core.mesh import face_normals, sample_surface
 
     cell = model.diameter / cells
     _, area = face_normals(model.vertices, model.faces)
