@@ -4,16 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception_config.core.mesh import sample_surface
+from perception_config.core.mesh import check_closed_oriented, sample_surface, signed_volume
 from perception_config.core.symmetry import symmetries_from_info
-from perception_config.datasets.parts import (
-    MATERIALS,
-    build_parts,
-    check_closed_oriented,
-    signed_volume,
-    symmetry_transforms,
-    write_models,
-)
+from perception_config.datasets.parts import MATERIALS, build_parts, symmetry_transforms, write_models
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ Every part is built here from its dimensions, without booleans and without downl
 as a closed, consistently oriented triangle mesh in **millimetres** (BOP model units) with
 outward normals:
 
-- planar parts with holes (flange, hex nut, bracket) are *layered extrusions*: 2D loops shared
+- planar parts with holes (flange, hex nut, bracket) are *layered extrusions* (mesh_builders.py): 2D loops shared
   between caps and side walls; the caps are triangulated by a conforming Delaunay triangulation
   (scipy) of the loops, refined jointly until every loop segment is a triangle edge, so caps and
   walls meet edge to edge (watertight by construction, checked on every build);
@@ -30,16 +30,17 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
+from ..core.geometry import MM, Pose
+from ..core.mesh import check_closed_oriented, convex_hull_points, max_pairwise_distance
 from ..core.ply import write_ply
+from ..core.symmetry import axis_angle_matrix, symmetries_from_info
+from .mesh_builders import Prism, circle, lathe_ring, rounded_polygon, split_loop_at_x, stadium, sweep
 
-__all__ = [
-    "Part", "build_parts", "part_names", "write_models", "models_info_entry",
-    "check_closed_oriented", "signed_volume", "symmetry_transforms", "MATERIALS",
-]
+__all__ = ["Part", "build_parts", "write_models", "models_info_entry", "symmetry_transforms", "MATERIALS"]
 
 # Material parameters the renderer and the sensor model use (see sensor.py).
 MATERIALS: dict[str, dict[str, float]] = {
@@ -73,311 +74,22 @@ class Part:
 
     @property
     def diameter(self) -> float:
-        from scipy.spatial import ConvexHull
-        from scipy.spatial.distance import pdist
-
-        hull = self.vertices[ConvexHull(self.vertices).vertices]
-        return float(pdist(hull).max())
+        return max_pairwise_distance(convex_hull_points(self.vertices))
 
     def info(self) -> dict:
         return models_info_entry(self.vertices, self.diameter, self.symmetries_discrete, self.symmetries_continuous)
 
 
-# --------------------------------------------------------------------------- mesh checks
-
-
 def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, summed from the unnormalised face cross products (not
+    core/mesh.py's vertex_normals, whose unit-normal-times-area sums differ in the last bit:
+    the elbow's float32 normals in its PLY file would change)."""
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # area-weighted
     acc = np.zeros_like(v)
     for i in range(3):
         np.add.at(acc, f[:, i], n)
     ln = np.linalg.norm(acc, axis=1, keepdims=True)
     return acc / np.maximum(ln, 1e-12)
-
-
-def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Signed volume enclosed by a closed mesh: positive when the faces are oriented outward."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def check_closed_oriented(faces: np.ndarray, vertices: np.ndarray | None = None, min_area: float = 1e-6) -> list[str]:
-    """Problems of a mesh that should be closed and consistently oriented (empty list: fine).
-
-    Every directed edge must occur exactly once and its reverse exactly once (closed, manifold,
-    consistently oriented); with vertices: no triangle below `min_area` (mm^2) and a positive
-    signed volume (outward normals).
-    """
-    problems: list[str] = []
-    f = np.asarray(faces, dtype=np.int64)
-    if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])):
-        problems.append("triangles with a repeated vertex")
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    n = int(f.max()) + 1
-    key = e[:, 0] * n + e[:, 1]
-    uniq, counts = np.unique(key, return_counts=True)
-    if np.any(counts > 1):
-        problems.append(f"{int((counts > 1).sum())} directed edges used twice (flipped or non-manifold)")
-    rev = e[:, 1] * n + e[:, 0]
-    if not np.all(np.isin(rev, uniq)):
-        problems.append(f"{int((~np.isin(rev, uniq)).sum())} edges without a reverse partner (open boundary)")
-    if vertices is not None:
-        v = np.asarray(vertices, dtype=np.float64)
-        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-        if np.any(area < min_area):
-            problems.append(f"{int((area < min_area).sum())} degenerate triangles (area < {min_area} mm^2)")
-        if signed_volume(v, f) <= 0:
-            problems.append("non-positive signed volume (normals point inward)")
-    return problems
-
-
-# --------------------------------------------------------------------------- 2D helpers
-
-
-def _ccw(loop: np.ndarray) -> np.ndarray:
-    loop = np.asarray(loop, dtype=np.float64)
-    x, y = loop[:, 0], loop[:, 1]
-    area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
-    return loop if area > 0 else loop[::-1].copy()
-
-
-def _circle(r: float, n: int, center=(0.0, 0.0), phase: float = 0.0) -> np.ndarray:
-    a = phase + 2.0 * np.pi * np.arange(n) / n
-    return np.stack([center[0] + r * np.cos(a), center[1] + r * np.sin(a)], axis=1)
-
-
-def _rounded_polygon(corners: Sequence[Sequence[float]], radii: Sequence[float], seg: int = 6) -> np.ndarray:
-    """A convex-cornered CCW polygon with each corner filleted by its radius (0 = sharp)."""
-    P = _ccw(np.asarray(corners, dtype=np.float64))
-    out = []
-    n = len(P)
-    for i in range(n):
-        r = radii[i]
-        p, a, b = P[i], P[i - 1], P[(i + 1) % n]
-        if r <= 0:
-            out.append(p)
-            continue
-        u = (a - p) / np.linalg.norm(a - p)
-        w = (b - p) / np.linalg.norm(b - p)
-        half = math.acos(np.clip(np.dot(u, w), -1, 1)) / 2.0
-        d = r / math.tan(half)
-        bis = (u + w) / np.linalg.norm(u + w)
-        c = p + bis * (r / math.sin(half))
-        t0, t1 = p + u * d, p + w * d
-        a0 = math.atan2(*(t0 - c)[::-1])
-        a1 = math.atan2(*(t1 - c)[::-1])
-        da = (a1 - a0 + np.pi) % (2 * np.pi) - np.pi
-        for k in range(seg + 1):
-            ang = a0 + da * k / seg
-            out.append(c + r * np.array([math.cos(ang), math.sin(ang)]))
-    return _ccw(np.array(out))
-
-
-def _stadium(cx: float, cy: float, half_len: float, r: float, seg: int = 10) -> np.ndarray:
-    """A slot: two half circles of radius r joined by straight sides along x."""
-    a1 = np.linspace(-np.pi / 2, np.pi / 2, seg + 1)
-    a2 = np.linspace(np.pi / 2, 3 * np.pi / 2, seg + 1)
-    right = np.stack([cx + half_len + r * np.cos(a1), cy + r * np.sin(a1)], axis=1)
-    left = np.stack([cx - half_len + r * np.cos(a2), cy + r * np.sin(a2)], axis=1)
-    return _ccw(np.concatenate([right, left]))
-
-
-def _inside(pts: np.ndarray, loop: np.ndarray) -> np.ndarray:
-    """Even-odd point-in-polygon test of (P, 2) points against a loop."""
-    x, y = pts[:, 0:1], pts[:, 1:2]
-    x0, y0 = loop[:, 0][None], loop[:, 1][None]
-    x1, y1 = np.roll(loop[:, 0], -1)[None], np.roll(loop[:, 1], -1)[None]
-    cond = (y0 > y) != (y1 > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xint = x0 + (y - y0) * (x1 - x0) / np.where(y1 != y0, y1 - y0, 1.0)
-    return (np.sum(cond & (x < xint), axis=1) % 2) == 1
-
-
-def _split_loop_at_x(loop: np.ndarray, xs: Sequence[float]) -> np.ndarray:
-    """Insert a vertex wherever a loop segment crosses one of the vertical lines x = xs."""
-    out = []
-    n = len(loop)
-    for i in range(n):
-        p, q = loop[i], loop[(i + 1) % n]
-        out.append(p)
-        cuts = [(x - p[0]) / (q[0] - p[0]) for x in xs if q[0] != p[0] and min(p[0], q[0]) < x < max(p[0], q[0])]
-        for t in sorted(cuts):
-            out.append(p + t * (q - p))
-    return np.array(out)
-
-
-def _triangulate_regions(
-    loops: list[np.ndarray], regions: list[tuple[int, list[int]]], steiner: dict[int, np.ndarray] | None = None,
-    max_iter: int = 30,
-) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
-    """Conforming Delaunay triangulation of planar regions bounded by shared loops.
-
-    regions: (outer loop index, [hole loop indices]). Loops are refined (midpoints inserted) until
-    every loop segment is an edge of every region that uses it. Returns the refined loops and per
-    region (points (P, 2), triangles (T, 3) counter-clockwise), points listed loop by loop first.
-    """
-    from scipy.spatial import Delaunay
-
-    loops = [np.asarray(lp, dtype=np.float64) for lp in loops]
-    steiner = steiner or {}
-    for _ in range(max_iter):
-        missing: dict[int, set[int]] = {}
-        results = []
-        for r, (oi, holes) in enumerate(regions):
-            ids = [oi] + list(holes)
-            pts = [loops[i] for i in ids]
-            offs = np.cumsum([0] + [len(p) for p in pts])
-            boundary = np.concatenate(pts)
-            extra = np.zeros((0, 2))
-            if r in steiner and len(steiner[r]):
-                s = np.asarray(steiner[r], dtype=np.float64)
-                ok = _inside(s, loops[oi])
-                for h in holes:
-                    ok &= ~_inside(s, loops[h])
-                extra = s[ok]
-            lo, hi = boundary.min(0), boundary.max(0)
-            span = (hi - lo).max()
-            frame = np.array([[lo[0] - span, lo[1] - span], [hi[0] + span, lo[1] - span],
-                              [hi[0] + span, hi[1] + span], [lo[0] - span, hi[1] + span]])
-            allp = np.concatenate([boundary, extra, frame])
-            tri = Delaunay(allp)
-            if len(tri.coplanar):
-                raise RuntimeError("triangulation dropped coincident points")
-            simp = tri.simplices
-            nreal = len(boundary) + len(extra)
-            simp = simp[np.all(simp < nreal, axis=1)]
-            edges = set()
-            for a, b in ((0, 1), (1, 2), (2, 0)):
-                e = np.sort(simp[:, [a, b]], axis=1)
-                edges.update(map(tuple, e.tolist()))
-            for k, li in enumerate(ids):
-                n = len(loops[li])
-                for j in range(n):
-                    e = tuple(sorted((int(offs[k] + j), int(offs[k] + (j + 1) % n))))
-                    if e not in edges:
-                        missing.setdefault(li, set()).add(j)
-            cen = allp[simp].mean(axis=1)
-            keep = _inside(cen, loops[oi])
-            for h in holes:
-                keep &= ~_inside(cen, loops[h])
-            simp = simp[keep]
-            p = allp[simp]
-            cross = ((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
-                     - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
-            simp = np.where((cross < 0)[:, None], simp[:, [0, 2, 1]], simp)
-            results.append((allp[:nreal], simp))
-        if not missing:
-            return loops, results
-        for li, segs in missing.items():
-            lp, out = loops[li], []
-            for j in range(len(lp)):
-                out.append(lp[j])
-                if j in segs:
-                    out.append(0.5 * (lp[j] + lp[(j + 1) % len(lp)]))
-            loops[li] = np.array(out)
-    raise RuntimeError("conforming triangulation did not converge")
-
-
-# --------------------------------------------------------------------------- builders
-
-
-class _Prism:
-    """Layered extrusion: planar caps at given heights bounded by shared 2D loops, and
-    vertical walls between two heights along a loop. Loops are stored counter-clockwise."""
-
-    def __init__(self) -> None:
-        self.loops: list[np.ndarray] = []
-        self.caps: list[tuple[float, int, list[int], bool]] = []
-        self.walls: list[tuple[int, float, float, bool]] = []
-        self.steiner: dict[int, np.ndarray] = {}
-
-    def loop(self, pts: np.ndarray) -> int:
-        self.loops.append(_ccw(pts))
-        return len(self.loops) - 1
-
-    def cap(self, z: float, outer: int, holes: Sequence[int] = (), up: bool = True, steiner=None) -> None:
-        if steiner is not None:
-            self.steiner[len(self.caps)] = np.asarray(steiner)
-        self.caps.append((z, outer, list(holes), up))
-
-    def wall(self, loop: int, z0: float, z1: float, outward: bool = True) -> None:
-        """outward=True: the material is inside the loop (an outer wall); False: a hole's wall."""
-        self.walls.append((loop, z0, z1, outward))
-
-    def build(self) -> tuple[np.ndarray, np.ndarray]:
-        loops, tris = _triangulate_regions(self.loops, [(o, h) for _, o, h, _ in self.caps], self.steiner)
-        V: list[np.ndarray] = []
-        F: list[np.ndarray] = []
-        nv = 0
-        for (z, _, _, up), (p2, t) in zip(self.caps, tris):
-            V.append(np.column_stack([p2, np.full(len(p2), z)]))
-            F.append((t if up else t[:, [0, 2, 1]]) + nv)
-            nv += len(p2)
-        for li, z0, z1, outward in self.walls:
-            lp = loops[li]
-            n = len(lp)
-            V.append(np.column_stack([lp, np.full(n, z0)]))
-            V.append(np.column_stack([lp, np.full(n, z1)]))
-            i = np.arange(n)
-            j = (i + 1) % n
-            b0, b1, t0, t1 = nv + i, nv + j, nv + n + i, nv + n + j
-            f = np.concatenate([np.stack([b0, b1, t1], 1), np.stack([b0, t1, t0], 1)])
-            F.append(f if outward else f[:, [0, 2, 1]])
-            nv += 2 * n
-        return _weld(np.concatenate(V), np.concatenate(F))
-
-
-def _weld(V: np.ndarray, F: np.ndarray, decimals: int = 7) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices with identical coordinates (the builders produce them bit-identically)."""
-    key = np.round(V, decimals)
-    uniq, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # keep first-seen order: deterministic and readable
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return V[first[order]], rank[inv.reshape(-1)][F].astype(np.int32)
-
-
-def _sweep(
-    profile: np.ndarray, ring: Callable[[float, float], np.ndarray], closed: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sweep a 2D profile through a family of rings: ring(u, v) gives the (N, 3) loop of profile
-    point (u, v); consecutive profile points are joined by quad strips. An open profile is closed
-    at both ends by a fan to the centre of the end ring (the end rings must be convex)."""
-    rings = [np.asarray(ring(float(u), float(v)), dtype=np.float64) for u, v in profile]
-    N = len(rings[0])
-    V = np.concatenate(rings)
-    k = np.arange(N)
-    k1 = (k + 1) % N
-    F = []
-    npts = len(rings)
-    for i in range(npts if closed else npts - 1):
-        a, b = i * N, ((i + 1) % npts) * N
-        F.append(np.stack([a + k, a + k1, b + k1], 1))
-        F.append(np.stack([a + k, b + k1, b + k], 1))
-    if not closed:
-        c0 = len(V)
-        c1 = c0 + 1
-        V = np.concatenate([V, rings[0].mean(0, keepdims=True), rings[-1].mean(0, keepdims=True)])
-        last = (npts - 1) * N
-        F.append(np.stack([np.full(N, c0), k1, k], 1))
-        F.append(np.stack([np.full(N, c1), last + k, last + k1], 1))
-    F = np.concatenate(F).astype(np.int32)
-    if signed_volume(V, F) < 0:
-        F = F[:, [0, 2, 1]]
-    return V, F
-
-
-def _lathe_ring(n: int, phase: float = 0.0) -> Callable[[float, float], np.ndarray]:
-    a = phase + 2 * np.pi * np.arange(n) / n
-    c, s = np.cos(a), np.sin(a)
-    return lambda r, z: np.stack([r * c, r * s, np.full(n, z)], 1)
-
-
-def _rot(axis: Sequence[float], angle: float) -> np.ndarray:
-    axis = np.asarray(axis, dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
 def _T(R: np.ndarray, t: Sequence[float] = (0, 0, 0)) -> np.ndarray:
@@ -400,14 +112,14 @@ def _bracket() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     L = 0.5 * np.pi * Rn  # developed length of the bend zone
     base_len, up_len = 58.0, 40.0  # flat lengths of the legs (outside the bend zone)
     x0, x1 = xb - base_len, xb + L + up_len
-    outline = _rounded_polygon([[x0, -W / 2], [x1, -W / 2], [x1, W / 2], [x0, W / 2]], [7.0, 9.0, 9.0, 7.0], seg=6)
+    outline = rounded_polygon([[x0, -W / 2], [x1, -W / 2], [x1, W / 2], [x0, W / 2]], [7.0, 9.0, 9.0, 7.0], seg=6)
     nb = 8  # bend slabs
     xs = list(xb + L * np.arange(nb + 1) / nb)
-    outline = _split_loop_at_x(outline, xs)
-    P = _Prism()
+    outline = split_loop_at_x(outline, xs)
+    P = Prism()
     o = P.loop(outline)
-    holes = [P.loop(_circle(4.25, 24, (x0 + 18.0, y))) for y in (-10.0, 10.0)]
-    holes.append(P.loop(_stadium(xb + L + up_len * 0.55, 0.0, 7.0, 3.5, seg=10)))
+    holes = [P.loop(circle(4.25, 24, (x0 + 18.0, y))) for y in (-10.0, 10.0)]
+    holes.append(P.loop(stadium(xb + L + up_len * 0.55, 0.0, 7.0, 3.5, seg=10)))
     # Steiner points on the bend lines, so no cap triangle spans the bend.
     ys = np.linspace(-W / 2, W / 2, 17)[1:-1]
     st = np.array([[x, y] for x in xs for y in ys])
@@ -462,8 +174,8 @@ def _cover() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     profile = np.array([
         [-c, H], [0.0, H - c], [0.0, rim_h], [rim_w, rim_h], [rim_w, 0.0], [-t, 0.0], [-t, H - t],
     ])
-    V, F = _sweep(profile, ring, closed=False)
-    sym = [_T(_rot([0, 0, 1], np.pi))]
+    V, F = sweep(profile, ring, closed=False)
+    sym = [_T(axis_angle_matrix([0, 0, 1], np.pi))]
     return V, F, sym, []
 
 
@@ -471,11 +183,11 @@ def _flange() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     """Hub flange: 110 mm disc, 12 mm thick, hub 60 mm x 18 mm, bore 40 mm, six 12 mm bolt holes
     on a 84 mm pitch circle. 6-fold symmetric about z (the hub rules out a flip)."""
     Ro, T, Rh, Hh, ri, rb, Rp, nb = 55.0, 12.0, 30.0, 18.0, 20.0, 6.0, 42.0, 6
-    P = _Prism()
-    lo = P.loop(_circle(Ro, 96))
-    lh = P.loop(_circle(Rh, 60))
-    li = P.loop(_circle(ri, 48))
-    bolts = [P.loop(_circle(rb, 20, (Rp * math.cos(2 * np.pi * k / nb), Rp * math.sin(2 * np.pi * k / nb)),
+    P = Prism()
+    lo = P.loop(circle(Ro, 96))
+    lh = P.loop(circle(Rh, 60))
+    li = P.loop(circle(ri, 48))
+    bolts = [P.loop(circle(rb, 20, (Rp * math.cos(2 * np.pi * k / nb), Rp * math.sin(2 * np.pi * k / nb)),
                             phase=2 * np.pi * k / nb)) for k in range(nb)]
     P.cap(0.0, lo, [li] + bolts, up=False)
     P.cap(T, lo, [lh] + bolts, up=True)
@@ -486,7 +198,7 @@ def _flange() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     for bl in bolts:
         P.wall(bl, 0.0, T, False)
     V, F = P.build()
-    sym = [_T(_rot([0, 0, 1], 2 * np.pi * k / nb)) for k in range(1, nb)]
+    sym = [_T(axis_angle_matrix([0, 0, 1], 2 * np.pi * k / nb)) for k in range(1, nb)]
     return V, F, sym, []
 
 
@@ -528,9 +240,9 @@ def _elbow() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
             inner = [s for s in arc_s if min(s0, s1) < s < max(s0, s1)]
             for s in sorted(inner, reverse=s1 < s0):
                 prof.append((s, r0 + (r1 - r0) * (s - s0) / (s1 - s0)))
-    V, F = _sweep(np.array(prof), ring, closed=True)
+    V, F = sweep(np.array(prof), ring, closed=True)
     axis = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
-    sym = [_T(_rot(axis, np.pi))]  # about the bisector through the bend centre (the origin)
+    sym = [_T(axis_angle_matrix(axis, np.pi))]  # about the bisector through the bend centre (the origin)
     return V, F, sym, []
 
 
@@ -539,21 +251,21 @@ def _hexnut() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
     and by a half turn about x (flip): 12 symmetries, 11 without the identity."""
     s, m, rbore = 30.0, 16.0, 10.0
     Rc = s / math.sqrt(3)  # corner radius
-    P = _Prism()
-    hexagon = _circle(Rc, 6)  # corners at 0, 60, ... deg
+    P = Prism()
+    hexagon = circle(Rc, 6)  # corners at 0, 60, ... deg
     # subdivide the hexagon sides so the cap triangles are not needle-thin
     hexagon = np.concatenate([[hexagon[i] + (hexagon[(i + 1) % 6] - hexagon[i]) * k / 4 for k in range(4)]
                               for i in range(6)])
     o = P.loop(hexagon)
-    h = P.loop(_circle(rbore, 48))
+    h = P.loop(circle(rbore, 48))
     P.cap(0.0, o, [h], up=False)
     P.cap(m, o, [h], up=True)
     P.wall(o, 0.0, m, True)
     P.wall(h, 0.0, m, False)
     V, F = P.build()
     V[:, 2] -= m / 2
-    rots = [_rot([0, 0, 1], k * np.pi / 3) for k in range(6)]
-    flip = _rot([1, 0, 0], np.pi)
+    rots = [axis_angle_matrix([0, 0, 1], k * np.pi / 3) for k in range(6)]
+    flip = axis_angle_matrix([1, 0, 0], np.pi)
     sym = [_T(R) for R in rots[1:]] + [_T(R @ flip) for R in rots]
     return V, F, sym, []
 
@@ -567,7 +279,7 @@ def _bushing() -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[dict]]:
         [rb + c, 0.0], [rbody - c, 0.0], [rbody, c], [rbody, L - tf], [rfl - c, L - tf], [rfl, L - tf + c],
         [rfl, L - c], [rfl - c, L], [rb + c, L], [rb, L - c], [rb, c],
     ])
-    V, F = _sweep(prof, _lathe_ring(64), closed=True)
+    V, F = sweep(prof, lathe_ring(64), closed=True)
     return V, F, [], [{"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}]
 
 
@@ -580,10 +292,6 @@ _SPECS = [
     (5, "hexnut", _hexnut, "shiny", (0.46, 0.47, 0.50)),  # zinc-plated steel
     (6, "bushing", _bushing, "matte", (0.80, 0.78, 0.70)),  # white nylon
 ]
-
-
-def part_names() -> dict[int, str]:
-    return {i: n for i, n, *_ in _SPECS}
 
 
 def build_parts() -> list[Part]:
@@ -610,21 +318,14 @@ def build_parts() -> list[Part]:
 
 
 def symmetry_transforms(part_or_info, cont_steps: int = 36) -> list[np.ndarray]:
-    """4x4 (mm) symmetry transforms incl. identity of a Part or a models_info entry."""
+    """4x4 (mm) symmetry transforms, identity first, of a Part or a models_info entry: those of
+    core/symmetry.py's symmetries_from_info, continuous ones sampled in `cont_steps` steps."""
     if isinstance(part_or_info, Part):
         info = {"symmetries_discrete": part_or_info.symmetries_discrete,
                 "symmetries_continuous": part_or_info.symmetries_continuous}
     else:
         info = part_or_info
-    disc = [np.eye(4)] + [np.asarray(s, float).reshape(4, 4) for s in info.get("symmetries_discrete", [])]
-    out = list(disc)
-    for s in info.get("symmetries_continuous", []):
-        axis, off = np.asarray(s["axis"], float), np.asarray(s["offset"], float)
-        for k in range(1, cont_steps):
-            R = _rot(axis, 2 * np.pi * k / cont_steps)
-            C = _T(R, off - R @ off)
-            out += [C @ D for D in disc]
-    return out
+    return [Pose(s.R, s.t / MM).matrix() for s in symmetries_from_info(info, 360.0 / cont_steps)]
 
 
 # --------------------------------------------------------------------------- BOP output
