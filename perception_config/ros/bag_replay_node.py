@@ -22,22 +22,7 @@ that subscribers with the default QoS match and a consumer that keeps up loses n
 subscribers match too); keep-last 10 bounds memory, so with rate 0 a consumer slower than the
 replay loses the oldest frames: give a rate to replay in real time.
 
-Parameters (type, default)
-  bag (string, "")              bag file (.mcap) or rosbag2 bag directory; required
-  rate (float, 1.0)             1.0 = the recorded timing, 2.0 = twice as fast, 0 = as fast as possible
-  loop (bool, false)            start over at the end, one frame interval later. The stamps are the
-                                bag's own and do not change between passes: nodes that cache frames
-                                by stamp see the same frames again.
-  topics (string[], not set)    bag topics to replay (with or without the leading '/'; a compressed image
-                                topic also by its raw image topic's name); not set = all
-  wait_for_subscribers (int, 0) before starting, wait until `wait_topic` has this many
-  wait_timeout (float, 10.0)      subscribers, at most wait_timeout s (then a warning, and start)
-  wait_for (string[], not set)  per-topic minimum subscribers, "topic:count" (e.g.
-                                camera/color/image_raw:4 perception/ground_truth:3), all awaited
-                                within wait_timeout; replaces wait_for_subscribers when set
-  start_delay (float, 0.0)      seconds before the first message, after wait_for_subscribers (the
-                                other topics may match a moment after the colour topic)
-  decompress_images (bool, true) CompressedImage topics published decoded as sensor_msgs/Image
+Parameters: PARAMETERS below (`ros2 param describe bag_replay_node <name>`).
 
 Pacing (rate > 0): a message is due at (its log time - the first message's log time) / rate after
 the start, on the monotonic clock; a late message is published at once and the schedule does not
@@ -58,7 +43,6 @@ import warnings
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
@@ -73,10 +57,34 @@ from ..datasets.bag.topics import COMPRESSED_IMAGE
 from ..datasets.bag.type_names import check_type_name
 from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
+from .parameters import NodeParameter, declare
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 ACK_TIMEOUT_S = 5.0
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+PARAMETERS = (
+    NodeParameter("bag", "", "bag file (.mcap) or rosbag2 bag directory; required", read_only=True),
+    NodeParameter("rate", 1.0, "1.0 = the recorded timing, 2.0 = twice as fast, 0 = as fast as possible (>= 0)",
+                  read_only=True, number=True),
+    NodeParameter("loop", False, "start over at the end, one frame interval later. The stamps are the bag's own and "
+                  "do not change between passes: nodes that cache frames by stamp see the same frames again",
+                  read_only=True),
+    NodeParameter("topics", Parameter.Type.STRING_ARRAY, "bag topics to replay (with or without the leading '/'; a "
+                  "compressed image topic also by its raw image topic's name); not set = all", read_only=True),
+    NodeParameter("wait_for_subscribers", 0, "before starting, wait until the colour topic (else the first replayed "
+                  "topic) has this many subscribers, at most wait_timeout s (then a warning, and start)",
+                  read_only=True),
+    NodeParameter("wait_timeout", 10.0, "seconds wait_for_subscribers and wait_for wait at most", read_only=True,
+                  number=True),
+    NodeParameter("wait_for", Parameter.Type.STRING_ARRAY, "per-topic minimum subscribers, \"topic:count\" (e.g. "
+                  "camera/color/image_raw:4 perception/ground_truth:3), all awaited within wait_timeout; replaces "
+                  "wait_for_subscribers when set", read_only=True),
+    NodeParameter("start_delay", 0.0, "seconds before the first message, after wait_for_subscribers (the other "
+                  "topics may match a moment after the colour topic)", read_only=True, number=True),
+    NodeParameter("decompress_images", True, "CompressedImage topics published decoded as sensor_msgs/Image",
+                  read_only=True),
+)
 
 
 class ReplayError(Exception):
@@ -122,16 +130,7 @@ class BagReplayNode(Node):
 
     def __init__(self) -> None:
         super().__init__("bag_replay_node")
-        number = ParameterDescriptor(dynamic_typing=True)  # rate:=0 and rate:=0.5 both work
-        self.declare_parameter("bag", "")
-        self.declare_parameter("rate", 1.0, number)
-        self.declare_parameter("loop", False)
-        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)  # not set = all topics
-        self.declare_parameter("wait_for_subscribers", 0)
-        self.declare_parameter("wait_timeout", 10.0, number)
-        self.declare_parameter("wait_for", Parameter.Type.STRING_ARRAY)  # not set = wait_for_subscribers
-        self.declare_parameter("start_delay", 0.0, number)
-        self.declare_parameter("decompress_images", True)
+        declare(self, PARAMETERS)
 
         self.bag = self.get_parameter("bag").value
         self.rate = self._number("rate")

@@ -10,76 +10,18 @@ Each estimate is also published: the pose as geometry_msgs/PoseStamped on `perce
 watching, the live view (debug_view.py) shows it on `perception/debug_image` and
 `perception/markers`.
 
-With `auto` set it estimates every new camera frame (seen on `camera/camera_info`): the
-objects in `auto_objects`, or, when that is empty, every object of the frame's replayed ground
-truth (a test bench). Frames that arrive while an estimate runs are skipped, except the latest.
+With `auto` set it estimates every new camera frame (auto_estimates.py).
 
-Parameters:
-  policy            policy file (.safetensors) from `perception-config train` ("" = the fixed
-                    pipeline `fixed_sequence`)
-  fixed_sequence    the engineer's sequence used without a policy (icp_coarse, icp_fine, pick)
-  pipeline          pipeline YAML ("" = the policy's, else the built-in default); must be the
-                    operator nodes' pipeline
-  models_dir        BOP models folder (the object's diameter is part of the agent's state)
-  max_ops           operators per estimate (0 = the policy's training value, else 10)
-  max_ops_cap       operators per estimate at most, whatever the policy file or request says (50)
-  estimate_timeout  seconds one estimate may take (10.0), checked before each operator and
-                    bounding each operator call's wait; see "Deadline" below
-  request_queue     estimate requests that may wait while one runs (10); one more is answered at
-                    once with success=false "busy: N requests queued (request_queue=M)"
-  noise_lambda      lambda of simulated initialisation when a request does not give one (0.5)
-  operator_timeout  seconds to wait for one operator call (10.0)
-  fused_scoring     the generation and refinement nodes score their own result in the same call
-                    (true: one round trip per action); false: every scoring is a call to
-                    scoring_node (ros_operators.py)
-  auto, auto_objects, auto_every_frame, camera_qos   see above
-  use_depth         true (default): the camera gives depth; false: an RGB-only camera (the
-                    operator nodes' use_depth false): the actions that need depth are masked
-                    (info["action_mask"]), the agent never chooses them
-  publish_debug     true (default): the live view (debug_view.py): `perception/debug_image`
-                    (the frame with the final hypothesis's outline, object id, scores and the
-                    operator trace) and `perception/markers` (the model's mesh at the pose),
-                    each built only while it has a subscriber
-  debug_image_max_width   the debug image is scaled down to this width (640; 0 = full size)
-  marker_max_triangles    the marker mesh is decimated to at most this many triangles (500)
-  episode_store     an episodes.sqlite file (store/episode_store.py) to which every estimate's episode is
-                    appended (frame stamp, object, lambda, generator, every operator with its scores,
-                    pose, times and outcome, the pick's result, the policy version); "" (default) =
-                    off: a node has no run folder of its own, so where the store lives is the
-                    launcher's choice (replay-check puts it in its output folder). Written with
-                    synchronous=FULL (a robot's pick outlives a power cut). A store that cannot be
-                    written (full disk, locked by another process for more than 0.5 s, corrupt,
-                    not a store) is one error log line per estimate (repeats counted); the
-                    estimate is answered as usual
-  pick_source       who answers the pick_node's picks, recorded with each pick: "simulated" (default)
-                    or "robot" (pick_node's robot_service set)
-  learn             online learning (ros/learning.py, online/policy_learner.py): every estimate is stored
-                    with its frame in `learn_dir`, a learner process trains candidates and promotes
-                    those that beat the serving version on a replay of stored episodes; the serving
-                    policy is swapped between estimates (false)
-  learn_dir         the learning state: episodes.sqlite (the store, unless episode_store is given),
-                    frames/, policies/ (v0000..., versions.json), learner.log; required with learn
-  learn_start       version 0 when learn_dir has none: "policy" (the policy file, else the fixed
-                    pipeline), "fixed" or "untrained" (a fresh pg policy)
-  learn_margin      a candidate is promoted only if its replayed mean cost is below (1 - margin) x
-                    the serving version's (0.05)
-  learn_every       new stored estimates between two candidates (20)
-  learn_train_episodes, learn_check_episodes   a candidate's training episodes (200) and the
-                    newest stored episodes of its replay check (40)
-  policy_version    (learn) pin a kept version at run time (`ros2 param set ... policy_version v0002`);
-                    "" = the newest promoted; an unknown version is refused with the kept ones
-  score_version     (learn, a pipeline with pick_success) the same for the learned pick-success score:
-                    versions in `learn_dir`/pick_success/ (online/score_learner.py), followed by the
-                    operator nodes whose `pick_success_versions` names that folder
+Parameters: configurator_parameters.PARAMETERS, each with its description, range and choices
+(`ros2 param describe configurator_node <name>`). With `learn`, online learning (learning.py).
+
 Topics: `perception/policy_version` (std_msgs/String, transient local): the serving version after
 every change. Service `report_pick_outcome` (ReportPickOutcome): the robot's pick result for an
 estimate (EstimatePose's `estimate_id`), recorded on the episode's last step in the store; an
 unknown estimate or a second report answers success=false with the reason.
 A node that is down, or dies mid-estimate, makes the estimate answer success=false naming it.
 
-Deadline: an estimate that reaches `estimate_timeout` between two operators answers
-success=true, picked=false with the hypothesis so far; one that reaches it while waiting for an
-operator's answer answers success=false. Both messages begin "estimate_timeout (X s) reached".
+Deadline: `estimate_timeout` (its description says what an estimate that reaches it answers).
 
 Requests: the executor thread takes each request at once and answers busy ones at once; the
 estimates run one at a time, in arrival order, on a worker thread (request_queue.py), which
@@ -94,21 +36,18 @@ import math
 import sqlite3
 import threading
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
+from perception_config_interfaces.msg import OperatorTrace
 from perception_config_interfaces.srv import EstimatePose, ReportPickOutcome
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header, String
 
 from ..agents import load_agent, make_agent
-from ..agents.fixed import DEFAULT_SEQUENCE
 from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import load_pipeline, pipeline_reference
 from ..core.geometry import check_noise_lambda
@@ -124,10 +63,13 @@ from ..store.episode_store import (
     policy_version,
     store_episode,
 )
-from .camera_frames import camera_qos, stamp_text
+from .auto_estimates import AutoEstimates
+from .camera_frames import stamp_text
+from .configurator_parameters import PARAMETERS
 from .debug_view import DebugView
 from .learning import NodeLearning, version_qos
 from .operator_node import make_hypothesis, spin
+from .parameters import declare
 from .request_fields import parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
@@ -141,36 +83,7 @@ class ConfiguratorNode(Node):
 
     def __init__(self) -> None:
         super().__init__("configurator_node")
-        self.declare_parameter("policy", "")
-        self.declare_parameter("fixed_sequence", list(DEFAULT_SEQUENCE))
-        self.declare_parameter("pipeline", "")
-        self.declare_parameter("models_dir", "")
-        self.declare_parameter("max_ops", 0)
-        self.declare_parameter("max_ops_cap", 50)
-        self.declare_parameter("estimate_timeout", 10.0)
-        self.declare_parameter("request_queue", 10)
-        self.declare_parameter("noise_lambda", 0.5)
-        self.declare_parameter("operator_timeout", 10.0)
-        self.declare_parameter("fused_scoring", True)
-        self.declare_parameter("auto", False)
-        self.declare_parameter("auto_objects", [""])
-        self.declare_parameter("auto_every_frame", False)
-        self.declare_parameter("camera_qos", "reliable")
-        self.declare_parameter("use_depth", True)
-        self.declare_parameter("publish_debug", True)
-        self.declare_parameter("debug_image_max_width", 640)
-        self.declare_parameter("marker_max_triangles", 500)
-        self.declare_parameter("episode_store", "")
-        self.declare_parameter("pick_source", "simulated")
-        self.declare_parameter("learn", False)
-        self.declare_parameter("learn_dir", "")
-        self.declare_parameter("learn_start", "policy")
-        self.declare_parameter("learn_margin", 0.05)
-        self.declare_parameter("learn_every", 20)
-        self.declare_parameter("learn_train_episodes", 200)
-        self.declare_parameter("learn_check_episodes", 40)
-        self.declare_parameter("policy_version", "")
-        self.declare_parameter("score_version", "")
+        declare(self, PARAMETERS)
         self.use_depth = bool(self.get_parameter("use_depth").value)
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
@@ -256,22 +169,10 @@ class ConfiguratorNode(Node):
         self.create_service(ReportPickOutcome, "report_pick_outcome", self._on_pick_outcome,
                             qos_profile=service_qos(), callback_group=MutuallyExclusiveCallbackGroup())
 
-        self.auto_objects = [parse_object_id(o) for o in p["auto_objects"] if o]
-        self.auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
-        self._auto_wake = threading.Event()
-        self._auto_lock = threading.Lock()
-        self._auto_queue: deque[int] = deque(maxlen=64)
-        self._auto_gt: dict[int, list[str]] = {}
-        if p["auto"]:  # a new frame is seen on camera_info, or on the ground truth that names its objects
-            topics = MutuallyExclusiveCallbackGroup()
-            if self.auto_objects:
-                self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info,
-                                         camera_qos(p["camera_qos"]), callback_group=topics)
-            else:
-                self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10,
-                                         callback_group=topics)
-            self._auto_thread = threading.Thread(target=self._auto_loop, name="auto", daemon=True)
-            self._auto_thread.start()
+        auto_objects = [parse_object_id(o) for o in p["auto_objects"] if o]  # checked also without auto
+        auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
+        self.auto = AutoEstimates(self, self.estimate, auto_objects, auto_every_frame, p["camera_qos"]) \
+            if p["auto"] else None
         self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops "
                                f"{min(self.env.max_ops, self.max_ops_cap)}, "
                                f"estimate_timeout {self.estimate_timeout:g} s"
@@ -480,56 +381,6 @@ class ConfiguratorNode(Node):
         except ValueError as exc:
             return EstimatePose.Response(success=False, message=str(exc))
         return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed)
-
-    # -- auto mode -------------------------------------------------------------------------------
-    def _on_ground_truth(self, msg: ObjectPoses) -> None:
-        stamp = self._stamp(msg)
-        if stamp is None:
-            return
-        self._auto_gt[stamp] = list(msg.object_ids)
-        while len(self._auto_gt) > 64:
-            self._auto_gt.pop(next(iter(self._auto_gt)))
-        self._new_frame(stamp)
-
-    def _on_camera_info(self, msg: CameraInfo) -> None:
-        stamp = self._stamp(msg)
-        if stamp is not None:
-            self._new_frame(stamp)
-
-    def _stamp(self, msg: ObjectPoses | CameraInfo) -> int | None:
-        try:
-            return parse_stamp(msg.header.stamp, "header.stamp")
-        except ValueError as exc:
-            self.get_logger().warning(f"auto: ignored a message: {exc}")
-            return None
-
-    def _new_frame(self, stamp: int) -> None:
-        with self._auto_lock:
-            if stamp in self._auto_queue:
-                return
-            self._auto_queue.append(stamp)
-            if not self.auto_every_frame:
-                while len(self._auto_queue) > 1:  # a cell wants the latest frame, not a backlog
-                    self._auto_queue.popleft()
-        self._auto_wake.set()
-
-    def _auto_loop(self) -> None:
-        while True:
-            self._auto_wake.wait()
-            with self._auto_lock:
-                if not self._auto_queue:
-                    self._auto_wake.clear()
-                    continue
-                stamp = self._auto_queue.popleft()
-            objects = self.auto_objects or self._auto_gt.get(stamp, [])
-            if not objects:
-                self.get_logger().warning(f"auto: no objects to estimate in the frame at {stamp_text(stamp)} "
-                                          "(set auto_objects, or replay ground truth)")
-            for object_id in objects:
-                r = self.estimate(stamp, object_id)
-                self.get_logger().info(f"auto {stamp_text(stamp)} object {object_id}: "
-                                       f"{'picked' if r.picked else r.message} after {', '.join(r.operations)} "
-                                       f"({r.elapsed:.3f} s)")
 
 
 def main(args: list[str] | None = None) -> None:

@@ -47,11 +47,11 @@ from ..rl.env import PerceptionConfigEnv
 from ..store.frames import FRAME_RING, save_frame
 from ..util.versions import PolicyVersionError, PolicyVersions
 from .camera_frames import CameraFrame, CameraFrames, stamp_text
+from .configurator_parameters import LEARN_STARTS
 from .conversions import msg_to_pose
 from .request_fields import parse_stamp
 from .stamp_cache import StampCache
 
-LEARN_STARTS = ("policy", "fixed", "untrained")
 SAVE_QUEUE = 16  # frames waiting for the saver thread
 LEARNER_STOP_TIMEOUT = 5.0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from . import generation_node, pick_node, refinement_node, scoring_node
+from . import bag_replay_node, configurator_parameters, generation_node, pick_node, refinement_node, scoring_node
 
 
 def node_parameter_table() -> dict[str, list[dict[str, Any]]]:
@@ -17,5 +17,7 @@ def node_parameter_table() -> dict[str, list[dict[str, Any]]]:
         "refinement_node": refinement_node.PARAMETERS,
         "scoring_node": scoring_node.PARAMETERS,
         "pick_node": pick_node.PARAMETERS,
+        "configurator_node": configurator_parameters.PARAMETERS,
+        "bag_replay_node": bag_replay_node.PARAMETERS,
     }
     return {node: [p.row() for p in parameters] for node, parameters in nodes.items()}

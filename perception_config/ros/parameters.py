@@ -75,6 +75,7 @@ class NodeParameter:
     def row(self) -> dict[str, Any]:
         """This parameter as a row of the reference table (parameter_docs.py)."""
         default = None if isinstance(self.default, Parameter.Type) else self.default
+        default = list(default) if isinstance(default, list) else default  # the spec's own list stays as it is
         return {"name": self.name, "type": self.type_name(), "default": default, "description": self.description,
                 "range": self.range_text(), "read_only": self.read_only}
 
