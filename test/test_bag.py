@@ -68,7 +68,7 @@ def assert_same_frame(a: Frame, b: Frame, exact_depth: bool = True, project_R: b
 
 
 def make_bop(root: Path, scenes=(1, 2), images=3, h=48, w=64) -> list[Frame]:
-    from perception_config.datasets.bop import SceneWriter
+    from perception_config.datasets.bop_writer import SceneWriter
 
     frames = []
     for sid in scenes:
@@ -578,7 +578,8 @@ def test_truncated_file_yields_a_prefix_of_complete_frames(small_bag, tmp_path):
 
 def _bop_for_interrupt(root: Path, n: int) -> None:
     """A BOP scene of n 640x480 images sharing one image pair (hard links): fast to make."""
-    from perception_config.datasets.bop import SceneWriter, write_scene_camera, write_scene_gt
+    from perception_config.datasets.bop_scene import write_scene_camera, write_scene_gt
+    from perception_config.datasets.bop_writer import SceneWriter
 
     f = make_frame(0, 480, 640)
     f.scene_id, f.im_id = 1, 0

@@ -15,24 +15,14 @@ from perception_config.core.models import load_model
 from perception_config.core.ply import PlyError, write_ply
 from perception_config.core.render import render
 from perception_config.core.scene import Frame, SceneObject
-from perception_config.datasets.bop import (
-    BopAnnotationWarning,
-    BopDataset,
-    BopFormatError,
-    BopResult,
-    CameraInfo,
-    SceneWriter,
-    compute_gt_info,
-    load_json,
-    load_models_info,
-    read_depth,
-    read_results_csv,
-    read_rgb,
-    write_depth,
-    write_frame,
-    write_models_info,
-    write_results_csv,
-)
+from perception_config.datasets.bop import BopDataset
+from perception_config.datasets.bop_images import read_depth, read_rgb, write_depth
+from perception_config.datasets.bop_json import load_json
+from perception_config.datasets.bop_models import load_models_info, write_models_info
+from perception_config.datasets.bop_results import BopResult, read_results_csv, write_results_csv
+from perception_config.datasets.bop_scene import CameraInfo
+from perception_config.datasets.bop_writer import SceneWriter, compute_gt_info, write_frame
+from perception_config.datasets.errors import BopAnnotationWarning, BopFormatError
 
 W, H = 160, 120
 K = np.array([[150.0, 0.0, 80.5], [0.0, 150.0, 60.5], [0.0, 0.0, 1.0]])

@@ -84,7 +84,7 @@ def test_the_marker_mesh_is_the_model_decimated_to_its_budget(make_box, syntheti
     from std_msgs.msg import Header
     from visualization_msgs.msg import Marker
 
-    from perception_config.datasets.bop import ModelFolder
+    from perception_config.datasets.bop_models import ModelFolder
     from perception_config.ros.conversions import pose_to_msg
     from perception_config.ros.debug_view import decimated_mesh, hypothesis_markers, triangle_points
 

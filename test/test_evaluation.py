@@ -18,7 +18,8 @@ from perception_config.agents.policy_io import PolicyError, save_agent
 from perception_config.agents.policy_settings import policy_settings
 from perception_config.agents.random import RandomAgent
 from perception_config.blocks.pipeline import load_pipeline
-from perception_config.datasets.bop import BopDataset, read_results_csv
+from perception_config.datasets.bop import BopDataset
+from perception_config.datasets.bop_results import read_results_csv
 from perception_config.learning.evaluation import (
     DEFAULT_FIXED_SEQUENCES,
     bop_csv_name,

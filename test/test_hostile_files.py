@@ -21,7 +21,8 @@ from perception_config.agents import EnvSpec, PolicyError, load_agent, make_agen
 from perception_config.agents.policy_io import CHECKSUM_KEY, read_file, write_file
 from perception_config.datasets.bag import BagFormatError, bag_info, read_bag, write_frames
 from perception_config.datasets.bag.type_names import check_type_name
-from perception_config.datasets.bop import BopDataset, BopFormatError
+from perception_config.datasets.bop import BopDataset
+from perception_config.datasets.errors import BopFormatError
 from perception_config.datasets.image_header import MAX_IMAGE_PIXELS
 from perception_config.util.safe_json import loads_limited
 
@@ -391,7 +392,7 @@ def test_fuzz_bag_reader(bag_file, tmp_path):
 
 def test_model_and_results_files_refuse_directories(tmp_path):
     from perception_config.core.ply import PlyError, read_ply
-    from perception_config.datasets.bop import read_results_csv
+    from perception_config.datasets.bop_results import read_results_csv
 
     (tmp_path / "obj.ply").mkdir()
     with pytest.raises(PlyError, match=r"obj\.ply: is a directory, not a PLY file"):

@@ -115,7 +115,8 @@ def test_symmetry_counts_as_models_reads_them(parts):
 def test_write_models_is_a_bop_models_folder(tmp_path, parts):
     from perception_config.core.models import load_model
     from perception_config.core.ply import read_ply_mesh
-    from perception_config.datasets.bop import load_json, load_models_info
+    from perception_config.datasets.bop_json import load_json
+    from perception_config.datasets.bop_models import load_models_info
 
     d = write_models(tmp_path / "models", parts)
     info = load_models_info(d)

@@ -91,7 +91,7 @@ def test_a_block_needing_depth_answers_at_once_and_rgb_blocks_run(rgb_dataset):
 
 
 def test_writer_refuses_to_mix_rgb_only_and_rgbd_frames_in_a_scene(tmp_path, rgb_dataset, synthetic_dataset):
-    from perception_config.datasets.bop import write_frame
+    from perception_config.datasets.bop_writer import write_frame
 
     rgbd = BopDataset(synthetic_dataset).load_frame(0, 0)
     rgb = BopDataset(rgb_dataset).load_frame(0, 1)

@@ -116,7 +116,7 @@ def test_gt_centres_project_inside_the_image(bop):
 def test_gt_info_matches_masks(bop):
     """px counts and boxes re-rendered here agree with scene_gt_info; visibility is exact."""
     from perception_config.core.render import render_box
-    from perception_config.datasets.bop import compute_gt_info
+    from perception_config.datasets.bop_writer import compute_gt_info
 
     diffs = []
     for f, infos, r in _rendered_images(bop):

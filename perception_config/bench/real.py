@@ -46,7 +46,8 @@ from ..blocks.pipeline import Pipeline, load_pipeline
 from ..core.geometry import Pose, perturb
 from ..core.metrics import eval_symmetries, mspd, pose_mssd
 from ..core.scene import Frame, SceneObject
-from ..datasets.bop import BopDataset, _jsonable
+from ..datasets.bop import BopDataset
+from ..datasets.bop_json import jsonable
 from ..util.atomic_file import atomic_write
 from .blocks import usable_objects
 
@@ -367,7 +368,7 @@ def save_real(result: dict[str, Any], out: str | Path) -> tuple[Path, Path]:
     """Write the result as JSON (`out`, or out/real.json for a folder) and its figure beside it (.png)."""
     out = Path(out)
     path = out if out.suffix == ".json" else out / "real.json"
-    atomic_write(path, json.dumps(_jsonable(result), indent=1, allow_nan=False) + "\n")
+    atomic_write(path, json.dumps(jsonable(result), indent=1, allow_nan=False) + "\n")
     return path, plot_real(result, path.with_suffix(".png"))
 
 

@@ -123,7 +123,7 @@ def _cmd_bench_blocks(args: argparse.Namespace) -> int:
     _one_core()
     from ..bench.blocks import bench_blocks, format_blocks
     from ..blocks.pipeline import load_pipeline
-    from ..datasets.bop import save_json
+    from ..datasets.bop_json import save_json
 
     stats = bench_blocks(args.dataset, load_pipeline(args.pipeline), n_frames=args.frames, lam=args.noise_lambda,
                          split=args.split, progress=not args.quiet, use_depth=args.use_depth)
@@ -137,7 +137,7 @@ def _cmd_bench_convergence(args: argparse.Namespace) -> int:
     _one_core()
     from ..bench.blocks import convergence_table, format_convergence
     from ..blocks.pipeline import load_pipeline
-    from ..datasets.bop import save_json
+    from ..datasets.bop_json import save_json
 
     lambdas = [float(x) for x in args.lambdas.split(",")]
     table = convergence_table(args.dataset, load_pipeline(args.pipeline), lambdas, n_frames=args.frames,

@@ -356,7 +356,8 @@ def write_models(models_dir: str | os.PathLike, parts: Sequence[Part] | None = N
         write_ply(models_dir / f"obj_{p.obj_id:06d}.ply", p.vertices, p.faces, p.normals, p.colors_u8)
         info[p.obj_id] = p.info()
         meta[str(p.obj_id)] = {"name": p.name, "material": p.material, "color": [round(c, 4) for c in p.color]}
-    from .bop import save_json, write_models_info
+    from .bop_json import save_json
+    from .bop_models import write_models_info
 
     write_models_info(models_dir / "models_info.json", {int(k): v for k, v in info.items()})
     save_json(models_dir / "parts.json", meta)

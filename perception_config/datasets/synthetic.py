@@ -529,7 +529,8 @@ def _bbox(xs: np.ndarray, ys: np.ndarray) -> list[int]:
 
 def _prepare_models(models_out: Path, models_dir: Path | None) -> list[_Obj]:
     from ..core.models import load_model
-    from .bop import load_json, load_models_info, save_json
+    from .bop_json import load_json, save_json
+    from .bop_models import load_models_info
     from .parts import build_parts, write_models
 
     if models_dir is None:
@@ -605,7 +606,7 @@ def generate(
     folder or a dataset this generator wrote; anything else raises ValueError.
     """
     from ..core.scene import Frame, SceneObject
-    from .bop import SceneWriter
+    from .bop_writer import SceneWriter
 
     out = Path(out)
     if scenes < 1 or images_per_scene < 1:

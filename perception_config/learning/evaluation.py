@@ -69,7 +69,8 @@ from ..core.metrics import (
     pose_errors,
     recall,
 )
-from ..datasets.bop import BopDataset, BopResult, write_results_csv
+from ..datasets.bop import BopDataset
+from ..datasets.bop_results import BopResult, write_results_csv
 from ..rl.env import PerceptionConfigEnv, normalise_score
 from ..rl.episode_loop import Trajectory, acting_seed, play_episode
 from ..rl.episodes import EpisodeSource, split_image_keys

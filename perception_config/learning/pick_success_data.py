@@ -172,7 +172,7 @@ class _ImageSource:
         """The frame and, per object id, (model, ground-truth poses); None when a kept frame is gone."""
         root, scene_id, im_id = key
         if scene_id < 0:
-            from ..datasets.bop import ModelFolder
+            from ..datasets.bop_models import ModelFolder
             from ..store.frames import frame_path, load_frame
 
             path = frame_path(self.frames_dir, im_id)

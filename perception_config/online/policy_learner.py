@@ -49,7 +49,7 @@ from ..agents import Agent, EnvSpec, make_agent
 from ..agents.policy_io import load_agent, policy_info, save_agent
 from ..blocks.pick_success import follow_score_versions
 from ..blocks.pipeline import load_pipeline
-from ..datasets.bop import ModelFolder
+from ..datasets.bop_models import ModelFolder
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episode_loop import acting_seed, play_episode
 from ..rl.operators import Episode

@@ -51,7 +51,7 @@ from ..agents import load_agent, make_agent
 from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import load_pipeline, pipeline_reference
 from ..core.geometry import check_noise_lambda
-from ..datasets.bop import ModelFolder
+from ..datasets.bop_models import ModelFolder
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episode_loop import acting_seed, play_episode
 from ..rl.operators import Episode

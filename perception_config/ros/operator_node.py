@@ -43,7 +43,7 @@ from ..blocks.pick_success import PickSuccess, follow_score_versions
 from ..blocks.pipeline import load_pipeline
 from ..core.geometry import Pose
 from ..core.models import ObjectModel
-from ..datasets.bop import ModelFolder
+from ..datasets.bop_models import ModelFolder
 from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
 from ..rl.operators import FrameCaches
