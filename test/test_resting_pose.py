@@ -11,7 +11,7 @@ import pytest
 
 from frames import box_model, resting_on_plane, synthetic_frame
 from perception_config.blocks.base import BlockInput, create
-from perception_config.core.geometry import Pose, exp_so3
+from perception_config.core.geometry import Pose, exp_so3, rotation_to
 from perception_config.core.metrics import pose_mssd
 from perception_config.core.models import make_model
 from perception_config.vision.ppf import canonical_poses
@@ -21,7 +21,6 @@ from perception_config.vision.resting_poses import (
     planar_icp_many,
     plane_basis,
     resting_poses,
-    rotation_to,
     settled_on_plane,
     sweep_in_plane,
 )

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..core.geometry import Pose
+from ..core.geometry import Pose, rotation_to
 from ..core.models import ObjectModel
 from .features import DistanceField
 
@@ -40,17 +40,6 @@ class RestingPose:
     lift: float  # metres: height of the model's centroid above the plane in this rest
     height: float  # metres: the part's top above the plane
     area: float  # m^2: the face's area (larger faces are likelier rests)
-
-
-def rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector `a` onto unit vector `b`."""
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1.0 + 1e-9:  # opposite: half a turn about any axis perpendicular to a
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
 def _inside_polygon(p: np.ndarray, pts2: np.ndarray) -> bool:
@@ -370,5 +359,5 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
 
 
 __all__ = ["RestingPose", "RegionShortlist", "resting_poses", "shortlist_rests", "refine_rests", "planar_icp",
-           "planar_icp_many", "plane_basis", "rotation_to", "surface_field", "moved_in_plane", "settled_on_plane",
+           "planar_icp_many", "plane_basis", "surface_field", "moved_in_plane", "settled_on_plane",
            "sweep_in_plane"]
