@@ -80,7 +80,6 @@ class ObjectModel:
         return self.bbox_min + idx * self.bbox_size
 
 
-
 def model_defect(model: ObjectModel) -> str:
     """Why `model` cannot be matched against a depth image, or '' when it can: no size, surface
     samples that are not finite, (nearly) collinear or coincident (zero-area faces), or without
@@ -101,7 +100,6 @@ def model_defect(model: ObjectModel) -> str:
     if unit.mean() < 0.5:
         return f"{name} has no normals: {int(np.sum(~unit))} of its {len(nrm)} surface samples have none"
     return ""
-
 
 
 # --------------------------------------------------------------------------- model preparation
@@ -213,7 +211,6 @@ def _load_model_cached(
         )
     except ValueError as e:
         raise PlyError(f"{path}: {e}") from None
-
 
 
 __all__ = ["ObjectModel", "load_model", "make_model", "model_defect", "DEFAULT_N_POINTS"]

@@ -22,7 +22,6 @@ class PlyError(ValueError):
     """A PLY file that cannot be read as a triangle mesh; the message names the file."""
 
 
-
 def _load_ply_kwargs(path: Path) -> dict[str, Any]:
     """trimesh's PLY loader on the file's bytes (size-limited read first), with its failures turned
     into PlyError naming the file; checks that every element has the record count its header says."""
@@ -150,7 +149,6 @@ def write_ply(
     data = export_ply(mesh, encoding="binary" if binary else "ascii", vertex_normal=normals is not None,
                       include_attributes=False)
     atomic_write(Path(path), data)
-
 
 
 __all__ = ["PlyError", "read_ply", "read_ply_mesh", "write_ply", "MAX_PLY_BYTES"]

@@ -40,5 +40,4 @@ def symmetries_from_info(info: Mapping[str, Any] | None, cont_step_deg: float = 
     return [c.compose(d) for d in disc for c in cont]
 
 
-
 __all__ = ["axis_angle_matrix", "symmetries_from_info", "DEFAULT_CONT_STEP_DEG"]
