@@ -9,9 +9,9 @@ import numpy as np
 from frames import box_model, default_pose, mean_point_distance, perturbed_pose, refine_perturbed, synthetic_frame
 from perception_config.blocks import create
 from perception_config.blocks.base import BlockInput
-from perception_config.blocks.chamfer import edge_distance
 from perception_config.core.geometry import Pose, exp_so3, log_so3
 from perception_config.core.scene import Frame
+from perception_config.vision.chamfer import edge_distance
 from perception_config.vision.pose_solver import (
     NO_TRANSLATION_PRIOR,
     levenberg_marquardt,

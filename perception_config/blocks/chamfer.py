@@ -46,24 +46,20 @@ from __future__ import annotations
 
 import time
 
-import cv2
 import numpy as np
 
 from ..core.geometry import Pose, exp_so3
-from ..core.models import ObjectModel
 from ..core.render import projected_box
-from ..core.scene import Frame
 from ..vision.appearance import outline_separation
+from ..vision.chamfer import edge_distance, inner_edge_share
 from ..vision.edges import (
     TensorCache,
     bilinear,
     canny_edges,
-    edge_coherence,
     edge_refinement_problem,
     model_contour,
     project_with_directions,
     sample_tensor,
-    silhouette_points,
 )
 from ..vision.pose_solver import (
     LOSSES,
@@ -73,33 +69,8 @@ from ..vision.pose_solver import (
     project_with_jacobian,
 )
 from ..vision.region import band_width
-from ..vision.visibility import hypothesis_rendering, visible_edges
+from ..vision.visibility import hypothesis_rendering
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
-
-
-def edge_distance(frame: Frame, cache: dict | None, low: float, high: float, labels: bool = True):
-    """(distance transform float32 HxW, labels int32 HxW, label -> (x, y) table, edge pixel
-    count) of the frame's Canny edges, cached per frame; the table maps each pixel's label to
-    its nearest edge pixel. Without `labels` (plain chamfer) those two are None and the
-    transform is ~3x cheaper. No edges: (None, None, None, 0)."""
-    key = f"edges:dt:{float(low)}:{float(high)}:{bool(labels)}"
-    if cache is not None and key in cache and cache[key][0] is frame.rgb:
-        return cache[key][1]
-    edges, _ = canny_edges(frame, cache, low, high)
-    ey, ex = np.nonzero(edges)
-    inverted = np.where(edges > 0, 0, 255).astype(np.uint8)
-    if len(ex) == 0:
-        value = (None, None, None, 0)
-    elif not labels:
-        value = (cv2.distanceTransform(inverted, cv2.DIST_L2, 5), None, None, int(len(ex)))
-    else:
-        dt, lab = cv2.distanceTransformWithLabels(inverted, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-        lut = np.zeros((int(lab.max()) + 1, 2), np.float64)
-        lut[lab[ey, ex]] = np.stack([ex, ey], axis=1)  # each edge pixel carries its own label
-        value = (dt, lab, lut, int(len(ex)))
-    if cache is not None:
-        cache[key] = (frame.rgb, value)
-    return value
 
 
 def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, np.ndarray, np.ndarray]:
@@ -122,26 +93,6 @@ def _start(inp: BlockInput, c: dict, labels: bool) -> tuple[str, tuple | None, n
     if len(P) < 6:
         return f"only {len(P)} contour points visible from the hypothesis", None, P, D
     return "", edge, P, D
-
-
-def inner_edge_share(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None, min_coherence: float,
-                     supported=None) -> float:
-    """Share of the contour visible from `pose` that lies on sharp (inner) mesh edges rather than
-    on the silhouette, counted as model_contour selects them; with `supported` (model points
-    (M, 3), tangents (M, 3) -> bool (M,)), only the inner-edge points the image supports count.
-    Out-of-image-plane rotation is observed through inner edges: a silhouette's contour generator
-    slides over the surface as the object turns, so the outline of a smooth or scanned object
-    barely changes (LM-O: 0-15 % inner edges but the holepuncher's 55 %, which a photograph of the
-    dark object hardly shows; the procedural models of the synthetic default: 65-90 %)."""
-    edges = visible_edges(frame, model, pose, cache)
-    index = edges.index[edge_coherence(model)[edges.index] >= min_coherence] if len(edges) else np.zeros(0, int)
-    n_inner = len(index)
-    n_outline = len(silhouette_points(hypothesis_rendering(frame, model, pose, cache))[0])
-    if n_inner and supported is not None:
-        n_seen = int(np.sum(supported(model.edge_points[index], model.edge_dirs[index])))
-    else:
-        n_seen = n_inner
-    return n_seen / max(n_inner + n_outline, 1)
 
 
 _COMMON = (
