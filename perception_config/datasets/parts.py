@@ -4,12 +4,14 @@ Every part is built here from its dimensions, without booleans and without downl
 as a closed, consistently oriented triangle mesh in **millimetres** (BOP model units) with
 outward normals:
 
-- planar parts with holes (flange, hex nut, bracket) are *layered extrusions* (mesh_builders.py): 2D loops shared
+- planar parts with holes (flange, hex nut, bracket) are *layered extrusions*: 2D loops shared
   between caps and side walls; the caps are triangulated by a conforming Delaunay triangulation
   (scipy) of the loops, refined jointly until every loop segment is a triangle edge, so caps and
   walls meet edge to edge (watertight by construction, checked on every build);
 - turned and swept parts (bushing, cover, elbow) are *sweeps* of a 2D profile along a family of
   rings (circles around an axis or a spine, or offsets of a rounded rectangle).
+
+Extrusions and sweeps are built with datasets/mesh_builders.py.
 
 Each part declares its BOP symmetries in the frame of the final (bounding-box-centred) model:
 `symmetries_discrete` as row-major 4x4 matrices with translation in mm (identity excluded, as
@@ -51,7 +53,7 @@ MATERIALS: dict[str, dict[str, float]] = {
 
 @dataclass
 class Part:
-    """A procedural part: mesh in mm (watertight and outward-oriented when `watertight`)."""
+    """A procedural part: mesh in mm, watertight and outward-oriented (checked when built)."""
 
     obj_id: int
     name: str
@@ -61,7 +63,6 @@ class Part:
     color: tuple[float, float, float]  # base albedo, RGB in [0, 1]
     symmetries_discrete: list[list[float]] = field(default_factory=list)  # 4x4 row-major, mm
     symmetries_continuous: list[dict] = field(default_factory=list)  # {"axis": [..], "offset": [..] mm}
-    watertight: bool = True
 
     @property
     def normals(self) -> np.ndarray:
@@ -313,7 +314,7 @@ def build_parts() -> list[Part]:
         problems = check_closed_oriented(F, V)
         if problems:
             raise RuntimeError(f"procedural part {name}: {'; '.join(problems)}")
-        parts.append(Part(obj_id, name, V, F.astype(np.int32), material, color, disc, cont, True))
+        parts.append(Part(obj_id, name, V, F.astype(np.int32), material, color, disc, cont))
     return parts
 
 

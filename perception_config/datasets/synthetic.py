@@ -10,15 +10,15 @@ same meshes as models/, byte for byte: the project's errors are computed on thos
 bop_toolkit's MSSD / MSPD on models_eval equal the project's (BOP's own datasets resample
 their evaluation meshes evenly instead).
 
-Scenes (synthetic_scene.py; one arrangement of objects each; BOP-like: the images of a scene are
-viewpoints):
+Scenes (synthetic_scene.py; one arrangement of objects each; BOP-like: the images of a scene
+are viewpoints):
 - World frame z up, the floor at z = 0. Per scene, with a seeded generator: a bin (floor
   slab and four walls of 8 mm plastic, 10-14 cm high, sized to the objects; the walls occlude)
   or a table; 3-8 distinct objects (at most the number of models).
-- Resting poses (stable_poses.py): each object lies on one of its stable faces (convex-hull faces whose plane
-  contains the projection of the centre of mass), drawn with probability proportional to
-  the solid angle of the face seen from the centre of mass (the quasi-static drop
-  heuristic; rests that tip over within 8 deg, such as a disc on its rim, are dropped),
+- Resting poses (stable_poses.py): each object lies on one of its stable faces (convex-hull
+  faces whose plane contains the projection of the centre of mass), drawn with probability
+  proportional to the solid angle of the face seen from the centre of mass (the quasi-static
+  drop heuristic; rests that tip over within 8 deg, such as a disc on its rim, are dropped),
   with a random yaw; its lowest point touches the floor. Footprint circles are
   kept apart by rejection sampling; an object that does not fit after 80 tries is put on
   top of the ones it overlaps (a heap): no interpenetration either way.

@@ -63,11 +63,6 @@ def huber_weights(r: np.ndarray, delta: float) -> np.ndarray:
     return np.where(a <= delta, 1.0, delta / np.maximum(a, 1e-12))
 
 
-def huber_cost(r: np.ndarray, delta: float) -> float:
-    a = np.abs(r)
-    return float(np.sum(np.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta))))
-
-
 def robust_rho(r: np.ndarray, loss: str, scale: float) -> np.ndarray:
     """Per-residual loss: 'huber' (quadratic within `scale`, then linear), 'geman_mcclure'
     (0.5 r^2 s^2 / (s^2 + r^2): bounded by s^2 / 2, influence falls off beyond s) or 'tukey'
