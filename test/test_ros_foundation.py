@@ -176,3 +176,47 @@ def test_bad_requests_answer_false_and_the_node_keeps_serving(ros_node, generati
     good.frame.stamp.sec = 200
     assert call(ros_node, client, good).success, "node stopped serving after a bad request"
     assert generation_node.alive()
+
+
+@pytest.mark.ros
+def test_the_parameters_describe_themselves_as_the_reference_table_says(ros_node, generation_node):
+    """`ros2 param describe` (DescribeParameters) gives each parameter's description, type, range
+    and read-only flag, the same as parameter_docs' table; a read-only parameter and a value
+    outside its range are refused at run time, a run-time parameter is set."""
+    from rcl_interfaces.srv import DescribeParameters, SetParameters
+    from rclpy.parameter import Parameter
+
+    from perception_config.ros.parameter_docs import node_parameter_table
+    from perception_config.ros.parameters import TYPE_NAMES
+
+    rows = node_parameter_table()["generation_node"]
+    describe = ros_node.create_client(DescribeParameters, "generation_node/describe_parameters")
+    wait_for_service(ros_node, describe, process=generation_node)
+    described = call(ros_node, describe, DescribeParameters.Request(names=[r["name"] for r in rows])).descriptors
+    assert len(described) == len(rows) and all(row["description"] for row in rows)
+    for row, d in zip(rows, described):
+        assert (d.name, d.description, TYPE_NAMES[d.type], d.read_only) == \
+            (row["name"], row["description"], row["type"], row["read_only"])
+        limits = [(r.from_value, r.to_value) for r in (*d.integer_range, *d.floating_point_range)]
+        assert bool(limits) == bool(row["range"]), row
+    by_name = {d.name: d for d in described}
+    assert by_name["cache_size"].read_only and by_name["cache_size"].integer_range[0].from_value == 1
+    assert by_name["camera_qos"].additional_constraints == "one of: reliable, sensor_data"
+    assert by_name["default_lambda"].floating_point_range[0].to_value == 2.0
+
+    set_parameters = ros_node.create_client(SetParameters, "generation_node/set_parameters")
+    wait_for_service(ros_node, set_parameters, process=generation_node)
+    values = [Parameter("cache_size", value=5), Parameter("default_lambda", value=3.0),
+              Parameter("frame_timeout", value=0.5)]  # the value the node was started with
+    results = call(ros_node, set_parameters,
+                   SetParameters.Request(parameters=[p.to_parameter_msg() for p in values])).results
+    assert [r.successful for r in results] == [False, False, True], results
+    assert "read-only" in results[0].reason and "out of range" in results[1].reason
+
+
+@pytest.mark.ros
+def test_a_value_outside_its_range_stops_the_node_at_start_naming_it(tmp_path):
+    node = NodeProcess("scoring_node", {"cache_size": 0}, tmp_path)
+    assert node.proc.wait(60) == 2, node.output()
+    assert "cannot start" in node.output() and "cache_size" in node.output()
+    node.stop()
