@@ -25,16 +25,14 @@ from perception_config.learning.evaluation import evaluate
 from perception_config.learning.training import train
 from perception_config.rl.episode_loop import play_episode
 from perception_config.rl.settings import EnvSettings
+from perception_config.store.episode_record import EpisodeRecord, StepRecord, record_from_trajectory
 from perception_config.store.episode_store import (
     APPLICATION_ID,
     SCHEMA_VERSION,
     STORE_NAME,
-    EpisodeRecord,
     EpisodeStore,
     EpisodeStoreError,
-    StepRecord,
     StoreWriter,
-    record_from_trajectory,
     store_episode,
 )
 from perception_config.store.report import export_table, store_info

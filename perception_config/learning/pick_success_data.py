@@ -29,6 +29,7 @@ from ..blocks.features import pick_features
 from ..blocks.pick import SimulatedPick
 from ..core.geometry import Pose
 from ..core.metrics import pose_mssd
+from ..core.pose_json import pose_arrays, pose_from_json, pose_json
 from ..datasets.bop import BopDataset
 from ..vision.pick_features import FEATURE_NAMES, rgb_only
 
@@ -48,10 +49,6 @@ def load_step_rows(store_path: str | Path, busy_timeout: float | None = None) ->
     kw = {} if busy_timeout is None else {"busy_timeout": busy_timeout}
     with EpisodeStore(path, readonly=True, **kw) as store:
         return [row for row in store.iter_steps() if row.get("pose") is not None]
-
-
-def _pose_json(pose: Pose) -> dict[str, np.ndarray]:
-    return {"R": np.asarray(pose.R, float).copy(), "t": np.asarray(pose.t, float).copy()}
 
 
 def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[float] = DEFAULT_COLLECT_LAMBDAS,
@@ -87,7 +84,7 @@ def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[fl
             picked = info.get("picked") if step else None
             rows.append({**base, "step": step, "action": info["action"], "ok": bool(info["ok"]),
                          "scores": dict(info["scores"]),
-                         "pose": None if info["pose"] is None else _pose_json(info["pose"]),
+                         "pose": pose_arrays(pose_json(info["pose"])),
                          "picked": None if picked is None else int(bool(picked)),
                          "pick_source": None if picked is None else "simulated"})
             if step == max_steps or (picked is not None and picked):
@@ -117,10 +114,6 @@ class FeatureTable:
         idx = np.flatnonzero(keep)
         return FeatureTable(self.X[idx], self.y[idx], [self.images[i] for i in idx], self.rgb_only[idx],
                             self.mssd_share[idx], self.noise_lambda[idx], self.feature_names)
-
-
-def _as_pose(p: Any) -> Pose:
-    return Pose(np.asarray(p["R"], float).reshape(3, 3), np.asarray(p["t"], float).reshape(3))
 
 
 def pick_label(model: Any, pose: Pose, ground_truths: Iterable[Pose]) -> tuple[bool, float]:
@@ -233,7 +226,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
         for row in group:
             bar.update(1)
             model, truths = objects[int(row["episode_obj_id"])]
-            pose = _as_pose(row["pose"])
+            pose = pose_from_json(row["pose"])
             if not pose.is_valid():
                 continue
             label, mssd = pick_label(model, pose, truths) if truths else (None, math.nan)

@@ -7,6 +7,8 @@ each with its scores, the hypothesis after it and, for a pick that ran, the pick
 simulation or the robot reported it), plus `pick_outcomes` (external pick reports, see
 `record_pick_outcome`). Column names are a contract (consumers code against them): columns may be
 added, never renamed; a change that old readers cannot read raises SCHEMA_VERSION.
+An episode comes as an `EpisodeRecord` (store/episode_record.py); a step's pose is stored as the
+JSON of core/pose_json.py.
 
 Guarantees:
 - one transaction per episode (its row and all its step rows): a reader sees a whole episode or
@@ -31,11 +33,13 @@ import os
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
+
+from ..core.pose_json import pose_arrays, pose_json
+from .episode_record import EpisodeRecord, record_from_trajectory
 
 if TYPE_CHECKING:
     from ..rl.episode_loop import Trajectory
@@ -79,99 +83,9 @@ class EpisodeStoreError(ValueError):
     write (unknown episode or step, duplicated outcome); the message names the file."""
 
 
-# -- records ------------------------------------------------------------------------------------
-@dataclass
-class StepRecord:
-    """One row of `steps` (the episode id is given when it is stored)."""
-
-    step: int
-    action: str
-    ok: bool
-    seconds: float
-    operation_seconds: float
-    scores: dict[str, float]
-    pose: Any = None  # geometry.Pose or None
-    picked: bool | None = None
-    pick_source: str | None = None
-
-
-@dataclass
-class EpisodeRecord:
-    """One row of `episodes` and its steps, before it is stored."""
-
-    source: str
-    policy_version: str | None
-    agent: str | None
-    dataset: str | None
-    scene_id: int | None
-    im_id: int | None
-    obj_id: int | None
-    frame_stamp_ns: int | None
-    noise_lambda: float | None
-    generator: str | None
-    episode_seed: int | None
-    success: bool
-    first_pick_success: bool
-    time_s: float
-    cost: float
-    stopped: bool
-    steps: list[StepRecord] = field(default_factory=list)
-    created: float = field(default_factory=time.time)
-
-
-def record_from_trajectory(traj: Trajectory, *, source: str, agent: str | None, policy_version: str | None,
-                           dataset: str | None = None, episode_seed: int | None = None,
-                           frame_stamp_ns: int | None = None, pick_source: str = "simulated") -> EpisodeRecord:
-    """The store's record of an episode `play_episode` played: the object, frame key and lambda
-    come from reset's info; what the trajectory cannot know (where it ran, the policy, the
-    dataset, the episode seed, the camera stamp) is given. `pick_source`: who reported the picks
-    ('simulated' for the pick simulation, 'robot' for a real cell)."""
-    init = traj.initial_info
-    key = init.get("episode_key") or (None, None, None)
-    steps = [StepRecord(0, str(init.get("action", "")), bool(init.get("ok", False)), 0.0,
-                        float(traj.initial_operation_seconds), dict(init.get("scores") or {}), init.get("pose"))]
-    n = traj.steps
-    scores = traj.step_scores if len(traj.step_scores) == n else [{}] * n
-    poses = traj.step_poses if len(traj.step_poses) == n else [None] * n
-    picked = traj.step_picked if len(traj.step_picked) == n else [None] * n
-    ops = traj.operation_seconds if len(traj.operation_seconds) == n else [math.nan] * n
-    for i in range(n):
-        steps.append(StepRecord(i + 1, traj.names[i], bool(traj.oks[i]), float(traj.seconds[i]), float(ops[i]),
-                                dict(scores[i]), poses[i], picked[i], pick_source if picked[i] is not None else None))
-    lam = init.get("noise_lambda")
-    return EpisodeRecord(
-        source=source, policy_version=policy_version, agent=agent, dataset=dataset,
-        scene_id=_int_or_none(key[0]), im_id=_int_or_none(key[1]), obj_id=_int_or_none(key[2]),
-        frame_stamp_ns=int(frame_stamp_ns) if frame_stamp_ns else None,
-        noise_lambda=float(lam) if lam is not None else None, generator=steps[0].action or None,
-        episode_seed=_int_or_none(episode_seed), success=bool(traj.success),
-        first_pick_success=bool(traj.first_pick_success), time_s=float(traj.time), cost=float(traj.cost),
-        stopped=bool(traj.stopped), steps=steps)
-
-
-def _int_or_none(x: Any) -> int | None:
-    return None if x is None else int(x)
-
-
 def _finite(x: Any) -> float | None:
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def pose_json(pose: Any) -> str | None:
-    """{"R": 9 floats row-major, "t": 3 floats in metres} of a geometry.Pose (None: no pose)."""
-    if pose is None:
-        return None
-    return json.dumps({"R": [float(v) for v in np.asarray(pose.R, np.float64).reshape(9)],
-                       "t": [float(v) for v in np.asarray(pose.t, np.float64).reshape(3)]})
-
-
-def decode_pose(text: str | None) -> dict[str, np.ndarray] | None:
-    """A stored pose as {"R": (3, 3) ndarray, "t": (3,) ndarray}, or None."""
-    if text is None:
-        return None
-    d = json.loads(text)
-    return {"R": np.asarray(d["R"], np.float64).reshape(3, 3), "t": np.asarray(d["t"], np.float64).reshape(3)}
 
 
 def scores_json(scores: dict[str, float]) -> str:
@@ -275,8 +189,8 @@ class EpisodeStore:
                 self._db.executemany(
                     "INSERT INTO steps VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     [(eid, int(s.step), s.action, int(bool(s.ok)), _finite(s.seconds), _finite(s.operation_seconds),
-                      scores_json(s.scores), pose_json(s.pose), None if s.picked is None else int(bool(s.picked)),
-                      s.pick_source) for s in record.steps])
+                      scores_json(s.scores), None if s.pose is None else json.dumps(pose_json(s.pose)),
+                      None if s.picked is None else int(bool(s.picked)), s.pick_source) for s in record.steps])
                 self._db.execute("COMMIT")
             except BaseException:
                 self._rollback()
@@ -354,7 +268,7 @@ class EpisodeStore:
         for row in rows:
             d = dict(zip(names, row))
             d["scores"] = json.loads(d["scores"]) if d["scores"] else {}
-            d["pose"] = decode_pose(d["pose"])
+            d["pose"] = None if d["pose"] is None else pose_arrays(json.loads(d["pose"]))
             yield d
 
     def integrity(self) -> str:
