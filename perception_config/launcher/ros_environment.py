@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 DEFAULT_DOMAIN_ID = 42
-FASTDDS_PROFILE = Path(__file__).parent / "ros" / "fastdds_profile.xml"
+FASTDDS_PROFILE = Path(__file__).resolve().parents[1] / "ros" / "fastdds_profile.xml"
 
 
 def ros_environment_defaults() -> dict[str, str]:
