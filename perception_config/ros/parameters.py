@@ -3,8 +3,9 @@ rcl_interfaces descriptor built from it, so `ros2 param describe <node> <name>` 
 description, type, range, choices and whether it may change at run time, and the generated
 reference (parameter_docs.py) reads the same spec.
 
-A range is given only where the node refuses every value outside it (at start-up or at each
-use): rclpy then refuses such a value itself, when the node starts or when it is set.
+A range is given only where no value outside it ever worked (the node refused it at start-up
+or at each use, or, for a setting of a mode that is off, never read it): rclpy now refuses such
+a value itself, when the node starts (the node exits 2 naming it) or when it is set.
 """
 from __future__ import annotations
 
