@@ -1,0 +1,113 @@
+"""`perception-config train`: train a configuration agent; `agent_params` reads its --agent-param
+options."""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+from pathlib import Path
+from typing import Any
+
+# Light imports only (numpy): the command imports the rest it needs.
+from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
+from ..rl.settings import TIME_MODES, EnvSettings
+from .args import add_dataset_args, add_ray_args
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from ..learning.training import train
+
+    # Also when started with SIGINT ignored (a background job of a script inherits that): Ctrl-C
+    # and `kill -INT` must stop the run with its work saved. SIGHUP ignored (nohup) stays ignored.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    lambda_range = tuple(args.lambda_range) if args.lambda_range else None
+    settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
+    common = dict(
+        settings=settings, pipeline=args.pipeline, progress=not args.quiet, resume=args.resume,
+        test_fraction=args.test_fraction, split_seed=args.split_seed, workers=args.workers,
+        ray_address=args.ray_address, overwrite=args.overwrite, checkpoint_every=args.checkpoint_every,
+        use_depth=args.use_depth, store_episodes=args.store_episodes, validation_fraction=args.validation_fraction,
+        validate_every=args.validate_every, agent_kwargs=agent_params(args.agent, args.agent_param),
+    )
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.seeds == 1:
+        policy = train(args.dataset, args.agent, args.out, args.episodes, seed=args.seed, **common)
+    else:
+        from ..learning.seed_selection import SEEDS_CSV, train_seeds
+
+        policy = train_seeds(args.dataset, args.agent, args.out, args.episodes,
+                             list(range(args.seed, args.seed + args.seeds)), **common)
+        print(Path(args.out, SEEDS_CSV).read_text(), end="")
+    print(f"policy: {policy}")
+    print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
+    return 0
+
+
+def agent_params(agent: str, items: list[str] | None) -> dict[str, Any]:
+    """`--agent-param KEY=VALUE` options as the agent's hyper-parameters: VALUE read as JSON
+    (numbers, lists, strings without quotes too), checked against the agent's bounds."""
+    from ..agents import AGENTS
+    from ..agents.hparams import check_hparams
+
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--agent-param {item!r}: expected KEY=VALUE, e.g. entropy_coef=0.05")
+        try:
+            out[key.strip()] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key.strip()] = text
+    if out and agent in AGENTS:
+        check_hparams(agent, AGENTS[agent].HPARAM_BOUNDS, out)
+    return out
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    tr = sub.add_parser(
+        "train", help="train a configuration agent on the train images of a BOP dataset",
+        description="Ctrl-C (SIGINT), SIGTERM and SIGHUP stop the run: the round in flight is dropped, the workers "
+                    "are stopped, and the policy, history.csv, learning curve and checkpoint of the last completed "
+                    "round are written (a second signal does not abort that). Exit codes: 0 done, 2 bad input, "
+                    "130 SIGINT, 143 SIGTERM, 129 SIGHUP; --resume continues the run.")
+    add_dataset_args(tr)
+    tr.add_argument("--agent", choices=("random", "simple", "pg", "es", "fixed"), default="pg")
+    tr.add_argument("--out", type=Path, required=True, help="run folder: policy, checkpoint, learning curve")
+    tr.add_argument("--episodes", type=int, default=1000)
+    env = EnvSettings()
+    tr.add_argument("--lambda-range", type=float, nargs=2, default=None, metavar=("A", "B"),
+                    help="lambda of the training episodes ~ U(A, B) "
+                         f"(default {env.lambda_range[0]:g} {env.lambda_range[1]:g})")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seeds", type=int, default=1, metavar="N",
+                    help="train N runs (seeds --seed .. --seed+N-1, in OUT/seed-<s>/) and ship the one of lowest "
+                         "validation cost as OUT/policy.safetensors, with OUT/seeds.csv; needs --validation-fraction "
+                         "(default 1: one run in OUT)")
+    tr.add_argument("--pipeline", type=Path, default=None,
+                    help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
+                         "(default: default)")
+    tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
+    tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
+    tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
+                    help="share of image ids held out for evaluation")
+    tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
+    tr.add_argument("--checkpoint-every", type=int, default=100, metavar="N",
+                    help="write the checkpoint every N episodes (100); a stop signal always writes it")
+    tr.add_argument("--validation-fraction", type=float, default=0.0, metavar="F",
+                    help="hold out this share of the train images (seeded by --split-seed; the test images are "
+                         "untouched), check the greedy policy on them every --validate-every episodes and at the "
+                         "end, and ship the one with the lowest mean cost (0: the last policy; default 0)")
+    tr.add_argument("--validate-every", type=int, default=DEFAULT_VALIDATE_EVERY, metavar="K",
+                    help=f"episodes between two validation checks ({DEFAULT_VALIDATE_EVERY})")
+    tr.add_argument("--agent-param", action="append", metavar="KEY=VALUE",
+                    help="an agent hyper-parameter (repeatable), e.g. pg's entropy_coef=0.05 lr_half_life=2000 "
+                         "(checked against the agent's bounds; ignored by --resume, which keeps the checkpoint's)")
+    tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
+    tr.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
+                    help="do not append the episodes to OUT/episodes.sqlite")
+    add_ray_args(tr, "each round's episodes (pg's batch, the ES population; a round waits for its slowest "
+                      "episode, so give pg batch_episodes >= 4 N)")
+    tr.add_argument("--quiet", action="store_true")
+    tr.set_defaults(func=_cmd_train)
