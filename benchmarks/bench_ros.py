@@ -98,7 +98,7 @@ def main() -> int:
     from perception_config.agents.policy_settings import policy_settings
     from perception_config.blocks.pipeline import load_pipeline
     from perception_config.datasets.bop import BopDataset
-    from perception_config.launcher.launch import Launcher, NodeSpec
+    from perception_config.launcher.supervisor import Launcher, NodeSpec
     from perception_config.learning.evaluation import episode_seed
     from perception_config.rl.env import PerceptionConfigEnv
     from perception_config.rl.episodes import EpisodeSource, split_image_keys

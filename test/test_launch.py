@@ -18,8 +18,9 @@ from pathlib import Path
 import pytest
 
 from perception_config import cli
-from perception_config.launcher import launch
-from perception_config.launcher.launch import Launcher, NodeSpec, param_value, resolve_nodes
+from perception_config.launcher import resolution as launch
+from perception_config.launcher.resolution import resolve_nodes
+from perception_config.launcher.supervisor import Launcher, NodeSpec, param_value
 from ros_helpers import call, wait_for_service
 
 REPO = Path(__file__).resolve().parents[1]

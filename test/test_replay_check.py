@@ -70,7 +70,7 @@ def test_auto_mode_estimates_every_object_of_every_replayed_frame(ros_node, tmp_
 
     from perception_config.datasets.bag import write_bag
     from perception_config.datasets.bop import BopDataset
-    from perception_config.launcher.launch import Launcher, NodeSpec
+    from perception_config.launcher.supervisor import Launcher, NodeSpec
 
     root = tiny_dataset(tmp_path_factory)
     ds = BopDataset(root, split="test")

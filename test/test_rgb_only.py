@@ -325,7 +325,7 @@ def test_the_shipped_rgb_pipeline_by_name(rgb_dataset, tmp_path):
     """`--pipeline rgb` names the shipped RGB pipeline: no action needs depth, so nothing is
     masked on an RGB-only dataset; launch passes the name on; an unknown name lists the shipped."""
     from perception_config.blocks.pipeline import load_pipeline, shipped_pipelines
-    from perception_config.launcher.launch import resolve_nodes
+    from perception_config.launcher.resolution import resolve_nodes
 
     assert {"default", "rgb"} <= set(shipped_pipelines())
     pipe = load_pipeline(Path("rgb"))

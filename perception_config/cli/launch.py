@@ -6,7 +6,8 @@ from pathlib import Path
 
 
 def _cmd_launch(args: argparse.Namespace) -> int:
-    from ..launcher.launch import parse_nodes, resolve_nodes, run
+    from ..launcher.resolution import parse_nodes, resolve_nodes
+    from ..launcher.supervisor import run
 
     specs = resolve_nodes(
         parse_nodes(args.nodes) if args.nodes else None, models=args.models, pipeline=args.pipeline,

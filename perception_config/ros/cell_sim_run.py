@@ -71,8 +71,9 @@ from ..blocks.base import Kind
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bag import bag_info
 from ..datasets.bop import BopDataset
-from ..launcher.launch import Launcher, default_models
+from ..launcher.resolution import default_models
 from ..launcher.ros_environment import configure_ros_environment
+from ..launcher.supervisor import Launcher
 from ..learning.evaluation import episode_seed
 from ..online.score_learner import SCORES
 from ..rl.episodes import split_image_keys

@@ -39,8 +39,8 @@ from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import pipeline_reference
 from ..datasets.bag import RECORDING_EPOCH_NS, write_frames
 from ..datasets.bop import BopDataset
-from ..launcher.launch import Launcher, NodeSpec
 from ..launcher.ros_environment import configure_ros_environment
+from ..launcher.supervisor import Launcher, NodeSpec
 from ..learning.evaluation import episode_seed
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episode_loop import acting_seed, play_episode
