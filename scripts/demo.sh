@@ -55,7 +55,7 @@ say "5/5 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes
 perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \
   --images "${DEMO_REPLAY_IMAGES:-8}"
 
-table() { "$PY" -c 'import json, sys; from perception_config.learning.evaluation import format_table
+table() { "$PY" -c 'import json, sys; from perception_config.learning.evaluation_export import format_table
 print(format_table(json.load(open(sys.argv[1]))))' "$1"; }
 say "the lambda study (simulated initialisation, default pipeline):"
 table "$OUT/evaluation/results.json"

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perception_config.learning.evaluation import bop_csv_name, evaluate
+from perception_config.learning.evaluation import evaluate
+from perception_config.learning.evaluation_export import bop_csv_name
 from rl_helpers import pipeline_file, tiny_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -169,8 +170,8 @@ def test_bop_toolkit_vsd_and_overall_ar_match_the_projects(vsd_evaluation, monke
     bop_toolkit's pixel centres (K's principal point moved by -0.5 px), within VSD_SAME_CENTRES_TOL
     of bop_toolkit's: the pixel convention is the whole difference."""
     from perception_config.core import metrics
+    from perception_config.core.pose_json import pose_from_json
     from perception_config.datasets.bop import BopDataset
-    from perception_config.learning.evaluation import pose_from_json
 
     ev = vsd_evaluation
     ds = BopDataset(ev["dataset"], split="test")

@@ -20,19 +20,17 @@ from perception_config.agents.random import RandomAgent
 from perception_config.blocks.pipeline import load_pipeline
 from perception_config.datasets.bop import BopDataset
 from perception_config.datasets.bop_results import read_results_csv
-from perception_config.learning.evaluation import (
-    DEFAULT_FIXED_SEQUENCES,
+from perception_config.learning.evaluation import episode_plan, evaluate
+from perception_config.learning.evaluation_agents import DEFAULT_FIXED_SEQUENCES, fixed_sequences
+from perception_config.learning.evaluation_export import (
     bop_csv_name,
     bop_targets,
     bop_targets_name,
-    episode_plan,
-    evaluate,
     first_pass,
-    fixed_sequences,
     format_table,
-    summarise,
     write_bop_csvs,
 )
+from perception_config.learning.evaluation_records import summarise
 from perception_config.rl.episodes import split_image_keys
 from perception_config.rl.settings import EnvSettings
 
@@ -366,7 +364,9 @@ def test_cli_evaluate(dataset, tmp_path, capsys):
 
 
 def test_oracle_ratio_pairs_the_episodes_both_solved_and_counts_the_first_generator_call():
-    from perception_config.learning.evaluation import _oracle_ratios, format_table, summarise
+    from perception_config.learning.evaluation_export import format_table
+    from perception_config.learning.evaluation_records import oracle_ratios as _oracle_ratios
+    from perception_config.learning.evaluation_records import summarise
 
     def ep(agent, episode, success, time, gen=0.5):
         return {"agent": agent, "lambda": 0.5, "episode": episode, "episode_seed": 10 + episode, "success": success,

@@ -11,7 +11,8 @@ from .args import add_dataset_args, add_ray_args
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..learning.evaluation import DEFAULT_LAMBDAS, evaluate, format_table
+    from ..learning.evaluation import DEFAULT_LAMBDAS, evaluate
+    from ..learning.evaluation_export import format_table
 
     lambdas = [float(x) for x in args.lambdas.split(",")] if args.lambdas else list(DEFAULT_LAMBDAS)
     results = evaluate(
