@@ -292,7 +292,7 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
                     env, models = settings.env(learn_dir), ModelFolder(settings.models_dir)
                 if pick_success_block(env.pipeline) is not None:
                     with open3d_single_thread(True):
-                        scored = refit_score_once(learn_dir, settings.models_dir, settings.margin, settings.seed, log)
+                        scored = refit_score_once(learn_dir, settings.models_dir, settings.margin, settings.seed)
                     log(format_score_result(scored))
                     report("result", scored)
                 with open3d_single_thread(True):

@@ -33,7 +33,7 @@ from __future__ import annotations
 import sqlite3
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -95,8 +95,8 @@ def labelled_rows(learn_dir: Path, models_dir: str | Path) -> Any:
         raise ScoreLearnError(str(exc)) from None
 
 
-def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: float = 0.05, seed: int = 0,
-                     log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
+def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: float = 0.05,
+                     seed: int = 0) -> dict[str, Any]:
     """One cycle (module docstring); the result: outcome "promoted" | "discarded" | "failed",
     rows, frames, brier, serving_brier, candidate ("recalibrated" | "refit"), serving, version."""
     learn_dir = Path(learn_dir)
