@@ -12,19 +12,37 @@ from typing import Callable
 import pytest
 
 from frames import box_mesh
-from ros_helpers import pick_domain_id
+from ros_helpers import pick_domain_id, worker_domain_id
 
 # The repo and ../shared are siblings: /work/main and /work/shared.
 LMO_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lmo"
 LMO_RGB_ROOT = LMO_ROOT.with_name("lmo-rgb")
 
-# Prepared per-model tables (the ppf generator's) go to a folder of this session, not the user's cache.
-_CACHE = tempfile.TemporaryDirectory(prefix="perception_config_test_cache_")
-os.environ["PERCEPTION_CONFIG_CACHE"] = _CACHE.name
+# With pytest-xdist (scripts/test.sh) this file runs in the controller, whose environment the
+# workers inherit, then in each worker ("gw0", "gw1", ...); without it, once.
+WORKER = os.environ.get("PYTEST_XDIST_WORKER")
 
-# ROS processes of this test session get a domain of their own (set before rclpy loads).
+# Prepared per-model tables (the ppf generator's) go to a folder of this session, not the user's
+# cache. The workers share the controller's: entries are written atomically (vision/disk_cache.py).
+if WORKER and os.environ.get("PERCEPTION_CONFIG_TEST_CACHE"):
+    os.environ["PERCEPTION_CONFIG_CACHE"] = os.environ["PERCEPTION_CONFIG_TEST_CACHE"]
+else:
+    _CACHE = tempfile.TemporaryDirectory(prefix="perception_config_test_cache_")
+    os.environ["PERCEPTION_CONFIG_CACHE"] = os.environ["PERCEPTION_CONFIG_TEST_CACHE"] = _CACHE.name
+
+# ROS processes of this test session get a domain of their own (set before rclpy loads), and each
+# worker one of its own: two workers' nodes must not answer each other's requests.
 os.environ.setdefault("PERCEPTION_CONFIG_TEST_DOMAIN", str(pick_domain_id()))
+if WORKER:
+    os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"] = str(worker_domain_id(int(os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"]),
+                                                                       WORKER))
 os.environ["ROS_DOMAIN_ID"] = os.environ["PERCEPTION_CONFIG_TEST_DOMAIN"]
+# Ray's temporary folder (its sessions and the address of the last cluster started, which a bare
+# ray.init() joins) one per worker: a worker's local Ray must not join another worker's cluster.
+# Short, under /tmp: Ray's socket paths must stay under 108 characters.
+if WORKER:
+    _RAY_TMP = tempfile.TemporaryDirectory(prefix=f"ray-{WORKER}-", dir="/tmp", ignore_cleanup_errors=True)
+    os.environ["RAY_TMPDIR"] = _RAY_TMP.name
 # The project's loopback defaults (perception_config.launcher.ros_environment), whatever the shell exported.
 os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(Path(__file__).resolve().parents[1] / "perception_config" / "ros"
                                                   / "fastdds_profile.xml")
@@ -100,6 +118,20 @@ def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def tiny_pg_policy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A pg policy trained briefly on the tiny dataset (cost-table time: fast, deterministic), once
+    per session: test_cell_sim and test_replay_check serve it through the nodes. Tests only read it."""
+    from perception_config.learning.training import train
+    from perception_config.rl.settings import EnvSettings
+    from rl_helpers import pipeline_file, tiny_dataset
+
+    settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
+    return train(tiny_dataset(tmp_path_factory), "pg", tmp_path_factory.mktemp("policy") / "run", 16,
+                 settings=settings, seed=0, pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1,
+                 agent_kwargs={"batch_episodes": 8})
+
+
+@pytest.fixture(scope="session")
 def make_box() -> Callable[..., "object"]:
     """Factory: an ObjectModel of a box (metres) with the given size and obj_id."""
     from perception_config.core.models import make_model
@@ -126,9 +158,21 @@ def ros_node():
     rclpy.try_shutdown()
 
 
+# The files that take half a minute or more on 2 cores, longest first. They run first: pytest-xdist
+# hands whole files to the workers in collection order (scripts/test.sh: --dist loadfile
+# --no-loadscope-reorder), so that the last files to start are short ones and no worker waits
+# idle for one long file at the end.
+LONG_FILES = ("test_training_signals", "test_score_learning", "test_ray_cluster", "test_training_validation",
+              "test_ray_workers", "test_colcon", "test_ros_nodes", "test_replay_check", "test_online_learning",
+              "test_cell_sim", "test_ppf", "test_resting_pose", "test_ros_replay")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """A test that talks to ROS nodes (it takes the ros_node fixture) is a `ros` test, marked or not,
-    so `-m "not ros"` leaves out every test that starts nodes (test_score_learning's were missed)."""
+    so `-m "not ros"` leaves out every test that starts nodes (test_score_learning's were missed).
+    The files of LONG_FILES go first, in its order; the others follow as collected."""
     for item in items:
         if "ros_node" in getattr(item, "fixturenames", ()) and item.get_closest_marker("ros") is None:
             item.add_marker(pytest.mark.ros)
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(LONG_FILES)))  # stable: each file's own order stays

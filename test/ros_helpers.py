@@ -22,9 +22,22 @@ def ros_test_env() -> dict[str, str]:
     return env
 
 
+# Test domains: clear of 0 (ROS's default) and 42 (the project's), within the 0..101 that Linux's
+# ephemeral ports leave to Fast DDS.
+TEST_DOMAINS = range(60, 101)
+
+
 def pick_domain_id() -> int:
-    """A domain id unlikely to collide with other processes on a shared machine (42 is the default)."""
-    return random.SystemRandom().choice([d for d in range(60, 101) if d != 42])
+    """A domain id unlikely to collide with other processes on a shared machine."""
+    return random.SystemRandom().choice(TEST_DOMAINS)
+
+
+def worker_domain_id(base: int, worker: str) -> int:
+    """The domain of pytest-xdist worker `worker` ("gw0", "gw1", ...) of a session whose domain is
+    `base`: the next ids of TEST_DOMAINS after `base`, so the workers of one session never share a
+    domain, nor use the controller's (a developer's own `base` included)."""
+    index = int(worker.removeprefix("gw"))
+    return TEST_DOMAINS[(base - TEST_DOMAINS[0] + 1 + index) % len(TEST_DOMAINS)]
 
 
 _STARTED: list["NodeProcess"] = []

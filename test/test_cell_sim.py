@@ -26,7 +26,7 @@ from perception_config.bench.cell_sim import (
     rolling_mean,
     summarise,
 )
-from rl_helpers import pipeline_file, tiny_dataset
+from rl_helpers import tiny_dataset
 
 
 def _row(i: int, success: int, time_s: float, version: str = "fixed", wall: float | None = None) -> dict:
@@ -184,15 +184,9 @@ def test_summary_and_plot_of_a_constructed_learning_run(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def policy(tmp_path_factory):
-    """A pg policy trained briefly on the tiny dataset (cost-table time: fast, deterministic)."""
-    from perception_config.learning.training import train
-    from perception_config.rl.settings import EnvSettings
-
-    settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
-    return train(tiny_dataset(tmp_path_factory), "pg", tmp_path_factory.mktemp("policy") / "run", 16,
-                 settings=settings, seed=0, pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1,
-                 agent_kwargs={"batch_episodes": 8})
+def policy(tiny_pg_policy):
+    """A pg policy trained briefly on the tiny dataset (conftest: once per session)."""
+    return tiny_pg_policy
 
 
 @pytest.mark.ros

@@ -15,17 +15,9 @@ pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope="module")
-def policy(tmp_path_factory):
-    """A pg policy trained briefly on the tiny dataset (cost-table time: fast, deterministic)."""
-    from perception_config.learning.training import train
-
-    out = tmp_path_factory.mktemp("policy") / "run"
-    from perception_config.rl.settings import EnvSettings
-
-    settings = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
-    return train(tiny_dataset(tmp_path_factory), "pg", out, 16, settings=settings, seed=0,
-                 pipeline=pipeline_file(tmp_path_factory), progress=False, workers=1,
-                 agent_kwargs={"batch_episodes": 8})
+def policy(tiny_pg_policy):
+    """A pg policy trained briefly on the tiny dataset (conftest: once per session)."""
+    return tiny_pg_policy
 
 
 def test_replayed_bag_through_the_nodes_matches_in_process(ros_node, tmp_path_factory, tmp_path, policy):
