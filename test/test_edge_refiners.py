@@ -224,18 +224,24 @@ def test_hostile_images_and_objects_give_a_reason_within_the_time_bound(name):
         assert not r.ok and word in r.reason, f"{name} on {what}: {r.ok} {r.reason!r}"
         assert r.elapsed < block.config["max_seconds"] + 0.05, f"{name} took {r.elapsed:.3f} s on {what}"
         print(f"{name}, {what}: {r.reason}")
-    # A model without inner edges (a sphere): refined on its outline or refused, never a crash,
-    # within the time bound, and never worse by the block's own cost.
+    # A model without inner edges (a sphere): refined on its outline, never a crash, within the
+    # time bound, and never worse by the block's own cost. chamfer_icp's first contour match takes
+    # about its whole 0.1 s budget: the only refusal allowed is the budget's, and without the
+    # bound it refines.
     sphere = _sphere_model()
     s_gt = Pose(np.eye(3), [0.0, 0.0, 0.6])
     s_frame = synthetic_frame([sphere], [s_gt], seed=4)
     start = Pose(s_gt.R, s_gt.t + np.array([0.004, -0.003, 0.0]))
     r = block(BlockInput(frame=s_frame, model=sphere, pose=start, rng=np.random.default_rng(0)))
     assert r.elapsed < block.config["max_seconds"] + 0.05
-    assert r.ok or r.reason
-    if r.ok:
-        assert r.scores[COST[name]] <= r.info["cost_before"] + 1e-12
-        assert np.linalg.norm(r.pose.t - s_gt.t) <= np.linalg.norm(start.t - s_gt.t) + 1e-3
+    if not r.ok:
+        assert name == "chamfer_icp" and r.reason == "the time budget (0.1 s) ran out before any contour match", \
+            f"{name} on a sphere: {r.reason!r}"
+        r = block(BlockInput(frame=s_frame, model=sphere, pose=start, rng=np.random.default_rng(0),
+                             time_bounded=False))
+    assert r.ok, f"{name} on a sphere: {r.reason!r}"
+    assert r.scores[COST[name]] <= r.info["cost_before"] + 1e-12
+    assert np.linalg.norm(r.pose.t - s_gt.t) <= np.linalg.norm(start.t - s_gt.t) + 1e-3
 
 
 def _chamfer_from_annotation(root, im_id: int, obj_id: int, seeds: int, **params) -> list[tuple[str, bool]]:
