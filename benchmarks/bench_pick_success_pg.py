@@ -8,9 +8,9 @@ For each pipeline (default: the default one and config/pick_success_pipeline.yam
 actions with pick_success in the scoring set): trains the policy-gradient agent on the train
 images (`perception-config train --agent pg`, same seed and episodes), then evaluates it with
 the oracle (hindsight lower bound) at lambda = 0.5 on every test episode
-(`perception-config evaluate --lambdas 0.5`, measured time as the README's learning table, or with
+(`perception-config evaluate --lambdas 0.5`, measured time as docs/results/learning.md's table, or with
 `--time-mode cost_table` every block charged its table cost: independent of the machine's load).
-Reports per pipeline: pg's mean time to success over the oracle's (the README's "x the oracle"),
+Reports per pipeline: pg's mean time to success over the oracle's (docs/results/learning.md's "x the oracle"),
 the same on the median, first-pick success and the success share. Both agents of a pipeline pay
 its scoring pass, so the oracle of the pick_success pipeline is slower too: the absolute times
 are reported beside the ratios. `--validation-fraction F` trains with validation-based policy

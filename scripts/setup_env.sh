@@ -38,7 +38,7 @@ command -v cc >/dev/null 2>&1 || missing+=(gcc)
 command -v c++ >/dev/null 2>&1 || missing+=(g++)
 have_lib 'libGL.so.1' || missing+=(libgl1)               # open3d's visualization module links it
 have_lib 'libgomp.so.1' || missing+=(libgomp1)
-# Software OpenGL over EGL for bop_toolkit's VSD renderer (vispy; test/test_bop_toolkit.py, README "Scoring with bop_toolkit")
+# Software OpenGL over EGL for bop_toolkit's VSD renderer (vispy; test/test_bop_toolkit.py, docs/how-to/bop_toolkit.md)
 have_lib 'libEGL.so.1' || missing+=(libegl1)
 have_lib 'libEGL_mesa.so.0' || missing+=(libegl-mesa0)
 have_lib 'libOpenGL.so.0' || missing+=(libopengl0)

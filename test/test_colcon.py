@@ -1,6 +1,6 @@
 """A ROS 2 workspace build with colcon (colcon-core + colcon-ros from PyPI, pinned in requirements.txt)
-of a copy of the repository in a temporary workspace's src/, as the README's "colcon workspace"
-section says: both packages are found, perception_config_interfaces is built once (its own
+of a copy of the repository in a temporary workspace's src/, as docs/how-to/colcon.md
+says: both packages are found, perception_config_interfaces is built once (its own
 ament_cmake package from msg_defs/, against the ROS prefix of this venv's PyPI wheels) and not
 bundled into install/perception_config, and a node started from install/ joins the ROS graph.
 """
@@ -42,7 +42,7 @@ def colcon_env() -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A workspace with the repository copied into src/, built with the README's colcon command."""
+    """A workspace with the repository copied into src/, built with docs/how-to/colcon.md's colcon command."""
     ws = tmp_path_factory.mktemp("colcon_ws")
     shutil.copytree(ROOT, ws / "src" / "perception_config", ignore=NOT_COPIED, symlinks=True)
     cmd = [str(COLCON), "build", "--base-paths", "src", "src/perception_config/msg_defs",

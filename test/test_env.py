@@ -50,7 +50,7 @@ def test_check_env_passes_on_the_registered_env_as_a_user_makes_it(tmp_path_fact
 
 def test_check_env_fails_on_measured_time(tmp_path_factory):
     """The default measured time: rewards are wall-clock seconds, never equal twice; check_env
-    says so (the reason the README names the cost-table mode)."""
+    says so (the reason docs/concepts/environment.md names the cost-table mode)."""
     from gymnasium.utils.env_checker import check_env
 
     e = gym.make("PerceptionConfig-v0", dataset=tiny_dataset(tmp_path_factory))

@@ -463,7 +463,7 @@ def test_launch_bag_replays_a_short_bag_once_the_nodes_listen(ros_node, syntheti
 
 
 def test_the_shipped_real_camera_example_sets_only_declared_parameters_and_remaps_the_camera(tmp_path):
-    """config/realsense_cell.yaml (README "A real robot cell"): a valid ROS params file whose every
+    """config/realsense_cell.yaml (docs/how-to/run_the_cell.md): a valid ROS params file whose every
     parameter is one a node declares, launched with --pipeline cell and the driver's topics."""
     from importlib import resources
 

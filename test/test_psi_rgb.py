@@ -160,7 +160,7 @@ def test_high_at_the_ground_truth_of_a_constructed_frame_without_depth_or_model_
 
 def test_ground_truth_outranks_lambda_03_on_real_photographs(lmo_rgb_root) -> None:
     """Most of the time, and more often than psi_c (the real annotations are themselves a few
-    pixels off in places: see the README's ceiling for any image-only score)."""
+    pixels off in places: see docs/results/real_photographs.md's ceiling for any image-only score)."""
     ds = BopDataset(lmo_rgb_root, use_depth=False)
     rng = np.random.default_rng(0)
     wins = {"psi_rgb": 0, "psi_c": 0}

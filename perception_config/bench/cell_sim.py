@@ -54,7 +54,8 @@ LEARNER_LINE = re.compile(
     r" -> (?:(?P<promoted>promoted) (?P<version>[^\s,;]+)|(?P<discarded>discarded))")
 ROS_LOG_TIME = re.compile(r"\[(\d{9,}\.\d+)\]")  # rcutils' default format: [INFO] [1733100000.123] [node]: ...
 DEFAULT_TOLERANCE = 0.10
-DEFAULT_WINDOW = 200  # estimates: the rolling mean time of a fixed policy varies by +-10 % over 200 (README)
+# estimates: the rolling mean time of a fixed policy varies by +-10 % over 200 (docs/results/cell_sim.md)
+DEFAULT_WINDOW = 200
 
 
 # --------------------------------------------------------------------------- one estimate

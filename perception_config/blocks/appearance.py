@@ -18,7 +18,7 @@ the cues at the pose itself (`info["shift_px"]` gives the best shift):
 It uses the image only (no depth, no model colour: models without vertex colours score alike;
 `info["used"]` says what was used). On real LM-O photographs (lmo-rgb) it ranks a pose within
 the pick tolerance above one outside at AUC 0.876 for the same object, where psi_c does 0.72
-(README, "Scoring on real photographs"). The Canny map is computed once per frame and shared
+(docs/results/real_photographs.md). The Canny map is computed once per frame and shared
 with d2co/chamfer through BlockInput.cache, the hypothesis render with the other scores; the
 rest works on the hypothesis's crop.
 

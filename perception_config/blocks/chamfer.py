@@ -33,7 +33,7 @@ were better 0.18. Paired runs, 3 seeds x 3 calls, within tolerance after 1 / 3 c
 lambda 0.1 90 / 86 -> 92 / 89 -> 96 / 93 %, lambda 0.3 improved 64 -> 64 -> 66 %, within after
 3 calls 31 -> 32 -> 32 %; the synthetic default 98 / 96 -> 100 / 99 -> 100 / 99 %, 97 / 96 ->
 100 / 99 -> 100 / 100 %, lambda 0.3 unchanged. The margin's price: the synthetic convergence
-table, 40 images, up to 5 calls from lambda 0.3, 0.67-0.68 -> 0.64-0.65 (README));
+table, 40 images, up to 5 calls from lambda 0.3, 0.67-0.68 -> 0.64-0.65 (docs/results/real_photographs.md));
 chamfer-ICP's prior holds out-of-plane rotation (`out_of_plane_prior_deg`, loosened by
 1 / (1 - inner-edge share)) far more than rotation about the ray (`rotation_prior_deg`).
 Both return the start unchanged unless their own cost (`chamfer_cost`, the mean truncated

@@ -130,8 +130,8 @@ class GlobalRegistration(Block):
     candidates verified, the list of (score, pose) of all polished candidates).
 
     Its success on the real LM-O frame and the synthetic default is measured by
-    benchmarks/bench_generation.py (figures: benchmarks/results/generation*.json and the
-    README); `min_verification` 0.6 is calibrated on those runs. Known failures: parts lying
+    benchmarks/bench_generation.py (figures: benchmarks/results/generation.json and
+    docs/results/generators.md); `min_verification` 0.6 is calibrated on those runs. Known failures: parts lying
     flat within `plane_distance` of the table (the bracket) are removed
     with the table; parts of a few cm (the 38 mm hexnut) give too few points for FPFH; a
     distractor of similar shape and colour that is not in the model set (a white box for the

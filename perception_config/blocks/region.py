@@ -8,7 +8,7 @@ weak priors (depth along the viewing ray, rotation about it and out of the image
 own strength: pose_solver.prior_information) anchored at the start. The algorithm is in
 vision/region.py. On real photographs of scanned models a tighter out-of-plane prior (8 deg) or
 local colour histograms (`sectors` 12) keep correct poses better, from wrong starts they reach
-less (README, Real photographs); the defaults keep the synthetic figures.
+less (docs/results/real_photographs.md); the defaults keep the synthetic figures.
 The start comes back unchanged (`info["improved"] = False`) unless the block's own cost
 (`region_cost`, 1 - the colour separation of the pose's bands) drops.
 """

@@ -44,8 +44,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "(default: data/default/models, else the procedural parts in data/parts_models)")
     la.add_argument("--pipeline", type=Path, default=None, metavar="YAML|NAME",
                     help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
-                         "(default: default; cell = the real-camera set-up without ground truth, README "
-                         "'A real robot cell')")
+                         "(default: default; cell = the real-camera set-up without ground truth, "
+                         "docs/concepts/cell_without_ground_truth.md)")
     la.add_argument("--policy", default=None, metavar="FILE|none",
                     help="configurator policy "
                          "(default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")

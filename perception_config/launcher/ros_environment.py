@@ -10,7 +10,7 @@ exported wins. This module does not import rclpy, so the launcher can use it.
   that binds send sockets on 0.0.0.0 and on the external address); LOCALHOST when the user
   points FASTDDS_DEFAULT_PROFILES_FILE at a profile of their own (Kilted ignores the older
   ROS_LOCALHOST_ONLY).
-- ROS_DOMAIN_ID: 42 by default (README, "ROS 2 settings"); any 0-101 the user exports wins.
+- ROS_DOMAIN_ID: 42 by default (docs/reference/ros_network.md); any 0-101 the user exports wins.
 - RMW_IMPLEMENTATION=rmw_fastrtps_cpp, the middleware the wheels ship.
 - AMENT_PREFIX_PATH: the interpreter's prefix, where the PyPI ROS wheels put share/ (nothing
   else sets it outside a sourced ROS installation).

@@ -1,7 +1,7 @@
 """Training several seeds and shipping the one that validates best.
 
 A policy-gradient run's outcome depends on its seed: on the cell pipeline two runs trained the
-same way reached 92.6 % and 83.8 % success on the test images (README, "A real robot cell");
+same way reached 92.6 % and 83.8 % success on the test images (docs/results/cell_agent.md);
 the weaker had learned to give up after a refused generator call. Their held-out validation
 costs (0.77 s against 1.71 s) told them apart without looking at the test images. So
 `train_seeds` trains one run per seed, each with its own validation-based selection

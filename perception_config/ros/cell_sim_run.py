@@ -10,7 +10,7 @@ and verdict are perception_config/bench/cell_sim.py).
    (a round: every object of every frame of the bag once; 1 by default), no learning, into
    `<out>/reference.csv` (or a previous run's with `--reference-from`). Through the nodes rather
    than in-process (evaluation): the cell's time is the time through ROS on this machine, under
-   the same load, which the README measures at 1.14-1.24x the in-process operator time; an
+   the same load, which docs/results/ros.md measures at 1.14-1.24x the in-process operator time; an
    in-process reference would hold the cell to a time no learning through the nodes can reach,
    and its frames, lambda and charged time would not be the cell's.
 3. The cell: generation/refinement/scoring/pick nodes, the configurator serving the start

@@ -11,7 +11,7 @@ once with success=false "busy: N requests queued (request_queue=M)".
 The service's QoS (`service_qos`) keeps all: the middleware holds every request until the node
 takes it (taken at once, so few are ever held), and every answer until it is delivered. A
 keep-last history of request_queue + 65 still lost the oldest requests of a burst of 80 that
-arrived faster than one take per executor iteration (measured; README).
+arrived faster than one take per executor iteration (measured; docs/results/ros.md).
 
 The answers of a service go to every client's reader of that service, which sorts out its own:
 a client whose reader keeps the last 10 (rclpy's default) can lose its answer among many others

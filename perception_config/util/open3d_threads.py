@@ -14,7 +14,7 @@ from typing import Iterator
 
 def limit_open3d_threads(n: int) -> int:
     """Set Open3D's CPU thread limit (process-wide); returns the previous one (0: not settable,
-    Open3D < 0.20, which is then not reproducible; see the README)."""
+    Open3D < 0.20, which is then not reproducible; see docs/concepts/reproducibility.md)."""
     import open3d as o3d
 
     util = o3d.utility

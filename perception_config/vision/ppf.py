@@ -12,7 +12,7 @@ the peak per reference point is a pose. `cluster_poses` groups nearby poses and 
 
 Not used: Vidal et al. 2018's vote spreading over the neighbouring bins of all four feature
 dimensions (16 lookups per pair) with one vote per scene pair and (model point, alpha): in numpy
-it took minutes per object (measured; README).
+it took minutes per object (measured; docs/results/generators.md).
 
 The table lives in a compressed .npz named by a hash of the model's geometry, the parameters
 and the format version (`PPF_FORMAT`); one that cannot be read or does not match is rebuilt and
