@@ -235,7 +235,12 @@ def test_a_short_cell_run_without_learning(ros_node, tmp_path_factory, tmp_path,
         assert math.isclose(r["time_s"], time_s, rel_tol=1e-9, abs_tol=1e-9)
     assert (out / "cell_sim.png").stat().st_size > 10_000
     assert s["candidates"] == 0 and s["promotions"] == []
-    assert ("within 10% of the reference" in format_summary(s)) or ("not reached within" in format_summary(s))
+    # Whether the run came within the tolerance depends on the run; the summary says what its rows show.
+    expected = reached_within([r["success"] for r in rows], [r["time_s"] for r in rows], s["reference"]["success"],
+                              s["reference"]["time_s"], window=4, tolerance=s["tolerance"])
+    assert s["reached_within"] == expected
+    assert (f"from estimate {expected} to the end" if expected is not None
+            else f"by the end: not reached within {estimates}") in format_summary(s)
     assert (out / "logs" / "cell" / "bag_replay_node.log").read_text().count("looping") >= 1
 
 

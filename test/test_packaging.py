@@ -81,7 +81,8 @@ def package_xml_deps() -> dict[str, set[str]]:
 
 def test_the_import_scan_sees_known_imports():
     imports = third_party_imports()
-    assert {"perception_config/ros/parameters.py", "perception_config/ros/configurator_node.py"} <= imports["rcl_interfaces"]
+    ros_files = {"perception_config/ros/parameters.py", "perception_config/ros/configurator_node.py"}
+    assert ros_files <= imports["rcl_interfaces"]
     assert "cv2" in imports and "numpy" in imports
     assert dist_name("ros-rclpy[fastrtps]==9.1.2") == "ros-rclpy" and dist_name("catkin_pkg==1.1.1") == "catkin-pkg"
 
