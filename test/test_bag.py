@@ -211,7 +211,7 @@ def test_write_bag_from_bop_dataset_and_metadata(tmp_path):
     out = list(read_bag(tmp_path / "rec"))
     assert [(f.scene_id, f.im_id) for f in out] == ds.image_keys()
     for i, (key, b) in enumerate(zip(ds.image_keys(), out)):
-        assert_same_frame(ds.load_frame(*key, with_models=False), b)  # bit-exact depth, like bop.read_depth
+        assert_same_frame(ds.load_frame(*key, with_models=False), b)  # bit-exact depth, like bop_images.read_depth
         assert b.stamp == pytest.approx(1.7e9 + i / 5.0, abs=1e-6)
 
     meta = yaml.safe_load((tmp_path / "rec" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]

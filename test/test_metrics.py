@@ -109,7 +109,7 @@ def test_symmetric_box_rotated_by_a_symmetry() -> None:
 
 def test_continuous_symmetry_is_sampled_finely_for_evaluation() -> None:
     model = cylinder()
-    assert len(model.symmetries) == 36  # core/models.py samples every 10 degrees
+    assert len(model.symmetries) == 36  # core/symmetry.py samples every 10 degrees
     syms = M.eval_symmetries(model)
     assert len(syms) == math.ceil(math.pi / M.MAX_SYM_DISC_STEP)
     assert M.eval_symmetries(model) is syms  # cached

@@ -23,7 +23,7 @@ from ..core.models import ObjectModel
 from ..core.scene import Frame
 from .base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
 
-GT_ROTATION_TOL = 1e-2  # as datasets/bop.py checks annotated rotations
+GT_ROTATION_TOL = 1e-2  # as datasets/bop_json.py checks annotated rotations
 
 
 @register

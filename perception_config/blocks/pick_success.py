@@ -16,7 +16,7 @@ is built (a pipeline that names it does not load), with the file named; an empty
 refused too, so a pipeline cannot run a score that has no model behind it.
 
 The `versions` parameter follows online learning (online/policy_learner.py): a folder of score
-versions (policy_versions.PolicyVersions, `<learn_dir>/pick_success/`). While it holds a version,
+versions (util/versions.PolicyVersions, `<learn_dir>/pick_success/`). While it holds a version,
 the version it selects serves instead of `model`, checked before each scoring (a stat of the
 index), so a promotion or a rollback reaches every node that scores without a restart; until
 the learner writes version 0 (the pipeline's model), `model` serves. A version that cannot be

@@ -71,7 +71,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     fs.add_argument("--dataset", type=Path, help="a BOP dataset to play episodes on; with --store: the dataset "
                                                  "folder the store's rows refer to (default: the path they name)")
     fs.add_argument("--frames", type=Path, default=None,
-                    help="with --store: the frames the configurator kept (learn_frames), for its estimates' rows "
+                    help="with --store: the frames the configurator kept (store/frames.py), for its estimates' rows "
                          "(default: frames/ beside the store, a learn_dir's); labelled by their ground truth, else "
                          "by the robot's reported pick outcomes")
     fs.add_argument("--models", type=Path, default=None,

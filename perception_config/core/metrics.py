@@ -300,7 +300,7 @@ _EVAL_SYMS_LOCK = threading.Lock()
 def eval_symmetries(model: ObjectModel, max_sym_disc_step: float = MAX_SYM_DISC_STEP) -> list[Pose]:
     """The symmetry transformations to evaluate errors with, as bop_toolkit samples them.
 
-    A model's own list samples continuous symmetries every 10 degrees (core/models.py), which is
+    A model's own list samples continuous symmetries every 10 degrees (core/symmetry.py), which is
     cheap for blocks but lets a perfect pose of a rotationally symmetric part show an MSSD of
     up to ~4 % of the diameter. For evaluation, continuous symmetries declared in the model's
     models_info are resampled as bop_toolkit's get_symmetry_transformations does:

@@ -22,7 +22,7 @@ One learning cycle, every `every` new stored estimates (`learn_once`):
    the comparison is deterministic, not a race against the machine's load. Cost = the env's:
    charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
 4. promotion only if cost(candidate) < (1 - margin) x cost(serving): the file is kept as the next
-   version (policy_versions.PolicyVersions); otherwise the candidate is deleted.
+   version (util/versions.PolicyVersions); otherwise the candidate is deleted.
 Each cycle reports one line (`format_result`), the line the configurator logs:
     learner: candidate from N episodes: cost X vs serving Y -> promoted vN | discarded
 A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line

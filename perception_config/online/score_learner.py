@@ -21,7 +21,7 @@ One cycle (`refit_score_once`):
    independent unit: hypotheses of one frame are alike), else discarded. Without the second
    test a handful of held-out frames promote noise (measured: a "better" Brier on 2 frames that
    was worse on images the cell never saw).
-Versions live in `<learn_dir>/pick_success/` (policy_versions.PolicyVersions, the same index as
+Versions live in `<learn_dir>/pick_success/` (util/versions.PolicyVersions, the same index as
 the policies): version 0 is the pipeline's model, written at the configurator's start
 (`initial_score_version`). The operator nodes follow the folder (their parameter
 `pick_success_versions`), so a promotion or a rollback (the configurator's `score_version`)

@@ -338,7 +338,7 @@ class BagReplayNode(Node):
 def main(args: list[str] | None = None) -> int:
     warnings.simplefilter("ignore", BagTruncatedWarning)  # the node logs the damage once, at the start
     configure_ros_environment()  # loopback defaults before rclpy starts
-    clean_stale_fastdds_shm()  # segments of killed participants (ros_shm)
+    clean_stale_fastdds_shm()  # segments of killed participants (launcher/fastdds_shm.py)
     rclpy.init(args=args)
     node = None
     try:

@@ -1,6 +1,6 @@
 """The configurator's side of online learning (`learn: true`): versions, frames, the learner process.
 
-- Versions (policy_versions.PolicyVersions in `<learn_dir>/policies/`): version 0 is written at
+- Versions (util/versions.PolicyVersions in `<learn_dir>/policies/`): version 0 is written at
   the first start (`learn_start`: the `policy` file, the fixed pipeline, or an untrained pg);
   later starts serve what the folder says. `policy_version` (a parameter) pins a kept version
   ("" = the newest promoted); the pin is written to versions.json, so the learner compares its
@@ -12,9 +12,9 @@
 - The pick-success score (a pipeline that scores pick_success): version 0 of
   `<learn_dir>/pick_success/` is the pipeline's model (online/score_learner.py); `score_version` pins
   one. The operator nodes follow that folder themselves (their `pick_success_versions`).
-- The learner (online_learning.run_learner) runs in a separate process (multiprocessing spawn,
+- The learner (online/policy_learner.run_learner) runs in a separate process (multiprocessing spawn,
   niced, one thread), reads the store and the frames, and promotes new versions. This node
-  drains its results on a timer (one log line per candidate, online_learning.format_result) and
+  drains its results on a timer (one log line per candidate, policy_learner.format_result) and
   swaps the serving agent only between estimates (`sync`, called with the estimate lock held).
 """
 from __future__ import annotations

@@ -377,7 +377,7 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     unreadable models folder) logs why and exits 2.
     """
     configure_ros_environment()  # loopback defaults before rclpy starts
-    clean_stale_fastdds_shm()  # segments of killed participants (ros_shm)
+    clean_stale_fastdds_shm()  # segments of killed participants (launcher/fastdds_shm.py)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     # Also when started with SIGINT ignored (a background job of a script inherits that):

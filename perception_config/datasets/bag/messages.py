@@ -148,7 +148,7 @@ def image_msg_to_depth(msg: Any) -> np.ndarray:
     if enc in ("16UC1", "mono16"):
         mm = _image_view(msg, np.dtype(np.uint16), 1)
         depth = mm.astype(np.float32)
-        depth /= np.float32(1000.0)  # correctly rounded mm / 1000: the float32 bop.read_depth gives
+        depth /= np.float32(1000.0)  # correctly rounded mm / 1000: the float32 bop_images.read_depth gives
         depth[mm == 0] = np.nan
         return depth
     if enc == "32FC1":
