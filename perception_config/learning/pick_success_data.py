@@ -15,10 +15,15 @@ labelled against the nearest of its instances (a pick of any of them succeeds). 
 hypotheses (an action that failed and left the pose as it was) are one row.
 Rows of a frame with depth are also added RGB-only (the depth features blanked): one model
 then serves RGB-D and RGB-only frames, and knows what the missing depth means.
+The features of a hypothesis are kept per process (`FeatureMemo`: keyed by the frame's pixels
+and intrinsics, the model instance and the pose), so the learner's next cycle, which featurises
+the same stored hypotheses again plus the new ones, computes only the new ones.
 """
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -140,6 +145,47 @@ def _dedupe(rows: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     return list(seen.values())
 
 
+class FeatureMemo:
+    """The features of hypotheses already featurised in this process (least recently used
+    dropped beyond `size`). Features are a deterministic function of the frame's images and
+    intrinsics, the model and the pose (vision/pick_features.py), so a kept entry is what
+    `pick_features` would compute again."""
+
+    def __init__(self, size: int = 50_000) -> None:
+        self.size = int(size)
+        self._entries: OrderedDict[tuple, tuple[Any, np.ndarray]] = OrderedDict()
+
+    @staticmethod
+    def frame_key(frame: Any) -> bytes:
+        h = hashlib.blake2b(digest_size=16)
+        for a in (frame.rgb, frame.depth, frame.K):
+            if a is None:
+                h.update(b"none")
+                continue
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.data)
+        return h.digest()
+
+    def features(self, frame: Any, frame_key: bytes, model: Any, pose: Pose, cache: dict) -> dict[str, float]:
+        """pick_features(frame, model, pose, cache), from the memo when it was computed before.
+        `model` keys by identity: models are shared, prepared instances (core/models.load_model)."""
+        key = (frame_key, id(model), model.obj_id, np.asarray(pose.R, np.float64).tobytes(),
+               np.asarray(pose.t, np.float64).tobytes())
+        kept = self._entries.get(key)
+        if kept is not None and kept[0] is model:
+            self._entries.move_to_end(key)
+            return dict(zip(FEATURE_NAMES, kept[1].tolist()))
+        f = pick_features(frame, model, pose, cache)
+        self._entries[key] = (model, np.array([f[n] for n in FEATURE_NAMES], np.float64))
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+        return f
+
+
+FEATURES = FeatureMemo()
+
+
 class _ImageSource:
     """The frame and the object instances (model, ground truths) of one row's image."""
 
@@ -223,6 +269,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
             continue
         frame, objects = loaded
         cache: dict[str, Any] = {}
+        frame_key = FEATURES.frame_key(frame)
         for row in group:
             bar.update(1)
             model, truths = objects[int(row["episode_obj_id"])]
@@ -234,7 +281,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
                 label = bool(row["picked"])
             if label is None:
                 continue  # no ground truth and no pick outcome: nothing to learn from this row
-            f = pick_features(frame, model, pose, cache)
+            f = FEATURES.features(frame, frame_key, model, pose, cache)
             lam = row.get("episode_noise_lambda")
             variants = [(f, frame.depth is None)]
             if with_rgb_only and frame.depth is not None:
@@ -253,4 +300,5 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
                         np.asarray(share, float), np.asarray(lams, float))
 
 
-__all__ = ["load_step_rows", "collect_step_rows", "featurise", "pick_label", "FeatureTable", "PICK_MSSD_SHARE"]
+__all__ = ["load_step_rows", "collect_step_rows", "featurise", "pick_label", "FeatureTable", "FeatureMemo",
+           "PICK_MSSD_SHARE"]
