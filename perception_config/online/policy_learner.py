@@ -80,7 +80,7 @@ class LearnerSettings:
     train_episodes: int = 200
     check_episodes: int = 40
     seed: int = 0
-    poll_seconds: float = 1.0
+    poll_seconds: float = 0.25
     extra: dict[str, Any] = field(default_factory=dict)  # recorded in each candidate's metadata
 
     def env(self, learn_dir: str | Path | None = None) -> PerceptionConfigEnv:
@@ -141,7 +141,8 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
                     seed: int, stop: Callable[[], bool] | None = None) -> Agent:
     """REINFORCE continued from the serving version's weights (a fresh pg when it has none) on
     `n_episodes` episodes drawn from `episodes` with fresh episode seeds; greedy when returned.
-    `stop` is asked before each round (LearnError when it says so)."""
+    `stop` is asked before each episode of a round (LearnError when it says so): a configurator
+    that stops waits for one episode, not a round."""
     from ..learning.training import play_round
 
     spec = EnvSpec.from_env(env)
@@ -153,13 +154,18 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
     rng = np.random.default_rng(seed)
     done = 0
     while done < n_episodes:
-        if stop is not None and stop():
-            raise LearnError(f"stopped after {done} of {n_episodes} training episodes")
         k = learner.episodes_per_actor
         picks = rng.integers(len(episodes), size=k)
         options = [{"episode": dataclasses.replace(episodes[i], seed=int(rng.integers(1, 2**31)))} for i in picks]
         act_seeds = rng.integers(2**31, size=(len(learner.actors()), k))
-        learner.update(play_round(env, learner.actors(), options, act_seeds))
+        trajectories: list[list[Any]] = []
+        for i, actor in enumerate(learner.actors()):  # play_round's order, one episode at a time
+            trajectories.append([])
+            for j, opts in enumerate(options):
+                if stop is not None and stop():
+                    raise LearnError(f"stopped after {done} of {n_episodes} training episodes")
+                trajectories[-1].append(play_round(env, [actor], [opts], act_seeds[i:i + 1, j:j + 1])[0][0])
+        learner.update(trajectories)
         done += k
     learner.explore = False
     return learner
@@ -240,10 +246,12 @@ def _stored_count(learn_dir: Path) -> int | None:
 
 
 def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any = None, stop: Any = None,
-                nice: int = 10) -> None:
+                nice: int = 10, ready: Any = None) -> None:
     """The worker process: every `settings.every` new stored estimates one `learn_once`; each
     result goes to `results` (a multiprocessing queue, read by the configurator) and, as its
-    line, to `<learn_dir>/learner.log`. Ends when `stop` (an Event) is set or the parent dies."""
+    line, to `<learn_dir>/learner.log`. Ends when `stop` (an Event) is set or the parent dies.
+    `ready` (an Event) is set once the worker has started (its imports done): before that it
+    has done nothing, and its configurator may end it at once instead of waiting for it."""
     learn_dir = Path(learn_dir)
     parent = os.getppid()
     # A launcher stops a node with SIGINT to its whole process group: the configurator ends this
@@ -279,6 +287,8 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
     models = None
     last = None
     log(f"learner: started (pid {os.getpid()}, nice {nice}), a candidate every {settings.every} new estimates")
+    if ready is not None:
+        ready.set()
     while not stopped():
         count = _stored_count(learn_dir)
         if count is not None and last is None:

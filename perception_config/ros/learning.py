@@ -146,8 +146,10 @@ class NodeLearning:
         ctx = multiprocessing.get_context("spawn")
         self.results = ctx.Queue()
         self.stop = ctx.Event()
+        self.ready = ctx.Event()
         self.process = ctx.Process(target=run_learner, args=(str(self.dir), self.settings),
-                                   kwargs={"results": self.results, "stop": self.stop}, name="learner", daemon=True)
+                                   kwargs={"results": self.results, "stop": self.stop, "ready": self.ready},
+                                   name="learner", daemon=True)
         self.process.start()
         self.log.info(f"learn: learner process {self.process.pid} started (a candidate every {every} stored "
                       f"estimates, {train_episodes} training episodes, replay check on the newest {check_episodes}, "
@@ -269,6 +271,10 @@ class NodeLearning:
         except queue.Full:
             pass
         self._saver.join(timeout=10.0)
+        if not self.ready.is_set():
+            # still starting (importing): it has read and written nothing yet, so nothing is lost by
+            # ending it now, and it would not look at `stop` before its imports are done
+            self.process.terminate()
         self.process.join(LEARNER_STOP_TIMEOUT)
         if self.process.is_alive():
             self.process.terminate()
