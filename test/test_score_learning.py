@@ -63,8 +63,9 @@ def recorded(data, tmp_path_factory):
             traj = play_episode(env, agent, {"episode": j, "lambda": 0.7, "episode_seed": seed}, acting_seed(seed))
             assert store_episode(writer, traj, source="configurator", agent="random", policy_version="v0000",
                                  episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
-            frame = env.source.frame(ek.scene_id, ek.im_id)
-            save_frame(out / FRAMES, stamp, frame, {o.obj_id: o.gt for o in frame.objects})
+        for i, key in enumerate(keys):  # each stamp's frame once (the configurator saves a stamp once)
+            frame = env.source.frame(*key)
+            save_frame(out / FRAMES, stamp_ns(rep * len(keys) + i), frame, {o.obj_id: o.gt for o in frame.objects})
     writer.close()
     return out
 
