@@ -109,10 +109,26 @@ class PolicyGradientAgent(Agent):
             for p in list(self.policy.parameters()) + list(self.value.parameters()):
                 bound = 1.0 / np.sqrt(p.shape[-1]) if p.dim() > 1 else 0.0
                 p.copy_(torch.empty(p.shape).uniform_(-bound, bound, generator=gen) if bound else torch.zeros(p.shape))
-        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=self.lr)
-        self.value_optimizer = torch.optim.Adam(self.value.parameters(), lr=self.value_lr)
+        # The optimizers are made on first use: building one imports torch._dynamo (seconds), which a
+        # policy that only acts (a configurator serving it, an evaluation) never needs.
+        self._optimizer: torch.optim.Adam | None = None
+        self._value_optimizer: torch.optim.Adam | None = None
         self.mean_baseline = np.zeros(spec.max_ops)  # per step index ("mean" baseline)
         self.updates = 0
+
+    @property
+    def optimizer(self) -> torch.optim.Adam:
+        """Adam on the policy network (made on first use)."""
+        if self._optimizer is None:
+            self._optimizer = torch.optim.Adam(self.policy.parameters(), lr=self.lr)
+        return self._optimizer
+
+    @property
+    def value_optimizer(self) -> torch.optim.Adam:
+        """Adam on the value network (made on first use)."""
+        if self._value_optimizer is None:
+            self._value_optimizer = torch.optim.Adam(self.value.parameters(), lr=self.value_lr)
+        return self._value_optimizer
 
     # -- acting ---------------------------------------------------------------------------
     def probabilities(self, obs: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray:

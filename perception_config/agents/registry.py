@@ -1,24 +1,55 @@
 """The agents by name: `AGENTS` and `make_agent`."""
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 from .base import Agent, EnvSpec
 from .evolutionary import EvolutionaryAgent
 from .fixed import FixedAgent
 from .oracle import OracleAgent
-from .policy_gradient import PolicyGradientAgent
 from .random import RandomAgent
 from .simple import SimpleAgent
 
-AGENTS: dict[str, type[Agent]] = {
+
+def _policy_gradient() -> type[Agent]:
+    from .policy_gradient import PolicyGradientAgent
+
+    return PolicyGradientAgent
+
+
+class _Agents(Mapping):
+    """Name -> agent class; the pg agent's module (torch, seconds to import) is imported when its
+    class is first looked up, so a process that never uses it (a configurator serving the fixed
+    sequence) does without torch."""
+
+    def __init__(self, classes: dict[str, type[Agent] | Any]) -> None:
+        self._classes = classes
+
+    def __getitem__(self, name: str) -> type[Agent]:
+        cls = self._classes[name]
+        if not isinstance(cls, type):
+            cls = self._classes[name] = cls()
+        return cls
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._classes
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._classes)
+
+    def __len__(self) -> int:
+        return len(self._classes)
+
+
+AGENTS: Mapping[str, type[Agent]] = _Agents({
     "random": RandomAgent,
     "simple": SimpleAgent,
-    "pg": PolicyGradientAgent,
+    "pg": _policy_gradient,
     "es": EvolutionaryAgent,
     "fixed": FixedAgent,
     "oracle": OracleAgent,
-}
+})
 
 
 def make_agent(name: str, env_spec: EnvSpec | Any = None, *, env: Any = None, **kw: Any) -> Agent:
