@@ -44,20 +44,28 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """The same training in this process, without Ray."""
+    """The same training in this process, without Ray: pg, 8 episodes in 2 rounds of 4 (4 tasks a
+    round on the cluster), a checkpoint after each."""
     out = tmp_path_factory.mktemp("ref") / "run"
-    _train(tmp_path_factory, out, episodes=16)
+    _train(tmp_path_factory, out, episodes=8)
     return out
 
 
 def _train(tmp_path_factory, out: Path, episodes: int, address: str | None = None, **kw) -> Path:
     return train(tiny_dataset(tmp_path_factory), "pg", out, episodes, settings=FAST, seed=5, ray_address=address,
-                 pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs={"batch_episodes": 8},
-                 checkpoint_every=8, **kw)
+                 pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs={"batch_episodes": 4},
+                 checkpoint_every=4, **kw)
 
 
 class _Watcher:
-    """Records the parents (raylets) of the processes seen running a task of the given title."""
+    """Records the parents (raylets) of the processes seen running a task of the given title.
+
+    Every 10 ms it reads the titles of this test's Ray processes only ("ray::..." below this
+    process, found by a scan of all of /proc every 0.25 s): scanning all of /proc every 10 ms
+    cost the driver half a core. A worker is titled "ray::..." for seconds before its first
+    task ends (the task imports torch and builds the env), so no worker is missed."""
+
+    RESCAN_SECONDS = 0.25
 
     def __init__(self, title: str) -> None:
         self.title, self.parents = title, set()
@@ -65,8 +73,17 @@ class _Watcher:
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
+        title, workers, rescan = self.title.encode(), {}, 0.0
         while not self._stop.is_set():
-            self.parents.update(own_ray_task_processes(self.title).values())
+            if time.monotonic() >= rescan:
+                workers = own_ray_task_processes("ray::")  # {pid: parent} of this test's Ray processes
+                rescan = time.monotonic() + self.RESCAN_SECONDS
+            for pid, parent in workers.items():
+                try:
+                    if Path(f"/proc/{pid}/cmdline").read_bytes().startswith(title):
+                        self.parents.add(parent)
+                except OSError:  # ended since the scan
+                    pass
             time.sleep(0.01)
 
     def __enter__(self) -> "_Watcher":
@@ -88,7 +105,7 @@ def _raylets(cluster) -> set[int]:
 def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_factory, tmp_path):
     c = cluster["cluster"]
     with _Watcher("ray::play_chunk") as seen:
-        policy = _train(tmp_path_factory, tmp_path / "run", episodes=16, address=c.address)
+        policy = _train(tmp_path_factory, tmp_path / "run", episodes=8, address=c.address)
     same_run(tmp_path / "run", reference)
     assert seen.parents == _raylets(c) and len(seen.parents) == 2  # workers of both nodes played
     kw = dict(episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5,
@@ -103,8 +120,8 @@ def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_f
 
 def test_resume_after_the_whole_cluster_restarted(cluster, reference, tmp_path_factory, tmp_path):
     out = tmp_path / "run"
-    _train(tmp_path_factory, out, episodes=8, address=cluster["cluster"].address)
+    _train(tmp_path_factory, out, episodes=4, address=cluster["cluster"].address)  # a checkpoint mid-run
     cluster["cluster"].shutdown()
     cluster["cluster"] = _start_cluster(nodes=1)  # a new cluster (one node: quicker): new processes and address
-    _train(tmp_path_factory, out, episodes=16, address=cluster["cluster"].address, resume=True)
+    _train(tmp_path_factory, out, episodes=8, address=cluster["cluster"].address, resume=True)
     same_run(out, reference)
