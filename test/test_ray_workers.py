@@ -40,26 +40,26 @@ def local_ray():
 
 @pytest.fixture(scope="module")
 def pg_in_process(tmp_path_factory) -> Path:
-    """The reference: pg, 16 episodes, in this process (no Ray)."""
+    """The reference: pg, 8 episodes in 2 rounds of 4, in this process (no Ray)."""
     out = tmp_path_factory.mktemp("pg1") / "pg1"
     _train(tmp_path_factory, out, workers=1)
     return out
 
 
-def _train(tmp_path_factory, out: Path, workers: int, agent: str = "pg", episodes: int = 16, **kw) -> Path:
-    agent_kwargs = {"batch_episodes": 8} if agent == "pg" else {"population": 4, "episodes_per_generation": 2}
+def _train(tmp_path_factory, out: Path, workers: int, agent: str = "pg", episodes: int = 8, **kw) -> Path:
+    agent_kwargs = {"batch_episodes": 4} if agent == "pg" else {"population": 4, "episodes_per_generation": 2}
     return train(tiny_dataset(tmp_path_factory), agent, out, episodes, settings=FAST, seed=3, workers=workers,
                  pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs=agent_kwargs, **kw)
 
 
 def _evaluate(tmp_path_factory, out: Path, policy: Path, workers: int) -> Path:
-    return evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.3, 0.7], out, episodes_per_lambda=3,
+    return evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.3, 0.7], out, episodes_per_lambda=2,
                     pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5, progress=False,
                     plots=False, workers=workers)
 
 
 def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_path_factory, tmp_path):
-    # pg: rounds of 8 episodes in tasks over the workers.
+    # pg: rounds of 4 episodes (one per task) over the workers, the policy updated between them.
     policy = pg_in_process / "policy.safetensors"
     _train(tmp_path_factory, tmp_path / "pg2", workers=2)
     same_run(pg_in_process, tmp_path / "pg2")
@@ -73,7 +73,7 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
     with EpisodeStore(pg_in_process / STORE_NAME, readonly=True) as s1, \
             EpisodeStore(tmp_path / "pg2" / STORE_NAME, readonly=True) as s2:
         query = "SELECT episode_seed, steps, noise_lambda FROM episodes ORDER BY rowid"
-        assert s1.query(query) == s2.query(query) and len(s1.query(query)) == 16
+        assert s1.query(query) == s2.query(query) and len(s1.query(query)) == 8
     # Evaluation: the policy and the baselines (the oracle searches in the worker's env).
     r1 = _evaluate(tmp_path_factory, tmp_path / "ev1", policy, workers=1)
     r2 = _evaluate(tmp_path_factory, tmp_path / "ev2", policy, workers=2)
@@ -84,7 +84,7 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
     query = "SELECT agent, episode_seed, noise_lambda, steps FROM episodes ORDER BY rowid"
     with EpisodeStore(r1.parent / STORE_NAME, readonly=True) as s1, \
             EpisodeStore(r2.parent / STORE_NAME, readonly=True) as s2:
-        assert s1.query(query) == s2.query(query) and len(s2.query(query)) == len(agents) * 2 * 3
+        assert s1.query(query) == s2.query(query) and len(s2.query(query)) == len(agents) * 2 * 2
 
 
 def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg_in_process, tmp_path_factory,
@@ -174,8 +174,8 @@ from perception_config.learning.training import train
 from perception_config.learning.evaluation import evaluate
 from perception_config.rl.settings import EnvSettings
 s = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
-p = train({str(tiny_dataset(tmp_path_factory))!r}, "pg", {str(tmp_path / "run")!r}, 8, settings=s,
-          pipeline={str(pipeline_file(tmp_path_factory))!r}, progress=False, agent_kwargs={{"batch_episodes": 8}})
+p = train({str(tiny_dataset(tmp_path_factory))!r}, "pg", {str(tmp_path / "run")!r}, 4, settings=s,
+          pipeline={str(pipeline_file(tmp_path_factory))!r}, progress=False, agent_kwargs={{"batch_episodes": 4}})
 evaluate({str(tiny_dataset(tmp_path_factory))!r}, [str(p)], [0.5], {str(tmp_path / "ev")!r}, episodes_per_lambda=2,
          include_baselines=False, progress=False, plots=False, workers=1)
 assert "ray" not in sys.modules, [m for m in sys.modules if m.startswith("ray")]
