@@ -249,7 +249,8 @@ def register(cls: type[Block]) -> type[Block]:
 
 def create(name: str, **params: Any) -> Block:
     """Instantiate a registered block with parameter overrides."""
-    load_all()  # the block modules register themselves on import
+    if not (_ALL_LOADED and name in REGISTRY):  # once loaded, a known block needs no second look
+        load_all()  # the block modules register themselves on import
     if name not in REGISTRY:
         raise ValueError(f"unknown block {name!r}; known blocks: {', '.join(sorted(REGISTRY))}")
     return REGISTRY[name](**params)
@@ -258,6 +259,10 @@ def create(name: str, **params: Any) -> Block:
 # --------------------------------------------------------------------------- discovery
 ENTRY_POINT_GROUP = "perception_config.blocks"
 _NOT_BLOCK_MODULES = frozenset({"base", "pipeline", "features"})
+# load_all() has imported every block module and plug-in once: create() of a registered name skips
+# it from then on (listing the installed packages' entry points takes tens of ms, per block of a
+# pipeline); an unknown name still looks again.
+_ALL_LOADED = False
 
 
 def block_modules() -> list[str]:
@@ -268,6 +273,7 @@ def block_modules() -> list[str]:
 
 def load_all() -> dict[str, type[Block]]:
     """Import every block module (they register themselves) and return the registry."""
+    global _ALL_LOADED
     for module in block_modules():
         importlib.import_module(f"{__package__}.{module}")
     for ep in entry_points(group=ENTRY_POINT_GROUP):
@@ -276,4 +282,5 @@ def load_all() -> dict[str, type[Block]]:
         except Exception as exc:  # a broken plug-in names itself instead of a bare traceback
             raise ImportError(f"block plug-in {ep.name!r} ({ep.value}, entry point group {ENTRY_POINT_GROUP}) "
                               f"failed to load: {type(exc).__name__}: {exc}") from exc
+    _ALL_LOADED = True
     return REGISTRY
