@@ -152,11 +152,21 @@ def test_stop_signal_keeps_the_work(tmp_path_factory, tmp_path, signum, workers,
 
 
 def _descendants(pid: int) -> list[int]:
+    parents = {}
+    for entry in os.listdir("/proc"):  # one look at /proc: this runs in a polling loop
+        if entry.isdigit():
+            try:
+                parents[int(entry)] = int(Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except OSError:
+                continue
+    kids: dict[int, list[int]] = {}
+    for child, parent in parents.items():
+        kids.setdefault(parent, []).append(child)
     out, todo = [], [pid]
     while todo:
-        kids = _children(todo.pop())
-        out.extend(kids)
-        todo.extend(kids)
+        found = kids.get(todo.pop(), [])
+        out.extend(found)
+        todo.extend(found)
     return out
 
 
@@ -168,10 +178,16 @@ def test_a_killed_training_orphans_no_worker(tmp_path_factory, tmp_path):
     with it. Ray's two node agents notice the raylet's death too, but first try for 60 s (a
     timeout fixed in Ray) to report it to the dead GCS: they are the only ones allowed to stay,
     and are ended here."""
-    out = tmp_path / "run"
-    proc = _cli_train(tmp_path_factory, out)
-    _wait_for_training(proc, out, workers=2)
-    family = {p: _title(p) for p in _descendants(proc.pid)}
+    proc = _cli_train(tmp_path_factory, tmp_path / "run")
+    # Killed while both workers play the first round's episodes (no need to wait for its checkpoint).
+    deadline = time.monotonic() + 120
+    while True:
+        family = {p: _title(p) for p in _descendants(proc.pid)}
+        if sum(t == b"ray::play_chunk" for t in family.values()) >= 2:
+            break
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, f"2 workers did not play episodes within 120 s: {family}"
+        time.sleep(0.1)  # a look at all of /proc each time
     assert len([t for t in family.values() if t.startswith(b"ray::") and t not in RAY_AGENTS]) >= 2, family
     proc.kill()
     proc.communicate(timeout=30)
@@ -196,8 +212,9 @@ def test_seeded_cost_table_training_repeats_bit_for_bit(tmp_path_factory, tmp_pa
     """The shipped pipeline (ICP and D2CO: Open3D's threads and the blocks' wall-clock bounds made runs
     diverge): the command with two workers, and meanwhile (each loading the machine for the other) the
     same training in this process with one worker, give the same bits."""
-    proc = _cli_train(tmp_path_factory, tmp_path / "cli", episodes=32, pipeline=False)
-    inproc = train(tiny_dataset(tmp_path_factory), "pg", tmp_path / "inproc", 32, settings=FAST, workers=1,
+    # Two rounds: the second is played by the policy the first round's update made.
+    proc = _cli_train(tmp_path_factory, tmp_path / "cli", episodes=2 * ROUND, pipeline=False)
+    inproc = train(tiny_dataset(tmp_path_factory), "pg", tmp_path / "inproc", 2 * ROUND, settings=FAST, workers=1,
                    progress=False)
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 0, (stdout, stderr)
