@@ -3,6 +3,7 @@ learning curve is a PNG. (On Ray workers: test_ray_workers.py, test_ray_cluster.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 
 import numpy as np
@@ -28,9 +29,17 @@ def _train(tmp_path_factory, out, agent="pg", episodes=16, **kw):
                  pipeline=pipeline_file(tmp_path_factory), **args)
 
 
-def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path):
-    path = _train(tmp_path_factory, tmp_path / "run", checkpoint_every=8)
-    assert path == tmp_path / "run" / "policy.safetensors"
+@pytest.fixture(scope="module")
+def run16(tmp_path_factory):
+    """train() of 16 episodes, checkpointed every 8: the tests read it (and copy it to resume it)."""
+    out = tmp_path_factory.mktemp("trained") / "run"
+    path = _train(tmp_path_factory, out, checkpoint_every=8)
+    assert path == out / "policy.safetensors"
+    return out
+
+
+def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path, run16):
+    path = run16 / "policy.safetensors"
     env = make_env(tmp_path_factory)
     agent = load_agent(path, env)
     assert agent.kind == "pg" and not agent.explore
@@ -41,25 +50,25 @@ def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path):
     train_keys = {tuple(k) for k in extra["train_image_keys"]}
     test_keys = {tuple(k) for k in extra["test_image_keys"]}
     assert train_keys and test_keys and not train_keys & test_keys and len(train_keys | test_keys) == 4
-    png = (tmp_path / "run" / CURVE).read_bytes()
+    png = (run16 / CURVE).read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     import matplotlib.image
 
-    img = matplotlib.image.imread(tmp_path / "run" / CURVE)
+    img = matplotlib.image.imread(run16 / CURVE)
     assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 200
-    assert len((tmp_path / "run" / "history.csv").read_text().splitlines()) == 17
+    assert len((run16 / "history.csv").read_text().splitlines()) == 17
     # The same `out` again is refused unless resumed or overwritten.
     with pytest.raises(FileExistsError, match="resume=True"):
-        _train(tmp_path_factory, tmp_path / "run")
+        _train(tmp_path_factory, run16)
     with pytest.raises(ValueError, match="oracle"):
         _train(tmp_path_factory, tmp_path / "oracle", agent="oracle")
 
 
-def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tmp_path):
+def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tmp_path, run16):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         _train(tmp_path_factory, tmp_path / "none", resume=True)
     straight = _train(tmp_path_factory, tmp_path / "straight", episodes=32, checkpoint_every=8)
-    _train(tmp_path_factory, tmp_path / "split", episodes=16, checkpoint_every=8)
+    shutil.copytree(run16, tmp_path / "split")  # the first 16 episodes, as trained by train()
     resumed = _train(tmp_path_factory, tmp_path / "split", episodes=32, checkpoint_every=8, resume=True)
     meta, tensors = read_file(tmp_path / "split" / CHECKPOINT)
     assert meta["trainer"]["episodes_done"] == 32

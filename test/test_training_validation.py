@@ -36,9 +36,16 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
-def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_factory, tmp_path):
-    out = tmp_path / "run"
-    path = _train(tmp_path_factory, out, episodes=32)
+@pytest.fixture(scope="module")
+def straight_run(tmp_path_factory):
+    """A run of 32 episodes, validated at 8, 16, 24 and 32; the tests only read it."""
+    out = tmp_path_factory.mktemp("validated") / "run"
+    return _train(tmp_path_factory, out, episodes=32)
+
+
+def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_factory, straight_run):
+    path = straight_run
+    out = path.parent
     meta, tensors = read_file(path)
     extra = meta["extra"]
     train_keys = {tuple(k) for k in extra["train_image_keys"]}
@@ -78,17 +85,17 @@ def test_shipped_policy_is_the_validation_best_and_images_are_disjoint(tmp_path_
         assert any(not np.array_equal(ck[k], v) for k, v in tensors.items())
 
 
-def test_resumed_run_selects_as_the_uninterrupted_one(tmp_path_factory, tmp_path):
-    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24)
+def test_resumed_run_selects_as_the_uninterrupted_one(tmp_path_factory, tmp_path, straight_run):
+    straight = straight_run  # 32 episodes without a stop
     _train(tmp_path_factory, tmp_path / "split", episodes=16)
-    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True)
     a_meta, a = read_file(straight)
     b_meta, b = read_file(resumed)
     assert a_meta["extra"]["selected"] == b_meta["extra"]["selected"]
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=1e-6, atol=1e-7)
     # The check at the end of the first part (16) is a regular one: the histories are the same.
-    assert _rows(tmp_path / "straight" / VALIDATION_CSV) == _rows(tmp_path / "split" / VALIDATION_CSV)
+    assert _rows(straight.parent / VALIDATION_CSV) == _rows(tmp_path / "split" / VALIDATION_CSV)
     # The held-out images are part of the run: another fraction cannot resume it.
     with pytest.raises(PolicyError, match="validation_fraction"):
         _train(tmp_path_factory, tmp_path / "split", episodes=32, resume=True, validation_fraction=0.5)
@@ -191,11 +198,12 @@ def test_pg_learning_rate_half_life_and_resume(tmp_path_factory, tmp_path):
     assert agent.current_lr() == pytest.approx(0.04 * 0.5 ** 2)
     with pytest.raises(ValueError, match="lr_half_life"):
         make_agent("pg", env, lr_half_life=-1)
-    # Through training: the run resumed at 8 ends with the learning rate of the straight run.
+    # Through training: the run resumed at 8 ends with the learning rate of the straight run (its
+    # update after the resume is at the halved rate; from a restarted schedule it would not be).
     kw = {"agent_kwargs": {"batch_episodes": 8, "lr": 0.05, "lr_half_life": 8}, "validation_fraction": 0.0}
-    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=24, **kw)
+    straight = _train(tmp_path_factory, tmp_path / "straight", episodes=16, **kw)
     _train(tmp_path_factory, tmp_path / "split", episodes=8, **kw)
-    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=24, resume=True, **kw)
+    resumed = _train(tmp_path_factory, tmp_path / "split", episodes=16, resume=True, **kw)
     a_meta, a = read_file(straight)
     _, b = read_file(resumed)
     assert a_meta["hparams"]["lr_half_life"] == 8
