@@ -616,9 +616,9 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
 
 def test_a_stopped_configurator_blames_no_operator_node(ros_node, cell):
     """The configurator is stopped (SIGSTOP) mid-estimate for longer than operator_timeout, while
-    the operator's answer arrives: after SIGCONT the estimate succeeds when the answer is handed
-    over within RosOperators' last look (most runs), else it fails saying only what it measured,
-    never blaming the operator node as "busy or died"."""
+    the operator's answer arrives: after SIGCONT the answer is handed over within RosOperators' last
+    look (1 s; a sample the stopped reader missed is repaired on the writer's next heartbeat, every
+    0.1 s in the Fast DDS profile) and the estimate succeeds."""
     import os
     import signal
 
@@ -646,8 +646,7 @@ def test_a_stopped_configurator_blames_no_operator_node(ros_node, cell):
     rclpy.spin_until_future_complete(ros_node, future, timeout_sec=30)
     res = future.result()
     assert res is not None, "no answer"
-    assert res.success or res.message == ("refine_hypothesis did not answer within 5 s "
-                                          "(operator_timeout; served by refinement_node)"), res.message
+    assert res.success, res.message
 
 
 def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell):
