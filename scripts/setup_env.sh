@@ -126,6 +126,10 @@ if [ "$(cat "$VENV/.package.sha256" 2>/dev/null)" != "$pkg_hash" ] \
     || die "perception_config_interfaces does not import after the install"
   echo "$pkg_hash" > "$VENV/.package.sha256"
 fi
+# Bytecode of the checkout, written once: with PYTHONDONTWRITEBYTECODE set (as in some shells and
+# CI images) Python never caches it, so every process importing the package from the checkout (the
+# tests and the processes they start) would compile its ~200 modules again. Reading it stays allowed.
+"$PY" -m compileall -q -j 0 "$ROOT/perception_config" "$ROOT/test" >/dev/null || say "compileall failed (harmless)"
 flock -u 9
 exec 9>&-
 export PATH="$VENV/bin:$PATH"
