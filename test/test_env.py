@@ -29,14 +29,14 @@ def _cost(block: str) -> float:
 
 def test_check_env_passes_on_the_registered_env_as_a_user_makes_it(tmp_path_factory):
     """What a user types, in a fresh interpreter: gymnasium.make with the registered id (the
-    module-qualified form imports the package), the shipped pipeline (ICP included), the
-    deterministic cost-table time; check_env on the env and on env.unwrapped."""
+    module-qualified form imports the package), the shipped pipeline (ICP included), the default
+    settings (cost-table time); check_env on the env and on env.unwrapped."""
     script = textwrap.dedent(f"""
         import warnings
         import gymnasium as gym
         from gymnasium.utils.env_checker import check_env
-        env = gym.make("perception_config.rl.env:PerceptionConfig-v0", dataset={str(tiny_dataset(tmp_path_factory))!r},
-                       time_mode="cost_table")
+        env = gym.make("perception_config.rl.env:PerceptionConfig-v0", dataset={str(tiny_dataset(tmp_path_factory))!r})
+        assert env.unwrapped.settings.time_mode == "cost_table", env.unwrapped.settings
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # check_env's advice to pass env.unwrapped, done next
             check_env(env, skip_render_check=True)
@@ -49,11 +49,11 @@ def test_check_env_passes_on_the_registered_env_as_a_user_makes_it(tmp_path_fact
 
 
 def test_check_env_fails_on_measured_time(tmp_path_factory):
-    """The default measured time: rewards are wall-clock seconds, never equal twice; check_env
-    says so (the reason docs/concepts/environment.md names the cost-table mode)."""
+    """The measured-time option: rewards are wall-clock seconds, never equal twice; check_env
+    says so (the reason cost-table time is the default)."""
     from gymnasium.utils.env_checker import check_env
 
-    e = gym.make("PerceptionConfig-v0", dataset=tiny_dataset(tmp_path_factory))
+    e = gym.make("PerceptionConfig-v0", dataset=tiny_dataset(tmp_path_factory), time_mode="measured")
     with pytest.raises(AssertionError, match="Deterministic step rewards are not equivalent"):
         check_env(e.unwrapped, skip_render_check=True)
 

@@ -13,8 +13,11 @@ def test_settings_round_trip_and_defaults():
     s = EnvSettings(max_ops=7, time_mode="cost_table", cost_table={"d2co": 0.1}, lambda_range=(0.2, 0.4))
     assert EnvSettings.from_json(s.to_json()) == s
     assert EnvSettings().to_json() == {"max_ops": 10, "failed_pick_cost": 2.0, "truncation_cost": 10.0,
-                                       "time_mode": "measured", "cost_table": {}, "min_visib_fract": 0.3,
-                                       "lambda_range": [0.1, 1.0]}
+                                       "time_mode": "cost_table", "cost_table": {}, "min_visib_fract": 0.3,
+                                       "lambda_range": [0.1, 1.0], "loop_mask": True}
+    # a policy written before loop_mask existed loads with the rule on
+    old = {k: v for k, v in s.to_json().items() if k != "loop_mask"}
+    assert EnvSettings.from_json(old).loop_mask is True
     assert s.replace(max_ops=None) == s  # None = not given
     assert s.differences(s.replace(failed_pick_cost=3.0, lambda_range=(0.0, 1.0))) == ["failed_pick_cost: 2.0 -> 3.0"]
 
@@ -24,7 +27,8 @@ def test_settings_round_trip_and_defaults():
     ({"failed_pick_cost": -1.0}, "failed_pick_cost"), ({"truncation_cost": float("inf")}, "truncation_cost"),
     ({"time_mode": "fast"}, "time_mode"), ({"cost_table": {"d2co": float("nan")}}, "cost_table"),
     ({"min_visib_fract": 1.5}, "min_visib_fract"), ({"lambda_range": (0.5, 0.1)}, "low <= high"),
-    ({"lambda_range": (0.0, 9.0)}, "lambda_range high"),
+    ({"lambda_range": (0.0, 9.0)}, "lambda_range high"), ({"loop_mask": "yes"}, "loop_mask"),
+    ({"cost_table": {"action:icp_fine@3": -0.1}}, "action:icp_fine@3"),
 ])
 def test_bad_settings_are_refused_naming_the_field(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -72,3 +76,22 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
         with atomic_output(path) as tmp:
             raise KeyboardInterrupt
     assert os.listdir(tmp_path) == ["plot.png"]
+
+
+def test_cost_table_lookup_order():
+    """action:<name>@<obj> before action:<name> before the block's name before its default_cost;
+    scoring@<obj> before scoring before the sum of the scoring blocks."""
+    from perception_config.blocks.pipeline import load_pipeline
+
+    pipe = load_pipeline("default")
+    fine = pipe.action("icp_fine").block  # an icp_point_to_plane block, as icp_coarse's
+    table = {"action:icp_fine@3": 0.5, "action:icp_fine": 0.25, "icp_point_to_plane": 0.125,
+             "scoring@3": 0.0625, "scoring": 0.03125}
+    s = EnvSettings(cost_table=table)
+    assert s.block_cost(fine, "icp_fine", 3) == 0.5
+    assert s.block_cost(fine, "icp_fine", 4) == 0.25  # an object without its own entry: the pooled one
+    assert s.block_cost(fine, "icp_coarse", 3) == 0.125  # no action entry: the block's name
+    assert s.block_cost(fine) == 0.125
+    assert EnvSettings().block_cost(fine, "icp_fine", 3) == fine.default_cost
+    assert s.scoring_cost(pipe.scoring, 3) == 0.0625 and s.scoring_cost(pipe.scoring, 4) == 0.03125
+    assert EnvSettings().scoring_cost(pipe.scoring) == sum(b.default_cost for b in pipe.scoring)

@@ -12,7 +12,9 @@ frame, `pick` right after a failed pick on the same hypothesis) are skipped wher
 the sequence is played without them ([icp_coarse, icp_fine, pick] is [pick] on RGB-only data;
 after a failed pick the loop goes on with its next action). With `after="pick"` and the pick
 masked, the loop's first action that can run comes before the next pick. When nothing of the
-sequence can run, it picks.
+sequence can run, it picks. The loop rule's mask (`info["loop_mask"]`: actions masked only
+because they were taken at this hypothesis before, rl/pose_memory.py) does not bind a fixed plan:
+an engineer's pipeline plays its sequence as it was written.
 """
 from __future__ import annotations
 
@@ -77,7 +79,7 @@ class FixedAgent(Agent):
         # when begin_episode was not called), then one past the last action played.
         if isinstance(info, dict) and info.get("steps", None) == 0:
             self._t = 0
-        allowed = allowed_actions(info, self.spec.n_actions)
+        allowed = allowed_actions(_without_loop_rule(info), self.spec.n_actions)
         if allowed is None:
             a, self._t = self._planned(self._t), self._t + 1
             return a
@@ -93,3 +95,11 @@ class FixedAgent(Agent):
 
     def hparams(self) -> dict[str, Any]:
         return {"sequence": list(self.sequence), "restart": self.restart, "after": self.after, "seed": self.seed}
+
+
+def _without_loop_rule(info: Any) -> Any:
+    """The env's info with the loop rule's masking undone (module docstring)."""
+    if not isinstance(info, dict) or info.get("loop_mask") is None or info.get("action_mask") is None:
+        return info
+    mask = np.asarray(info["action_mask"]) | np.asarray(info["loop_mask"])
+    return {**info, "action_mask": mask}

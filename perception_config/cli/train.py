@@ -22,6 +22,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
+    settings = settings.replace(cost_table=cost_table_for(args, settings))
     common = dict(
         settings=settings, pipeline=args.pipeline, progress=not args.quiet, resume=args.resume,
         test_fraction=args.test_fraction, split_seed=args.split_seed, workers=args.workers,
@@ -42,6 +43,45 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"policy: {policy}")
     print(f"learning curve: {Path(args.out) / 'learning_curve.png'}")
     return 0
+
+
+def cost_table_for(args: argparse.Namespace, settings: EnvSettings) -> dict[str, float] | None:
+    """The cost table a run charges (cost-table time): --cost-table FILE (a `calibrate` output),
+    `blocks` (the blocks' default costs: the same on every machine), else measured now on the
+    train images and written to OUT/cost_model.json. A resumed run keeps its checkpoint's; None
+    with measured time."""
+    if settings.time_mode != "cost_table":
+        return None
+    if args.resume and args.cost_table is None:
+        from ..agents.policy_io import read_file
+        from ..rl.settings import settings_from_policy_meta
+
+        checkpoint = Path(args.out) / "checkpoint.safetensors"
+        if not checkpoint.exists():
+            return None  # train() says there is nothing to resume
+        saved = settings_from_policy_meta(read_file(checkpoint)[0], f"checkpoint {checkpoint}")
+        return dict(saved.cost_table) if saved is not None else None
+    if args.cost_table is not None:
+        if str(args.cost_table) == "blocks":
+            return None
+        from ..bench.calibration import read_cost_table
+
+        return read_cost_table(args.cost_table)
+    from ..bench.calibration import calibrate, write_cost_model
+    from ..datasets.bop import BopDataset
+    from ..rl.episodes import split_image_keys
+    from .calibrate import format_cost_model
+
+    if (Path(args.out) / "checkpoint.safetensors").exists() and not args.overwrite:
+        return None  # train() refuses the run folder; no reason to measure first
+    ds = BopDataset(args.dataset, use_depth=args.use_depth)
+    train_keys, _ = split_image_keys(ds.image_keys(), args.test_fraction, args.split_seed)
+    model = calibrate(ds, args.pipeline, train_keys, seed=args.seed, use_depth=args.use_depth,
+                      progress=not args.quiet)
+    write_cost_model(model, Path(args.out) / "cost_model.json")
+    if not args.quiet:
+        print(format_cost_model(model))
+    return model["cost_table"]
 
 
 def agent_params(agent: str, items: list[str] | None) -> dict[str, Any]:
@@ -87,7 +127,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--pipeline", type=Path, default=None,
                     help="pipeline YAML, or a shipped pipeline by name: default, rgb, cell, pick_success "
                          "(default: default)")
-    tr.add_argument("--time-mode", choices=TIME_MODES, default=None, help=f"(default {env.time_mode})")
+    tr.add_argument("--time-mode", choices=TIME_MODES, default=None,
+                    help=f"what an action costs: cost_table (the cost model, the same whatever the machine's load) or "
+                         f"measured wall time (default {env.time_mode})")
+    tr.add_argument("--cost-table", default=None, metavar="FILE|blocks",
+                    help="the cost model to charge (a `perception-config calibrate` output), or `blocks` for the "
+                         "blocks' default costs; default: calibrated on the train images first (about 20 s), written "
+                         "to OUT/cost_model.json; a resumed run keeps its own")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                     help="share of image ids held out for evaluation")

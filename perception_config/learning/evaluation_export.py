@@ -172,8 +172,14 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
     show_gen = any(gen_time(r) is not None and r["time_to_success"]["mean"] is not None
                    and gen_time(r) - r["time_to_success"]["mean"] > 0.005 for r in records)
     show_ratio = any(r.get("oracle_ratio") is not None for r in records)
+    show_wall = any("measured_time_to_success" in r for r in records)
+
+    def wall(r: dict[str, Any]) -> float | None:
+        return (r.get("measured_time_to_success") or {}).get("mean")
+
     width = min(60, max([34] + [len(r["agent"]) + 2 for r in records]))
-    header = (f"{'lambda':>6}  {'agent':<{width}} {'time s':>8} {'ops':>6} {'1st pick':>8} {'success':>8} "
+    header = (f"{'lambda':>6}  {'agent':<{width}} {'time s':>8}" + (f" {'wall s':>8}" if show_wall else "")
+              + f" {'ops':>6} {'1st pick':>8} {'success':>8} "
               f"{'ep. time':>9} {'n':>5}" + (f" {'gen+time':>9}" if show_gen else "")
               + (f" {'vs oracle':>9}" if show_ratio else ""))
     lines = [header, "-" * len(header)]
@@ -188,16 +194,22 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
         last = r["lambda"]
         name = r["agent"] + (" *" if r.get("best_fixed") else "")
         lines.append(
-            f"{r['lambda']:>6.2f}  {name[:width]:<{width}} {num(r['time_to_success']['mean'], '8.3f')} "
-            f"{num(r['ops_to_success']['mean'], '6.2f')} {100 * r['first_pick_success']:>7.1f}% "
+            f"{r['lambda']:>6.2f}  {name[:width]:<{width}} {num(r['time_to_success']['mean'], '8.3f')}"
+            + (f" {num(wall(r), '8.3f')}" if show_wall else "")
+            + f" {num(r['ops_to_success']['mean'], '6.2f')} {100 * r['first_pick_success']:>7.1f}% "
             f"{100 * r['success']:>7.1f}% {num(r['episode_time']['mean'], '9.3f')} {r['episodes']:>5d}"
             + (f" {num(gen_time(r), '9.3f')}" if show_gen else "")
             + (f" {num(r.get('oracle_ratio'), '8.2f')}x" if show_ratio and r.get("oracle_ratio") is not None
                else f" {'-':>9}" if show_ratio else "")
         )
     lines.append("")
-    lines.append("time s / ops: means over successful episodes; ep. time: mean over all episodes; "
+    lines.append("time s / ops: means over successful episodes (time s: the seconds charged, the cost model's in "
+                 "cost-table time; wall s: the same episodes' measured wall time); ep. time: mean over all episodes; "
                  "* best fixed pipeline")
+    statics = sorted({(r["lambda"], " > ".join(r["sequence"])) for r in records if r.get("sequence")})
+    if statics:
+        lines.append("best_static (the fixed sequence of lowest mean cost on the train images, searched per lambda): "
+                     + "; ".join(f"{lam:g}: {seq}" for lam, seq in statics))
     if show_gen or show_ratio:
         lines.append("gen+time: time s with the first generator call; vs oracle: time (with the first call) "
                      "over the oracle's on the episodes both picked")

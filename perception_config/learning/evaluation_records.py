@@ -24,6 +24,7 @@ from ..core.metrics import (
 from ..core.pose_json import pose_json
 from ..rl.env import PerceptionConfigEnv, normalise_score
 from ..rl.episode_loop import Trajectory, acting_seed, play_episode
+from ..rl.pose_memory import loop_steps
 
 RECALL_MSSD_THRESHOLD = 0.1  # share of the diameter, the simulated pick's tolerance
 MM = 1000.0  # millimetres per metre: errors are reported in mm
@@ -34,6 +35,12 @@ DEFINITIONS = {
                        "successful episodes only",
     "episode_time": "seconds charged, all episodes (a failed episode at the time it used up)",
     "episode_cost": "minus the return: episode_time plus the truncation penalty of failed episodes",
+    "measured_time_to_success / measured_episode_time": "the same episodes in measured wall time: the seconds the "
+                                                        "operators took on this machine (failed picks at their robot "
+                                                        "cost), next to the cost model's seconds they were charged",
+    "truncated": "episodes that used up max_ops without a successful pick",
+    "loop_truncations": "truncated episodes with a step that went back to a hypothesis the episode had already "
+                        "reached (an action that left it unchanged, or two that undo each other; picks left out)",
     "success": "share of episodes with a successful pick within max_ops",
     "first_pick_success": "share of all episodes whose first attempted pick succeeded",
     "recall_mssd": f"share of final poses with MSSD < {RECALL_MSSD_THRESHOLD} x diameter, strictly as every "
@@ -133,6 +140,10 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
     initial, final = traj.initial_info["pose"], info["pose"]
     model, gt, K = ep.model, ep.ground_truth, ep.frame.K
     scene_id, im_id, obj_id = ep.key
+    kinds = [env.pipeline.action(n).kind.value for n in traj.names]
+    failed_picks = sum(1 for p in traj.step_picked if p is False)
+    truncated = not traj.success and not traj.stopped and traj.steps >= env.max_ops
+    loops = loop_steps(initial, traj.step_poses, kinds, float(model.diameter))
     rec: dict[str, Any] = {
         "episode": int(index), "episode_seed": int(ep_seed), "lambda": float(lam),
         "scene_id": int(scene_id), "im_id": int(im_id), "obj_id": int(obj_id),
@@ -141,6 +152,8 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
         "actions": traj.names, "seconds": [float(x) for x in traj.seconds], "ok": traj.oks,
         "success": traj.success, "ops": traj.steps, "time": traj.time, "cost": traj.cost,
         "generation_time": float(traj.initial_info.get("generation_seconds", 0.0)),
+        "measured_time": float(sum(traj.operation_seconds)) + failed_picks * env.settings.failed_pick_cost,
+        "truncated": truncated, "loop_steps": loops, "loop_truncated": truncated and loops > 0,
         "first_pick_success": traj.first_pick_success,
         "final_scores": {k: _finite_or_none(v) for k, v in info["scores"].items()},
         "confidence": _confidence(info["scores"], env.pipeline),
@@ -166,10 +179,11 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
     ops_to_success / time_to_success {mean, q1, median, q3} over the successful episodes
     (seconds), episode_time and episode_cost (time + truncation penalty: minus the return)
     {mean, q1, median, q3} over all episodes, first_pick_success
-    (share), and BOP errors of the final poses {mean, median}: mssd_mm, mspd_px, add_mm, adi_mm,
-    re_deg, te_mm (episodes without a pose are left out), recall_mssd (share with MSSD < 0.1
-    diameter; no pose = miss), ar_mssd / ar_mspd (BOP average recalls), initial_recall_mssd; with depth
-    also ar_vsd and ar (BOP's overall AR, the mean of the three).
+    (share), measured_time_to_success / measured_episode_time (the same in measured wall time),
+    truncated and loop_truncations (counts), and BOP errors of the final poses {mean, median}:
+    mssd_mm, mspd_px, add_mm, adi_mm, re_deg, te_mm (episodes without a pose are left out),
+    recall_mssd (share with MSSD < 0.1 diameter; no pose = miss), ar_mssd / ar_mspd (BOP average
+    recalls), initial_recall_mssd; with depth also ar_vsd and ar (BOP's overall AR, the mean of the three).
     """
     n = len(episodes)
     ok = [e for e in episodes if e["success"]]
@@ -184,6 +198,10 @@ def summarise(agent: str, lam: float, episodes: Sequence[dict[str, Any]]) -> dic
         "episode_time": _stats([e["time"] for e in episodes]),
         "episode_cost": _stats([e["cost"] for e in episodes]),
         "first_pick_success": float(np.mean([e["first_pick_success"] for e in episodes])) if n else 0.0,
+        "measured_time_to_success": _stats([e.get("measured_time") for e in ok]),
+        "measured_episode_time": _stats([e.get("measured_time") for e in episodes]),
+        "truncated": sum(1 for e in episodes if e.get("truncated")),
+        "loop_truncations": sum(1 for e in episodes if e.get("loop_truncated")),
     }
     with_err = [e for e in episodes if "final_errors" in e]
     if with_err:

@@ -80,7 +80,8 @@ from ..datasets.bop import BopDataset
 from ..util.open3d_threads import open3d_single_thread
 from .episodes import EpisodeSource
 from .operators import Episode, InProcessOperators, Operators, StepOutcome
-from .settings import EnvSettings
+from .pose_memory import PoseMemory, within
+from .settings import GENERATE, EnvSettings
 
 
 def normalise_score(value: float, score_range: tuple[float, float] | None) -> float:
@@ -136,7 +137,9 @@ class PerceptionConfigEnv(gym.Env):
             self.pipeline, time_bounded=self.settings.time_mode == "measured")
         self._reproducible = self.settings.time_mode == "cost_table"  # see the module docstring: Time
         self._scoring_cost = self.settings.scoring_cost(self.pipeline.scoring)
-        self._full_scoring_cost = self._scoring_cost
+        # the cost-table name of each action's block (the generator's first call: "generate")
+        self._action_of = {id(a.block): a.name for a in self.pipeline.actions}
+        self._action_of.setdefault(id(self.pipeline.generator), GENERATE)
         self.score_ranges = self.pipeline.score_ranges
 
         self.action_names = self.pipeline.action_names
@@ -169,6 +172,7 @@ class PerceptionConfigEnv(gym.Env):
         self._failed_pick_pose = None  # the hypothesis a pick failed on (pick masked while it stays)
         self._searched: set[int] = set()  # deterministic generator actions already called this episode
         self._picked_without_pose = False  # a pick was refused for want of a hypothesis
+        self._memory: PoseMemory | None = None  # hypotheses reached, actions taken at each (loop rule)
 
     def _frame_changed(self) -> None:
         """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
@@ -180,8 +184,7 @@ class PerceptionConfigEnv(gym.Env):
 
         self._mask = np.array([0 if lacks(a.block) else 1 for a in self.pipeline.actions], np.int8)
         runnable = [b for b in self.pipeline.scoring if not lacks(b)]
-        self._scoring_cost = (self._full_scoring_cost if len(runnable) == len(self.pipeline.scoring)
-                              else self.settings.scoring_cost(runnable))
+        self._scoring_cost = self.settings.scoring_cost(runnable, self._obj_id())
 
     def frame_mask(self) -> np.ndarray:
         """1 per action whose block can run on the current episode's frame, 0 where it needs an
@@ -194,31 +197,69 @@ class PerceptionConfigEnv(gym.Env):
         the same search, the same answer); while there is no hypothesis, 0 for the refiners
         (`refines_nothing`) and, once a pick was refused for want of one, for the picks too (giving
         up once is the pick's use there: looped to max_ops it was a cell agent's way to waste the
-        candidates a refused generator call left); each unless nothing else could run. np.int8 of
-        n actions."""
+        candidates a refused generator call left); with `settings.loop_mask`, 0 for the actions other
+        than picks already taken at the current hypothesis (rl/pose_memory.py: they would go round
+        in a loop); each unless nothing else could run. np.int8 of n actions."""
+        return self._masks()[0]
+
+    def loop_mask(self) -> np.ndarray:
+        """1 for the actions that `action_mask` masks only by the loop rule (taken at this
+        hypothesis before), np.int8 of n actions: an agent that plays a fixed plan (agents/fixed.py)
+        may still play them."""
+        return self._masks()[1]
+
+    def _masks(self) -> tuple[np.ndarray, np.ndarray]:
         mask = self._mask.copy()
         pose = self.last_outcome.pose if self.last_outcome is not None else None
+
+        def drop(ids: list[int]) -> None:  # unless nothing else could run
+            if ids and mask.sum() > sum(int(mask[i]) for i in ids):
+                mask[ids] = 0
+
         if pose is None:
-            idle = [i for i, a in enumerate(self.pipeline.actions) if refines_nothing(a.block)
-                    or (self._picked_without_pose and a.block.kind == Kind.PICK)]
-            if idle and mask.sum() > sum(int(mask[i]) for i in idle):
-                mask[idle] = 0
+            drop([i for i, a in enumerate(self.pipeline.actions) if refines_nothing(a.block)
+                  or (self._picked_without_pose and a.block.kind == Kind.PICK)])
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
-            picks = [i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK]
-            if mask.sum() > sum(int(mask[i]) for i in picks):  # something else can run
-                mask[picks] = 0
-        searched = sorted(self._searched)
-        if searched and mask.sum() > sum(int(mask[i]) for i in searched):
-            mask[searched] = 0
-        return mask
+            drop([i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK])
+        drop(sorted(self._searched))
+        before_loop = mask.copy()
+        if self.settings.loop_mask and self._memory is not None:
+            drop(sorted(i for i in self._memory.stale(pose) if self.pipeline.actions[i].block.kind != Kind.PICK))
+        return mask, (before_loop - mask).astype(np.int8)
+
+    # -- hindsight search -----------------------------------------------------------------
+    _EPISODE_STATE = ("steps", "last_action", "last_outcome", "pose_change", "pick_failed", "last_failed",
+                      "episode", "episode_time", "_mask", "_failed_pick_pose", "_searched", "_picked_without_pose",
+                      "_memory", "_scoring_cost")
+
+    def snapshot(self) -> Any:
+        """An opaque copy of the episode's whole state (the env's and its operators'): `restore`
+        returns to it, so a search can try actions from one state (agents/best_static.py)."""
+        state = {k: getattr(self, k) for k in self._EPISODE_STATE}
+        state["_searched"] = set(self._searched)
+        state["_memory"] = self._memory.copy() if self._memory is not None else None
+        return state, self.ops.snapshot()
+
+    def restore(self, snapshot: Any) -> None:
+        """Return to a state from `snapshot` (the same snapshot can be restored many times)."""
+        state, ops_state = snapshot
+        for k, v in state.items():
+            setattr(self, k, v)
+        self._searched = set(state["_searched"])
+        self._memory = state["_memory"].copy() if state["_memory"] is not None else None
+        self.ops.restore(ops_state)
 
     @property
     def max_ops(self) -> int:
         return self.settings.max_ops
 
+    def _obj_id(self) -> int | None:
+        return int(self.episode.model.obj_id) if self.episode is not None else None
+
     def cost_table_seconds(self, block: Any) -> float:
-        """Seconds cost-table mode charges for an action with `block`: the block plus the scoring pass."""
-        return self.settings.block_cost(block) + self._scoring_cost
+        """Seconds cost-table mode charges for an action with `block` (one of the pipeline's, or
+        its generator) on the episode's object: the block plus the scoring pass (rl/settings.py)."""
+        return self.settings.block_cost(block, self._action_of.get(id(block)), self._obj_id()) + self._scoring_cost
 
     def action_seconds(self, outcome: StepOutcome, block: Any) -> float:
         """Seconds an action with `block` is charged (before a failed pick's robot time)."""
@@ -253,8 +294,9 @@ class PerceptionConfigEnv(gym.Env):
             "seconds": seconds, "scores": dict(outcome.scores), "picked": outcome.result.picked,
             "episode_time": self.episode_time, "steps": self.steps,
             "episode_key": ep.key if ep else None, "noise_lambda": ep.noise_lambda if ep else None,
-            "pose": outcome.pose, "action_mask": self.action_mask(),
+            "pose": outcome.pose,
         }
+        info["action_mask"], info["loop_mask"] = self._masks()
         return info
 
     # -- Gymnasium API -------------------------------------------------------------------
@@ -283,6 +325,8 @@ class PerceptionConfigEnv(gym.Env):
         with open3d_single_thread(self._reproducible):
             outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
+        self._memory = PoseMemory(self.episode.model.diameter)
+        self._memory.visit(outcome.pose)
         seconds = self.action_seconds(outcome, self.pipeline.generator)
         self.episode_time = 0.0  # the initial hypothesis is common to all agents: not charged
         info = self._info(outcome, seconds)
@@ -329,6 +373,8 @@ class PerceptionConfigEnv(gym.Env):
         else:
             self.pose_change = (0.0, 0.0)
         self.last_outcome = outcome
+        if self._memory is not None:
+            self._memory.record(before, a, after)
         truncated = not terminated and self.steps >= self.max_ops
         if truncated:
             reward -= self.settings.truncation_cost
@@ -358,7 +404,7 @@ def refines_nothing(block: Any) -> bool:
 def _same_pose(a: Any, b: Any, metres: float = 1e-4, radians: float = 1e-4) -> bool:
     """The same hypothesis to a robot: within 0.1 mm and 0.006 deg (an ICP that re-converges
     where it was moves it by less)."""
-    return bool(np.linalg.norm(a.t - b.t) <= metres and rotation_angle(a.R, b.R) <= radians)
+    return within(a, b, metres, radians)
 
 
 def register() -> None:

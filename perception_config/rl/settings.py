@@ -7,9 +7,12 @@ lambda range. Training writes `settings.to_json()` into the policy's metadata; e
 configurator and replay-check start from `policy_settings(...)` and say when they run a policy
 under other settings (`describe_differences`).
 
-Cost-table mode charges a block `cost_table[block name]` when given, else the block's own
-`default_cost`; the scoring pass after every action costs `cost_table["scoring"]` when given,
-else the sum of the scoring blocks' costs.
+Cost-table mode charges an action the first of these the table holds: `action:<name>@<obj_id>`
+(this action on this object), `action:<name>`, `<block name>`; else the block's own
+`default_cost`. The scoring pass after every action costs `scoring@<obj_id>`, else `scoring`, else
+the sum of the scoring blocks' costs. A calibrated table (`perception-config calibrate`,
+learning/calibration.py) holds the medians measured on this machine per action and object; the
+blocks' `default_cost` are round figures of the same order, for runs without one.
 """
 from __future__ import annotations
 
@@ -22,6 +25,8 @@ from ..core.geometry import check_noise_lambda
 
 TIME_MODES = ("measured", "cost_table")
 SCORING_PASS = "scoring"  # the cost-table key of the whole scoring pass (overrides the sum)
+ACTION_KEY = "action:"  # cost-table keys of single actions: action:<name> and action:<name>@<obj_id>
+GENERATE = "generate"  # the action name of an episode's first generator call (action:generate)
 MAX_OPS_LIMIT = 1000  # max_ops above this is refused (a policy file could otherwise ask for 10^7 operations)
 MAX_SECONDS = 3600.0  # s: a cost (failed pick, truncation, cost-table entry) above this is refused
 MAX_COST_TABLE_ENTRIES = 1000
@@ -35,10 +40,11 @@ class EnvSettings:
     max_ops: int = 10  # operations before an episode is truncated
     failed_pick_cost: float = 2.0  # s, the robot's attempt added to a failed pick
     truncation_cost: float = 10.0  # s-equivalent penalty of giving up (reward only, not time)
-    time_mode: str = "measured"  # "measured" wall time, or "cost_table" (reproducible)
-    cost_table: Mapping[str, float] = field(default_factory=dict)  # s per block name; overrides
+    time_mode: str = "cost_table"  # "cost_table" (reproducible, load-independent) or "measured" wall time
+    cost_table: Mapping[str, float] = field(default_factory=dict)  # s per action / block (module docstring)
     min_visib_fract: float = 0.3  # episodes: objects at least this visible
     lambda_range: tuple[float, float] = (0.1, 1.0)  # lambda ~ U(range) when a reset names none
+    loop_mask: bool = True  # mask actions already taken at the current hypothesis (rl/pose_memory.py)
 
     def __post_init__(self) -> None:
         m = self.max_ops
@@ -68,6 +74,8 @@ class EnvSettings:
         if lo > hi:
             raise ValueError(f"lambda_range must satisfy low <= high, got {self.lambda_range!r}")
         object.__setattr__(self, "lambda_range", (lo, hi))
+        if not isinstance(self.loop_mask, bool):
+            raise ValueError(f"loop_mask must be true or false, got {self.loop_mask!r}")
 
     # -- building and comparing -------------------------------------------------------------
     def replace(self, **changes: Any) -> "EnvSettings":
@@ -83,7 +91,7 @@ class EnvSettings:
             "max_ops": self.max_ops, "failed_pick_cost": self.failed_pick_cost,
             "truncation_cost": self.truncation_cost, "time_mode": self.time_mode,
             "cost_table": dict(self.cost_table), "min_visib_fract": self.min_visib_fract,
-            "lambda_range": list(self.lambda_range),
+            "lambda_range": list(self.lambda_range), "loop_mask": self.loop_mask,
         }
 
     @classmethod
@@ -115,12 +123,21 @@ class EnvSettings:
         return out
 
     # -- cost-table mode --------------------------------------------------------------------
-    def block_cost(self, block: Any) -> float:
-        """Seconds charged for one call of `block` in cost-table mode."""
-        return float(self.cost_table.get(block.name, block.default_cost))
+    def block_cost(self, block: Any, action: str | None = None, obj_id: int | None = None) -> float:
+        """Seconds charged for one call of `block` (as the action named `action`, on object
+        `obj_id`) in cost-table mode (module docstring: which entry wins)."""
+        table = self.cost_table
+        if action is not None:
+            for key in ((f"{ACTION_KEY}{action}@{obj_id}",) if obj_id is not None else ()) + (f"{ACTION_KEY}{action}",):
+                if key in table:
+                    return float(table[key])
+        return float(table.get(block.name, block.default_cost))
 
-    def scoring_cost(self, scoring: Iterable[Any]) -> float:
-        """Seconds charged for the scoring pass over `scoring` blocks in cost-table mode."""
+    def scoring_cost(self, scoring: Iterable[Any], obj_id: int | None = None) -> float:
+        """Seconds charged for the scoring pass over `scoring` blocks (on object `obj_id`) in
+        cost-table mode."""
+        if obj_id is not None and f"{SCORING_PASS}@{obj_id}" in self.cost_table:
+            return float(self.cost_table[f"{SCORING_PASS}@{obj_id}"])
         if SCORING_PASS in self.cost_table:
             return float(self.cost_table[SCORING_PASS])
         total = 0.0

@@ -1,0 +1,101 @@
+"""What an episode's actions did to the hypothesis: the rule that keeps a policy out of loops.
+
+An operator that leaves the hypothesis where it was (an ICP at its own fixed point, depth_refine
+with nothing to shift, next_candidate with no candidate left) does the same when called again;
+two refiners that undo each other (A moves p0 to p1, B moves p1 back to p0) do so forever. A
+greedy policy that picks the same action in the same state repeats such a step until `max_ops`
+and the episode ends truncated. `PoseMemory` remembers, per episode, every hypothesis reached
+and which actions were taken at each: back at a hypothesis (within `POSE_TOL`), an action
+already taken there is *stale*: a deterministic operator would go where it went before, to a
+hypothesis already reached. The environment masks stale actions while the hypothesis stays
+(rl/env.py). A stochastic action (regenerate, a randomised generator) moves elsewhere each call,
+so it is only stale when the episode really came back to where it was called.
+
+`loop_steps` finds such steps in a played episode (the evaluation's loop count).
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..core.geometry import rotation_angle
+
+# Two hypotheses are the same when they are within this share of the object's diameter and this
+# many radians (0.2 mm and 0.11 degrees on a 100 mm part): far below what a pick can tell apart,
+# far above the drift of an ICP re-converging at its fixed point.
+POSE_TOL = 2e-3
+
+
+def within(a: Any, b: Any, metres: float, radians: float) -> bool:
+    """Whether two poses (geometry.Pose) are within `metres` and `radians` of each other."""
+    return bool(np.linalg.norm(np.asarray(a.t) - np.asarray(b.t)) <= metres and rotation_angle(a.R, b.R) <= radians)
+
+
+def same_pose(a: Any, b: Any, diameter: float, tol: float = POSE_TOL) -> bool:
+    """Whether two poses (geometry.Pose or None) are the same hypothesis: within `tol` x diameter
+    (m) and `tol` rad; None is only itself."""
+    if a is None or b is None:
+        return a is None and b is None
+    return within(a, b, tol * diameter, tol)
+
+
+class PoseMemory:
+    """The hypotheses of one episode and the actions taken at each (module docstring).
+
+    `visit(pose)` at the start; `record(before, action, after)` after every action; `stale(pose)`:
+    the actions already taken at `pose`."""
+
+    def __init__(self, diameter: float) -> None:
+        self.diameter = float(diameter)
+        self.poses: list[Any] = []  # distinct hypotheses reached, in order (None = no hypothesis)
+        self.taken: set[tuple[int, int]] = set()  # (hypothesis, action) pairs played
+
+    def index(self, pose: Any) -> int:
+        """The index of `pose` among the hypotheses reached; -1 when new."""
+        for i, p in enumerate(self.poses):
+            if same_pose(p, pose, self.diameter):
+                return i
+        return -1
+
+    def visit(self, pose: Any) -> tuple[int, bool]:
+        """(index, True when reached before) of `pose`, remembering it."""
+        i = self.index(pose)
+        if i >= 0:
+            return i, True
+        self.poses.append(pose)
+        return len(self.poses) - 1, False
+
+    def record(self, before: Any, action: int, after: Any) -> bool:
+        """Remember that `action` was taken at `before` and led to `after`; True when `after` had
+        been reached before (this step went round in a loop)."""
+        src, _ = self.visit(before)
+        _, seen = self.visit(after)
+        self.taken.add((src, int(action)))
+        return seen
+
+    def stale(self, pose: Any) -> set[int]:
+        """The actions already taken at `pose` (none when it was never reached)."""
+        src = self.index(pose)
+        return {a for s, a in self.taken if s == src} if src >= 0 else set()
+
+    def copy(self) -> "PoseMemory":
+        out = PoseMemory(self.diameter)
+        out.poses, out.taken = list(self.poses), set(self.taken)
+        return out
+
+
+def loop_steps(initial_pose: Any, step_poses: Sequence[Any], kinds: Sequence[str], diameter: float) -> int:
+    """How many actions of a played episode (the hypothesis after each, `kinds` "pick" or other)
+    ended at a hypothesis the episode had already reached (the one they started from included)
+    without being a pick: the steps of a loop. Picks are left out (a pick never moves the
+    hypothesis; a repeated failed pick is masked by its own rule)."""
+    memory = PoseMemory(diameter)
+    memory.visit(initial_pose)
+    before, count = initial_pose, 0
+    for pose, kind in zip(step_poses, kinds):
+        seen = memory.record(before, 0, pose)
+        if seen and kind != "pick":
+            count += 1
+        before = pose
+    return count
