@@ -265,3 +265,15 @@ def test_the_shipped_model_on_the_real_rgbd_frame(lmo_frame):
     assert len(p) >= 40 and 0 < y.sum() < len(y)
     # trained on synthetic parts only; measured 0.9 (docs/results/pick_success.md)
     assert auc(p, y) > 0.7, (auc(p, y), p, y)
+
+
+def test_played_rows_come_from_the_given_images_only(synthetic_dataset):
+    """fit-score plays the train images of the split (image_keys): no row from another image."""
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.learning.pick_success_data import collect_step_rows
+    from perception_config.rl.episodes import split_image_keys
+
+    train, test = split_image_keys(BopDataset(synthetic_dataset).image_keys())
+    rows = collect_step_rows(synthetic_dataset, 6, seed=1, max_steps=2, progress=False, image_keys=train[:2])
+    assert rows and {(r["episode_scene_id"], r["episode_im_id"]) for r in rows} <= set(train[:2])
+    assert not {(r["episode_scene_id"], r["episode_im_id"]) for r in rows} & set(test)

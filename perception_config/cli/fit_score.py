@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .args import one_core
 
 
@@ -19,10 +20,18 @@ def _cmd_fit_score(args: argparse.Namespace) -> int:
         source = {"store": str(args.store), "rows": len(rows)}
     else:
         lambdas = [float(x) for x in args.lambdas.split(",")]
+        keys = None
+        if not args.all_images:  # the train images of the split agents are evaluated on
+            from ..datasets.bop import BopDataset
+            from ..rl.episodes import split_image_keys
+
+            keys, _ = split_image_keys(BopDataset(args.dataset).image_keys(), args.test_fraction, args.split_seed)
         rows = collect_step_rows(args.dataset, args.episodes, lambdas, seed=args.seed, max_steps=args.max_steps,
-                                 progress=not args.quiet)
+                                 progress=not args.quiet, image_keys=keys)
         source = {"dataset": str(args.dataset), "episodes": args.episodes, "lambdas": lambdas, "seed": args.seed,
-                  "max_steps": args.max_steps, "policy": "random (masked)"}
+                  "max_steps": args.max_steps, "policy": "random (masked)",
+                  "images": "all" if keys is None else {"train_of_split": [args.split_seed, args.test_fraction],
+                                                        "image_keys": [list(k) for k in keys]}}
     source["command"] = " ".join(["perception-config fit-score", *(_argv_of(args))])
     frames = args.frames
     if frames is None and args.store is not None and (Path(args.store).parent / "frames").is_dir():
@@ -54,6 +63,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
             out += [flag, str(value)]
     if args.store is None:
         out += ["--episodes", str(args.episodes), "--lambdas", args.lambdas, "--max-steps", str(args.max_steps)]
+        out += ["--all-images"] if args.all_images else ["--split-seed", str(args.split_seed), "--test-fraction",
+                                                         str(args.test_fraction)]
     if args.recalibrate is not None:
         out += ["--recalibrate", str(args.recalibrate)]
     return out + ["--hidden", args.hidden, "--epochs", str(args.epochs), "--seed", str(args.seed),
@@ -78,6 +89,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="the models folder of the kept frames' objects (default: the --dataset's models/)")
     fs.add_argument("--episodes", type=int, default=1500, help="episodes to play (--dataset)")
     fs.add_argument("--lambdas", default="0.1,0.3,0.5,0.7,1.0", help="noise levels of the played episodes")
+    fs.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED,
+                    help="--dataset: play the train images of this train/test split (train's and evaluate's), so "
+                         "the images agents are evaluated on stay unseen by the score")
+    fs.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION, help="of that split")
+    fs.add_argument("--all-images", action="store_true", help="--dataset: play every image, the test images too")
     fs.add_argument("--max-steps", type=int, default=8, help="actions per played episode at most")
     fs.add_argument("--recalibrate", metavar="MODEL", default=None,
                     help="keep this model's network, fit only its calibration to these episodes (e.g. a real camera "

@@ -58,11 +58,14 @@ def load_step_rows(store_path: str | Path, busy_timeout: float | None = None) ->
 
 def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[float] = DEFAULT_COLLECT_LAMBDAS,
                       seed: int = 0, max_steps: int = 8, pipeline: Any = None, use_depth: bool = True,
-                      progress: bool = True) -> list[dict[str, Any]]:
-    """Play `n_episodes` episodes of `dataset` (every image) in-process with a random masked
-    policy (uniform over the actions the frame allows, at most `max_steps` actions, ended by a
-    successful pick), lambda drawn from `lambdas`; one row per hypothesis, in the store's shape.
-    Seeded and in the env's cost-table mode: the same call gives the same rows on any machine load."""
+                      progress: bool = True, image_keys: Sequence[tuple[int, int]] | None = None,
+                      ) -> list[dict[str, Any]]:
+    """Play `n_episodes` episodes of `dataset` (the images `image_keys`, default every image; give
+    the train images of the split an agent is evaluated on, so its test images stay unseen)
+    in-process with a random masked policy (uniform over the actions the frame allows, at most
+    `max_steps` actions, ended by a successful pick), lambda drawn from `lambdas`; one row per
+    hypothesis, in the store's shape. Seeded and in the env's cost-table mode: the same call gives
+    the same rows on any machine load."""
     from tqdm import tqdm
 
     from ..rl.env import PerceptionConfigEnv
@@ -75,7 +78,7 @@ def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[fl
     root = Path(dataset)
     # cost-table mode: no wall-clock bound cuts a block short, so the rows do not depend on the load
     env = PerceptionConfigEnv(root, pipeline, split="test", use_depth=use_depth, max_ops=max(1, max_steps),
-                              time_mode="cost_table")
+                              time_mode="cost_table", image_keys=None if image_keys is None else list(image_keys))
     rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
     for ep in tqdm(range(n_episodes), desc="collect episodes", disable=not progress, unit="ep"):
