@@ -20,6 +20,7 @@ from . import (
     launch,
     replay_check,
     show,
+    study,
     synth,
     train,
 )
@@ -29,8 +30,8 @@ __all__ = ["agent_params", "build_parser", "main"]
 
 # The commands in the order of `perception-config --help`; each module adds its parser (and
 # imports what its job needs only when it runs).
-COMMANDS = (synth, bag, show, blocks, bench, calibrate, train, evaluate, launch, episodes, replay_check, cell_sim,
-            fit_score)
+COMMANDS = (synth, bag, show, blocks, bench, calibrate, train, evaluate, study, launch, episodes, replay_check,
+            cell_sim, fit_score)
 
 
 def build_parser() -> argparse.ArgumentParser:
