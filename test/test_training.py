@@ -1,7 +1,9 @@
 """Training: the pg agent learns, checkpoints resume exactly, Ctrl-C keeps the work, the
-learning curve is a PNG. (On Ray workers: test_ray_workers.py, test_ray_cluster.py.)"""
+learning curve is a PNG, history.csv has each update's diagnostics. (On Ray workers:
+test_ray_workers.py, test_ray_cluster.py; the figures pg's update reports: test_training_diagnostics.py.)"""
 from __future__ import annotations
 
+import csv
 import os
 import shutil
 import signal
@@ -12,7 +14,9 @@ import pytest
 from perception_config.agents import load_agent, make_agent
 from perception_config.agents.policy_io import read_file
 from perception_config.learning import training
+from perception_config.learning.learning_curve import plot_learning_curve
 from perception_config.learning.training import CHECKPOINT, CURVE, train
+from perception_config.learning.training_history import HISTORY_FIELDS, UPDATE_FIELDS
 from perception_config.rl.episode_loop import play_episode
 from perception_config.rl.settings import EnvSettings, settings_from_policy_meta
 from rl_helpers import make_env, pipeline_file, tiny_dataset
@@ -64,6 +68,32 @@ def test_train_writes_policy_curve_and_split(tmp_path_factory, tmp_path, run16):
         _train(tmp_path_factory, tmp_path / "oracle", agent="oracle")
 
 
+def test_history_has_each_updates_diagnostics_and_the_curve_a_panel_of_them(tmp_path_factory, tmp_path, run16):
+    with open(run16 / "history.csv") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == ["episode", *HISTORY_FIELDS, *UPDATE_FIELDS]  # the old columns first, in their order
+    table = np.array([[float(x) for x in r] for r in rows[1:]])
+    assert table.shape == (16, 1 + len(HISTORY_FIELDS) + len(UPDATE_FIELDS)) and np.isfinite(table).all()
+    col = {name: table[:, i] for i, name in enumerate(rows[0])}
+    assert col["update"].tolist() == [1.0] * 8 + [2.0] * 8  # two rounds of batch_episodes=8, one update each
+    n_actions = load_agent(run16 / "policy.safetensors", make_env(tmp_path_factory)).spec.n_actions
+    assert ((col["entropy"] >= 0) & (col["entropy"] <= np.log(n_actions))).all()
+    assert (col["grad_norm"] > 0).all() and (col["value_grad_norm"] > 0).all() and (col["value_loss"] > 0).all()
+    assert (col["approx_kl"] >= 0).all() and (col["lr"] == 0.02).all()  # pg's default lr, constant
+    # One update's figures on all the episodes of its round; the two updates differ.
+    for name in ("loss", "entropy", "grad_norm", "approx_kl"):
+        assert len(set(col[name][:8])) == 1 and len(set(col[name][8:])) == 1 and col[name][0] != col[name][8], name
+    _, tensors = read_file(run16 / CHECKPOINT)  # kept in the checkpoint, as history.csv rounds them
+    np.testing.assert_allclose(tensors["history/entropy"], col["entropy"], rtol=1e-5)
+    # The curve has a fourth panel (entropy, gradient norm, loss per update): taller than without them.
+    import matplotlib.image
+
+    without = {k: tensors[f"history/{k}"] for k in HISTORY_FIELDS}
+    three = plot_learning_curve(without, tmp_path / "three.png")
+    tall, short = matplotlib.image.imread(run16 / CURVE).shape, matplotlib.image.imread(three).shape
+    assert tall[1] == short[1] and tall[0] > short[0] * 1.2, (tall, short)
+
+
 def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tmp_path, run16):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         _train(tmp_path_factory, tmp_path / "none", resume=True)
@@ -76,6 +106,13 @@ def test_resume_continues_exactly_where_the_checkpoint_left(tmp_path_factory, tm
     _, straight_tensors = read_file(tmp_path / "straight" / CHECKPOINT)
     # Same rng, optimizer moments and episodes: the resumed run is the uninterrupted one.
     np.testing.assert_allclose(tensors["history/return"], straight_tensors["history/return"])
+    # ... its update diagnostics too, bit for bit (and history.csv byte for byte).
+    assert sorted(k for k in tensors if k.startswith("history/")) == \
+        sorted(k for k in straight_tensors if k.startswith("history/"))
+    for k in ("update", "loss", "value_loss", "entropy", "grad_norm", "value_grad_norm", "lr", "approx_kl"):
+        assert np.isfinite(tensors[f"history/{k}"]).all(), k
+        np.testing.assert_array_equal(tensors[f"history/{k}"], straight_tensors[f"history/{k}"], err_msg=k)
+    assert (tmp_path / "split" / "history.csv").read_bytes() == (tmp_path / "straight" / "history.csv").read_bytes()
     _, a = read_file(straight)
     _, b = read_file(resumed)
     for k in a:

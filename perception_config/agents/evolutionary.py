@@ -119,6 +119,9 @@ class EvolutionaryAgent(Agent):
         return [self._individual(w) for w in self.population]
 
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
+        """One generation (module docstring) from trajectories[individual][episode]; returns its figures:
+        best_fitness and mean_fitness (the population's best and mean fitness: mean return, minus
+        seconds) and sigma (the mutation scale of the next generation, after the decay)."""
         if len(trajectories) != len(self.population):
             raise ValueError(f"got results for {len(trajectories)} individuals, "
                              f"the population has {len(self.population)}")

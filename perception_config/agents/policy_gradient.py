@@ -16,6 +16,9 @@ Learning rate: constant by default; `lr_half_life` = H > 0 halves the policy's e
 episodes (lr * 0.5^(episodes learned / H), episodes learned = updates x batch_episodes): late
 updates then move the policy less, so it settles instead of jumping between neighbours (the
 value network keeps its rate: it has to track the changing policy).
+Diagnostics: `update` also reports, read off without changing the step, the gradient norms before
+clipping, the learning rate used and the approximate KL between the policy before and after the
+step over the batch (CleanRL's approx_kl); training.py writes them to history.csv.
 Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
 Action mask (`info["action_mask"]`): the logits of the actions that cannot run are -inf, when
 acting and in the update's log pi and entropy (the masks of every step are in the trajectory),
@@ -157,6 +160,11 @@ class PolicyGradientAgent(Agent):
         return self.batch_episodes
 
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
+        """One REINFORCE step on the round's episodes (module docstring); returns its figures:
+        loss, value_loss (MSE, seconds^2), entropy (nats, mean over states), grad_norm and
+        value_grad_norm (total L2 norms before clipping; the latter only with the value baseline),
+        lr (the policy's rate used) and approx_kl (policy after vs before the step, nats).
+        Nothing (an empty dict) when no episode took a step."""
         trajs = [t for per_actor in trajectories for t in per_actor if t.steps > 0]
         if not trajs:
             return {}
@@ -167,6 +175,7 @@ class PolicyGradientAgent(Agent):
         step_idx = np.concatenate([np.arange(t.steps) for t in trajs])
 
         # Baseline b(s_t) and the advantage A_t = G_t - b(s_t).
+        figures: dict[str, float] = {}  # read-outs only (diagnostics): they change nothing above
         value_loss = torch.zeros(())
         if self.baseline == "value":
             v = self.value(obs).squeeze(-1)
@@ -174,8 +183,9 @@ class PolicyGradientAgent(Agent):
             value_loss = ((v - returns) ** 2).mean()
             self.value_optimizer.zero_grad()
             value_loss.backward()
-            nn.utils.clip_grad_norm_(self.value.parameters(), self.grad_clip * 10)
+            value_grad_norm = nn.utils.clip_grad_norm_(self.value.parameters(), self.grad_clip * 10)
             self.value_optimizer.step()
+            figures["value_grad_norm"] = value_grad_norm.item()
         else:
             b = self.mean_baseline[np.minimum(step_idx, len(self.mean_baseline) - 1)]
             advantages = returns - torch.as_tensor(b, dtype=torch.float32)
@@ -208,10 +218,21 @@ class PolicyGradientAgent(Agent):
                 group["lr"] = self.current_lr()
         self.optimizer.zero_grad()
         loss.backward()
-        nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
+        grad_norm = nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)  # the norm before clipping
         self.optimizer.step()
         self.updates += 1
-        return {"loss": loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item()}
+
+        # Diagnostics (CleanRL's): how far the step moved the policy on this batch's states and actions,
+        # approx_kl = mean[(ratio - 1) - log ratio], ratio = pi_new(a|s) / pi_old(a|s) (Schulman's k3 estimator).
+        with torch.no_grad():
+            new_logits = self.policy(obs)
+            if masked:
+                new_logits = new_logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+            log_ratio = torch.log_softmax(new_logits, -1).gather(1, actions.view(-1, 1)).squeeze(1) - logp
+            approx_kl = ((log_ratio.exp() - 1) - log_ratio).mean()
+        return {"loss": loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
+                "grad_norm": grad_norm.item(), **figures, "lr": float(self.optimizer.param_groups[0]["lr"]),
+                "approx_kl": approx_kl.item()}
 
     # -- persistence ----------------------------------------------------------------------
     def hparams(self) -> dict[str, Any]:

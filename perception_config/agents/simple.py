@@ -87,7 +87,8 @@ class SimpleAgent(Agent):
         return a
 
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
-        """The running-average update of every (key, action) an episode visited."""
+        """The running-average update of every (key, action) an episode visited; returns xi (the
+        exploration rate after this update) and memory_keys (the keys remembered)."""
         for per_actor in trajectories:
             for traj in per_actor:
                 g = returns_to_go(traj.rewards)

@@ -8,7 +8,8 @@ The loop is the same for every agent; the algorithms live in the agent files. On
    learning/ray_workers.py: each worker builds its own env from an `EnvRecipe`, torch with one thread);
    env and actions are seeded per episode, so results do not depend on the number of workers
    or on which worker played what (except measured times);
-4. `agent.update(trajectories)`: the algorithm's learning step.
+4. `agent.update(trajectories)`: the algorithm's learning step; the figures it returns (pg: loss,
+   entropy, gradient norms, lr, approx_kl) are recorded with the round's episodes.
 Image ids are split by `split_image_keys(keys, test_fraction, split_seed)`; the test ids are
 held out (stored in the policy metadata with the split seed and fraction, for evaluation).
 
@@ -25,7 +26,9 @@ metadata (`extra.env_settings`) and restored wherever the policy is run.
 Files in `out/`: policy.safetensors (or policy.json for agents without weights),
 checkpoint.safetensors (policy + optimizer/population + episode counter + rng states +
 history; written atomically every `checkpoint_every` episodes; `resume=True` continues from
-it), history.csv and learning_curve.png, all written atomically; episodes.sqlite (store/episode_store.py):
+it), history.csv (learning/training_history.py: a row per episode, with the update its round fed and
+that update's figures) and learning_curve.png (learning/learning_curve.py), all written atomically;
+episodes.sqlite (store/episode_store.py):
 every episode played, appended by this process after each round (never by the workers), with
 policy_version "train:<run folder>@<episodes learned before the round>" (+ "/actor<i>" for a
 population); a store that fails (full disk, locked, corrupt) is one log line and training goes on.
@@ -47,8 +50,6 @@ Rounds are whole: the episode count may overshoot `episodes` by less than one ro
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import sys
 from pathlib import Path
@@ -64,10 +65,19 @@ from ..rl.episode_loop import Trajectory, play_episode
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY, split_image_keys
 from ..rl.settings import EnvSettings, settings_from_policy_meta
 from ..store.episode_store import STORE_NAME, StoreWriter, store_episode
-from ..util.atomic_file import atomic_output, atomic_write
 from ..util.open3d_threads import open3d_single_thread
 from ..util.stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from .learning_curve import plot_learning_curve
 from .ray_workers import RayRunner, chunks, play_chunk, ray_wanted, snapshot
+from .training_history import (
+    TENSOR_PREFIX,
+    history_arrays,
+    history_from_tensors,
+    new_history,
+    record_round,
+    updates_done,
+    write_history_csv,
+)
 from .validation import SELECTION, Selection, default_lambdas, split_validation, validate, validation_episodes
 from .validation import write_csv as write_validation_csv
 
@@ -76,7 +86,6 @@ CHECKPOINT = "checkpoint.safetensors"
 VALIDATION_CSV = "validation.csv"
 CURVE = "learning_curve.png"
 HISTORY_CSV = "history.csv"
-HISTORY_FIELDS = ("return", "time", "success", "first_pick", "steps", "lambda")
 
 
 # -- playing a round --------------------------------------------------------------------------
@@ -101,83 +110,6 @@ def play_round(env: Any, actors: list[Agent], episodes: list[dict[str, Any]], ac
 
 
 # -- helpers --------------------------------------------------------------------------------
-def moving_average(x: np.ndarray, window: int) -> np.ndarray:
-    """Trailing mean over the last `window` finite values (NaN where there are none)."""
-    x = np.asarray(x, np.float64)
-    ok = np.isfinite(x)
-    s = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
-    n = np.concatenate([[0], np.cumsum(ok)])
-    idx = np.arange(1, len(x) + 1)
-    lo = np.maximum(0, idx - window)
-    cnt = n[idx] - n[lo]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(cnt > 0, (s[idx] - s[lo]) / np.maximum(cnt, 1), np.nan)
-
-
-def plot_learning_curve(history: dict[str, np.ndarray], path: str | Path, title: str = "",
-                        validation: list[dict[str, Any]] | None = None, selected: int | None = None) -> Path:
-    """Return, time to success and success rate (moving averages) per episode, as a PNG; with
-    `validation` (learning/validation.py records) the greedy policy's validation figures as a second
-    line per panel, `selected` (an episode) marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = len(history["return"])
-    ep = np.arange(1, n + 1)
-    window = int(max(1, min(100, n // 10)))
-    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(8, 8.5))
-    axes[0].plot(ep, history["return"], ".", ms=2, alpha=0.25, color="tab:blue")
-    axes[0].plot(ep, moving_average(history["return"], window), color="tab:blue")
-    axes[0].set_ylabel("return (-seconds)")
-    t_succ = np.where(history["success"] > 0, history["time"], np.nan)
-    axes[1].plot(ep, t_succ, ".", ms=2, alpha=0.25, color="tab:green")
-    axes[1].plot(ep, moving_average(t_succ, window), color="tab:green")
-    axes[1].set_ylabel("time to success (s)")
-    axes[2].plot(ep, moving_average(history["success"], window), label="success within max_ops")
-    axes[2].plot(ep, moving_average(history["first_pick"], window), label="first pick succeeds")
-    axes[2].set_ylim(-0.02, 1.02)
-    axes[2].set_ylabel("rate")
-    axes[2].set_xlabel("episode")
-    if validation:
-        v_ep = np.array([r["episode"] for r in validation])
-        tts = np.array([np.nan if r.get("time_to_success") is None else r["time_to_success"] for r in validation])
-        axes[0].plot(v_ep, [-r["cost"] for r in validation], "o-", color="tab:red", ms=3,
-                     label="validation, greedy (- mean cost)")
-        axes[1].plot(v_ep, tts, "o-", color="tab:red", ms=3, label="validation, greedy")
-        axes[2].plot(v_ep, [r["success"] for r in validation], "o--", ms=3, color="tab:purple",
-                     label="validation success (greedy)")
-        axes[2].plot(v_ep, [r["first_pick"] for r in validation], "o--", ms=3, color="tab:brown",
-                     label="validation first pick (greedy)")
-        if selected is not None:
-            for ax in axes:
-                ax.axvline(selected, color="tab:red", ls=":", lw=1)
-            axes[0].plot([], [], color="tab:red", ls=":", label=f"selected (episode {selected})")
-        axes[0].legend(loc="lower right")
-        axes[1].legend(loc="upper right")
-    axes[2].legend(loc="lower right")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"{title} (moving average over {window} episodes)")
-    fig.tight_layout()
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=100)
-    finally:
-        plt.close(fig)
-    return Path(path)
-
-
-def _write_history_csv(history: dict[str, np.ndarray], path: Path) -> None:
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(["episode", *HISTORY_FIELDS])
-    for i in range(len(history["return"])):
-        w.writerow([i + 1, *(f"{history[k][i]:.6g}" for k in HISTORY_FIELDS)])
-    atomic_write(path, buf.getvalue())
-
-
 def _policy_path(out: Path, agent: Agent) -> Path:
     return out / (f"{POLICY_STEM}.safetensors" if agent.tensors() else f"{POLICY_STEM}.json")
 
@@ -285,7 +217,7 @@ def train(
         training_info.update(validation_image_keys=[list(k) for k in val_keys], validation_lambdas=list(val_lambdas),
                              validation_episodes=len(val_options), validate_every=int(validate_every))
 
-    history: dict[str, list[float]] = {k: [] for k in HISTORY_FIELDS}
+    history = new_history()
     rng = np.random.default_rng(seed)
     done = 0
     selection = Selection()
@@ -316,8 +248,7 @@ def train(
         trainer = meta.get("trainer", {})
         done = int(trainer.get("episodes_done", 0))
         rng.bit_generator.state = trainer["rng"]
-        for k in HISTORY_FIELDS:
-            history[k] = np.asarray(tensors.get(f"history/{k}", np.zeros(0))).tolist()
+        history = history_from_tensors(tensors)
         selection = Selection.from_checkpoint(tensors, trainer.get("validation"))
     elif isinstance(agent, Agent):
         if agent.spec.action_names != spec.action_names or agent.spec.observation_layout != spec.observation_layout:
@@ -328,16 +259,15 @@ def train(
         kw = {"seed": seed, **(agent_kwargs or {})}
         learner = make_agent(name, spec, **kw)
     learner.explore = True
+    updates = updates_done(history)
 
     policy_path = _policy_path(out, learner)
     out.mkdir(parents=True, exist_ok=True)
 
-    def arrays() -> dict[str, np.ndarray]:
-        return {k: np.asarray(v, np.float64) for k, v in history.items()}
-
     def save_checkpoint() -> None:
         tensors, state = learner.checkpoint()
-        tensors = {**learner.tensors(), **tensors, **{f"history/{k}": v for k, v in arrays().items()}}
+        tensors = {**learner.tensors(), **tensors,
+                   **{TENSOR_PREFIX + k: v for k, v in history_arrays(history).items()}}
         meta = agent_meta(learner, {**training_info, "episodes": done})
         meta["train_state"] = state
         meta["trainer"] = {"episodes_done": done, "rng": rng.bit_generator.state}
@@ -354,12 +284,14 @@ def train(
             extra["selected"] = {"episode": selected, "by": SELECTION, "validation": selection.best,
                                  "last": selection.history[-1]}
         save_agent(shipped, policy_path, extra)
-        _write_history_csv(arrays(), out / HISTORY_CSV)
+        columns = history_arrays(history)
+        write_history_csv(columns, out / HISTORY_CSV)
         if val_options:
             write_validation_csv(selection.history, out / VALIDATION_CSV)
         if done:
-            plot_learning_curve(arrays(), out / CURVE, title=f"{name} on {Path(recipe.dataset).name}",
-                                validation=selection.history if val_options else None, selected=selected)
+            plot_learning_curve(columns, out / CURVE, title=f"{name} on {Path(recipe.dataset).name}",
+                                validation=selection.history if val_options else None, selected=selected,
+                                n_actions=spec.n_actions)
 
     from tqdm import tqdm
 
@@ -433,15 +365,11 @@ def train(
                         _save_quietly(save_checkpoint)
                     raise
                 # A learning step is never half done: signals from here on are only recorded.
-                learner.update(trajectories)
+                figures = learner.update(trajectories) or {}
                 if writer is not None:
                     store_round(trajectories, options)
-                for per_actor in trajectories:
-                    for t in per_actor:
-                        for key, value in zip(HISTORY_FIELDS, (t.ret, t.time, float(t.success),
-                                                              float(t.first_pick_success), t.steps, t.noise_lambda)):
-                            history[key].append(float(value))
-                n_new = sum(len(p) for p in trajectories)
+                updates += 1
+                n_new = record_round(history, trajectories, figures, updates)
                 done += n_new
                 recent = slice(-100, None)
                 _quietly(bar.update, n_new)
