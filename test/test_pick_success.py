@@ -207,7 +207,7 @@ def test_fit_score_from_an_episode_store_of_a_training_run(synthetic_dataset, tm
 
     run = tmp_path / "run"
     assert main(["train", "--dataset", str(synthetic_dataset), "--agent", "random", "--episodes", "30",
-                 "--time-mode", "cost_table", "--workers", "1", "--out", str(run)]) == 0
+                 "--time-mode", "cost_table", "--cost-table", "blocks", "--workers", "1", "--out", str(run)]) == 0
     rows = load_step_rows(run / "episodes.sqlite")
     assert len(rows) >= 30 and all(r["pose"]["R"].shape == (3, 3) for r in rows)
     assert {r["episode_source"] for r in rows} == {"train"} and {r["step"] for r in rows} >= {0, 1}

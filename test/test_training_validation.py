@@ -124,7 +124,8 @@ def test_validation_split_lambdas_and_bad_input():
 def test_cli_train_flags(tmp_path_factory, tmp_path, capsys):
     out = tmp_path / "cli"
     code = cli.main(["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out), "--episodes", "16",
-                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table",
+                     "--cost-table", "blocks", "--max-ops", "5",
                      "--workers", "1", "--quiet", "--validation-fraction", "0.34", "--validate-every", "8"])
     assert code == 0
     meta, _ = read_file(out / "policy.safetensors")
@@ -132,7 +133,8 @@ def test_cli_train_flags(tmp_path_factory, tmp_path, capsys):
     assert [int(r["episode"]) for r in _rows(out / VALIDATION_CSV)] == [8, 16]
     out0 = tmp_path / "off"
     assert cli.main(["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out0), "--episodes", "8",
-                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+                     "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table",
+                     "--cost-table", "blocks", "--max-ops", "5",
                      "--workers", "1", "--quiet", "--validation-fraction", "0"]) == 0
     meta, _ = read_file(out0 / "policy.safetensors")
     assert "selected" not in meta["extra"] and not (out0 / VALIDATION_CSV).exists()
@@ -143,7 +145,8 @@ def test_seeds_ship_the_run_of_lowest_validation_cost(tmp_path_factory, tmp_path
     (learning/seed_selection.py); a resumed call over finished runs trains nothing and ships the same."""
     out = tmp_path / "seeds"
     args = ["train", "--dataset", str(tiny_dataset(tmp_path_factory)), "--out", str(out), "--episodes", "16",
-            "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table", "--max-ops", "5",
+            "--pipeline", str(pipeline_file(tmp_path_factory)), "--time-mode", "cost_table",
+            "--cost-table", "blocks", "--max-ops", "5",
             "--lambda-range", "0.2", "0.8", "--workers", "1", "--quiet", "--validate-every", "8",
             "--agent-param", "batch_episodes=8", "--agent-param", "lr=0.05", "--seed", "3", "--seeds", "3"]
     assert cli.main(args) == 2 and "validation_fraction must be > 0" in capsys.readouterr().err

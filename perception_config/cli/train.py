@@ -22,16 +22,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
+        raise ValueError("seed selection compares the runs' validation costs: validation_fraction must be > 0")
+    agent_kwargs = agent_params(args.agent, args.agent_param)
     settings = settings.replace(cost_table=cost_table_for(args, settings))
     common = dict(
         settings=settings, pipeline=args.pipeline, progress=not args.quiet, resume=args.resume,
         test_fraction=args.test_fraction, split_seed=args.split_seed, workers=args.workers,
         ray_address=args.ray_address, overwrite=args.overwrite, checkpoint_every=args.checkpoint_every,
         use_depth=args.use_depth, store_episodes=args.store_episodes, validation_fraction=args.validation_fraction,
-        validate_every=args.validate_every, agent_kwargs=agent_params(args.agent, args.agent_param),
+        validate_every=args.validate_every, agent_kwargs=agent_kwargs,
     )
-    if args.seeds < 1:
-        raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.seeds == 1:
         policy = train(args.dataset, args.agent, args.out, args.episodes, seed=args.seed, **common)
     else:
@@ -48,19 +51,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def cost_table_for(args: argparse.Namespace, settings: EnvSettings) -> dict[str, float] | None:
     """The cost table a run charges (cost-table time): --cost-table FILE (a `calibrate` output),
     `blocks` (the blocks' default costs: the same on every machine), else measured now on the
-    train images and written to OUT/cost_model.json. A resumed run keeps its checkpoint's; None
-    with measured time."""
+    train images and written to OUT/cost_model.json. A resumed run keeps its own (its checkpoint's,
+    else OUT/cost_model.json: the seeds' runs); None with measured time."""
     if settings.time_mode != "cost_table":
         return None
     if args.resume and args.cost_table is None:
         from ..agents.policy_io import read_file
+        from ..bench.calibration import read_cost_table
         from ..rl.settings import settings_from_policy_meta
 
         checkpoint = Path(args.out) / "checkpoint.safetensors"
-        if not checkpoint.exists():
-            return None  # train() says there is nothing to resume
-        saved = settings_from_policy_meta(read_file(checkpoint)[0], f"checkpoint {checkpoint}")
-        return dict(saved.cost_table) if saved is not None else None
+        if checkpoint.exists():
+            saved = settings_from_policy_meta(read_file(checkpoint)[0], f"checkpoint {checkpoint}")
+            return dict(saved.cost_table) if saved is not None else None
+        if (Path(args.out) / "cost_model.json").exists():
+            return read_cost_table(Path(args.out) / "cost_model.json")
+        return None  # train() says there is nothing to resume
     if args.cost_table is not None:
         if str(args.cost_table) == "blocks":
             return None
