@@ -135,7 +135,9 @@ def test_train_calibrates_by_default_and_keeps_the_model_in_the_policy(tmp_path_
     meta, _ = read_file(out / "policy.safetensors")
     settings = EnvSettings.from_json(meta["extra"]["env_settings"])
     assert settings.time_mode == "cost_table" and settings.cost_table == model["cost_table"]
-    assert model["image_keys"] == meta["extra"]["train_image_keys"]  # measured on the train images only
+    extra = meta["extra"]  # measured on the train images (validation's included), never on the test images
+    assert model["image_keys"] == sorted(extra["train_image_keys"] + extra.get("validation_image_keys", []))
+    assert not {tuple(k) for k in model["image_keys"]} & {tuple(k) for k in extra["test_image_keys"]}
     assert main([*args, "--episodes", "16", "--resume"]) == 0
     meta2, _ = read_file(out / "policy.safetensors")
     assert meta2["extra"]["env_settings"]["cost_table"] == model["cost_table"]

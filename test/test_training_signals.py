@@ -32,7 +32,9 @@ def _cli_train(tmp_path_factory, out: Path, episodes: int = 100000, workers: int
     cmd = [sys.executable, "-m", "perception_config.cli", "train", "--dataset", str(tiny_dataset(tmp_path_factory)),
            "--agent", "pg", "--episodes", str(episodes), "--time-mode", "cost_table", "--max-ops", "5",
            "--lambda-range", "0.2", "0.8", "--workers", str(workers), "--checkpoint-every", str(ROUND),
-           "--out", str(out), "--quiet", "--cost-table", "blocks", *extra]
+           "--out", str(out), "--quiet", "--cost-table", "blocks", "--validation-fraction", "0",
+           # the agent's own defaults, as the in-process runs they are compared with (not the CLI's recipe)
+           "--agent-param", "entropy_coef=0.01", "--agent-param", "lr_half_life=0", *extra]
     if pipeline:
         cmd += ["--pipeline", str(pipeline_file(tmp_path_factory))]
 

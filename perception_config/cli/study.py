@@ -20,7 +20,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         raise ValueError("--dataset and --out are needed (or --verdict EVAL_DIR)")
     from ..learning.study import STUDY_JSON, STUDY_PNG, run_study
     from ..learning.study_report import format_table
-    from .train import agent_params
+    from .train import recipe_params
 
     # As train: Ctrl-C stops the study with its work saved, also when started with SIGINT ignored.
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -33,7 +33,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         episodes=args.episodes, eval_episodes=args.eval_episodes, lambdas=lambdas, workers=args.workers,
         ray_address=args.ray_address,
         cost_table=args.cost_table, validation_fraction=args.validation_fraction,
-        agent_kwargs=agent_params(args.agent, args.agent_param), eval_seed=args.eval_seed, use_depth=args.use_depth,
+        agent_kwargs=recipe_params(args.agent, args.agent_param), eval_seed=args.eval_seed, use_depth=args.use_depth,
         evaluate_kwargs={k: v for k, v in (("best_static_length", args.best_static_length),
                                            ("best_static_episodes", args.best_static_episodes)) if v is not None},
         progress=not args.quiet, command=_command(args))
