@@ -35,7 +35,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.validation_fraction is None:
         args.validation_fraction = RECIPE_VALIDATION_FRACTION if args.agent in LEARNING_AGENTS else 0.0
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
-    settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range)
+    settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range,
+                                     loop_mask=args.loop_mask)
     if args.seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
@@ -155,6 +156,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "blocks' default costs; default: calibrated on the train images first (about 20 s), written "
                          "to OUT/cost_model.json; a resumed run keeps its own")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
+    tr.add_argument("--no-loop-mask", dest="loop_mask", action="store_false",
+                    help="do not mask the actions already taken at the current hypothesis (the loop rule, "
+                         "docs/concepts/environment.md): the agent must learn to avoid loops from its observation")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                     help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)
