@@ -5,6 +5,7 @@ from collections.abc import Iterator, Mapping
 from typing import Any
 
 from .base import Agent, EnvSpec
+from .best_static import BestStaticAgent
 from .evolutionary import EvolutionaryAgent
 from .fixed import FixedAgent
 from .oracle import OracleAgent
@@ -49,6 +50,7 @@ AGENTS: Mapping[str, type[Agent]] = _Agents({
     "es": EvolutionaryAgent,
     "fixed": FixedAgent,
     "oracle": OracleAgent,
+    "best_static": BestStaticAgent,
 })
 
 

@@ -5,6 +5,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ..learning.evaluation_best_static import DEFAULT_EPISODES, DEFAULT_MAX_LENGTH
 from ..rl.episodes import DEFAULT_TEST_FRACTION
 from ..rl.settings import TIME_MODES, EnvSettings
 from .args import add_dataset_args, add_ray_args
@@ -21,7 +22,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         include_baselines=not args.no_baselines, progress=not args.quiet, split=args.split, plots=not args.no_plots,
         time_mode=args.time_mode, max_ops=args.max_ops, use_depth=args.use_depth,
         store_episodes=args.store_episodes, workers=args.workers, ray_address=args.ray_address,
-        oracle_budget=args.oracle_budget,
+        oracle_budget=args.oracle_budget, best_static_length=args.best_static_length,
+        best_static_episodes=args.best_static_episodes,
     )
     print(format_table(json.loads(results.read_text())))
     print(f"wrote {results} and the per-episode traces, BOP CSVs and plots in {results.parent}")
@@ -50,10 +52,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--max-ops", type=int, default=None,
                     help=f"operations per episode (default: the policy's, else {EnvSettings().max_ops})")
     ev.add_argument("--split", default="test", help="BOP split folder of the dataset")
-    ev.add_argument("--no-baselines", action="store_true", help="skip the oracle, fixed pipelines and random agent")
+    ev.add_argument("--no-baselines", action="store_true",
+                    help="skip the oracle, fixed pipelines, best static pipeline and random agent")
     ev.add_argument("--oracle-budget", type=int, default=None, metavar="N",
                     help="the oracle's operator calls per episode (default 2000; fewer where actions are "
                          "generator searches, e.g. the cell pipeline)")
+    ev.add_argument("--best-static-length", type=int, default=DEFAULT_MAX_LENGTH, metavar="N",
+                    help="the best static pipeline's search: sequences of up to N actions with a pick, each played "
+                         f"as a fixed pipeline on the train images (default {DEFAULT_MAX_LENGTH})")
+    ev.add_argument("--best-static-episodes", type=int, default=DEFAULT_EPISODES, metavar="N",
+                    help=f"train episodes of that search per lambda (default {DEFAULT_EPISODES}; 0: no best_static)")
     ev.add_argument("--no-plots", action="store_true")
     ev.add_argument("--no-episode-store", dest="store_episodes", action="store_false",
                     help="do not append the episodes to OUT/episodes.sqlite")

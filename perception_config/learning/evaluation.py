@@ -1,13 +1,13 @@
 """Evaluation: every agent on the same test episodes at every noise level (the paper's Fig. 5).
 
 `evaluate(...)` runs each agent (the given policies or agent names, plus the baselines: the
-oracle, a few fixed engineer pipelines, the untrained random agent) on the episodes of the
-TEST image ids only (the seeded split of `episodes.split_image_keys`, with the same seed and
-fraction as the training run), for each noise level lambda. The comparison is paired: at a
-given lambda every agent sees the same episodes with the same episode seeds, hence the same
-initial hypothesis. Episode seeds depend on the episode, not on lambda, so the hypotheses of
-one episode at growing lambda lie along the same random direction (common random numbers:
-smoother curves over lambda, and the Fig. 4 grid shows one hypothesis moving away).
+oracle, a few fixed engineer pipelines, the best static pipeline, the untrained random agent) on
+the episodes of the TEST image ids only (the seeded split of `episodes.split_image_keys`, with
+the same seed and fraction as the training run), for each noise level lambda. The comparison is
+paired: at a given lambda every agent sees the same episodes with the same episode seeds, hence
+the same initial hypothesis. Episode seeds depend on the episode, not on lambda, so the
+hypotheses of one episode at growing lambda lie along the same random direction (common random
+numbers: smoother curves over lambda, and the Fig. 4 grid shows one hypothesis moving away).
 
 Success accounting. An episode succeeds when a pick succeeds within `max_ops` operations.
 `ops_to_success` and `time_to_success` are statistics over the SUCCESSFUL episodes only
@@ -19,6 +19,14 @@ failed episode at the time it used up), and `episode_cost`, minus the return (ep
 plus the env's truncation penalty for giving up); the best fixed pipeline is the one with the
 lowest mean episode_cost. `first_pick_success` is the share of all episodes whose first
 attempted pick succeeded (an episode without any pick attempt counts as a miss).
+
+The best static pipeline (`best_static`, agents/best_static.py): before the sweep, at each lambda,
+an exhaustive search over the fixed sequences of up to `best_static_length` actions with a pick,
+each played as the fixed agent plays it, on `best_static_episodes` episodes of the TRAIN images
+(an env over the split's train keys), scored by mean episode_cost; the agent then plays each
+lambda's winner. Its records carry `sequence` and `search` (episodes, sequences, max_length,
+mean_cost of the chosen, runner_up and runner_up_cost, seconds); meta.json's `best_static` the
+search settings (learning/evaluation_best_static.py).
 
 Outputs in `out/`:
 - results.json   list of records, one per (agent, lambda) (schema in `summarise`)
@@ -44,19 +52,24 @@ the BOP CSVs, plots and table (evaluation_export.py).
 Parallel: `workers` N > 1 (or `ray_address`) plays the sweep as Ray tasks (learning/ray_workers.py), each
 a chunk of one (agent, lambda)'s planned episodes; a worker rebuilds the agent from its snapshot
 (the oracle searches in the worker's env) and its env from the dataset path, the pipeline and the
-test image ids. Every episode carries its seeds, so the records are the same as in-process, in
-cost-table mode bit for bit (Open3D then runs on one thread here and in the workers).
+test image ids. The best_static search runs on the same workers first (chunks of its train
+episodes, in an env of the train image ids). Every episode carries its seeds, so the records are
+the same as in-process, in cost-table mode bit for bit (Open3D then runs on one thread here and in
+the workers).
 """
 from __future__ import annotations
 
 import json
 import sys
+from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..agents.base import EnvRecipe
+from ..agents.base import EnvRecipe, EnvSpec
+from ..agents.best_static import BestStaticAgent
 from ..agents.policy_settings import policy_settings
 from ..blocks.pipeline import Pipeline, load_pipeline, pipeline_reference
 from ..core.geometry import LAMBDA_MAX, check_noise_lambda
@@ -68,10 +81,11 @@ from ..store.episode_store import STORE_NAME, StoreWriter, store_episode
 from ..util.atomic_file import atomic_write
 from ..util.open3d_threads import open3d_single_thread
 from .evaluation_agents import DEFAULT_FIXED_SEQUENCES, EvalAgent, build_agents
+from .evaluation_best_static import DEFAULT_EPISODES, DEFAULT_MAX_LENGTH, best_static_agent, check_options, search_seed
 from .evaluation_export import make_plots, write_bop_csvs
 from .evaluation_records import DEFINITIONS, mark_best_fixed, oracle_ratios, summarise
 from .evaluation_sweep import sweep_here, sweep_on_ray
-from .ray_workers import ray_wanted
+from .ray_workers import RayRunner, ray_wanted
 
 DEFAULT_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(1, 11))
 
@@ -124,6 +138,8 @@ def evaluate(
     workers: int | None = None,
     ray_address: str | None = None,
     oracle_budget: int | None = None,
+    best_static_length: int = DEFAULT_MAX_LENGTH,
+    best_static_episodes: int = DEFAULT_EPISODES,
     **env_overrides: Any,
 ) -> Path:
     """Evaluate agents on the test images at each lambda; write the reports to `out`; return
@@ -143,10 +159,14 @@ def evaluate(
     docstring); neither (or N = 1): in this process, without Ray. `oracle_budget`: the oracle's
     operator calls per episode (default 2000; with generators among the actions each call can
     be a search of a second, so the cell pipeline's evaluation gives it fewer).
+    `best_static_length`, `best_static_episodes`: the best static pipeline's search (module
+    docstring): sequences of up to this many actions, this many train episodes per lambda; 0
+    episodes: no best_static.
     """
     lams = _check_lambdas(lambdas)
     if workers is not None and int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    check_options(best_static_length, best_static_episodes)
     out = Path(out)
     settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction, pipeline=pipeline,
                                **env_overrides)
@@ -158,14 +178,26 @@ def evaluate(
     env_settings = settings.env.replace(lambda_range=(0.0, LAMBDA_MAX))  # every lambda is set per episode
     source = EpisodeSource(ds, test_keys, min_visib_fract=env_settings.min_visib_fract)
     env = PerceptionConfigEnv(source, pipe, env_settings)
-    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget)
+    wants_best_static = best_static_episodes > 0 and (include_baselines or "best_static" in policies)
+    # the searched agent replaces this stand-in before the sweep; building the agents first finds bad
+    # policies before the search
+    stand_in = BestStaticAgent(EnvSpec.from_env(env)) if wants_best_static else None
+    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget, stand_in)
     plan = episode_plan(len(source), episodes_per_lambda, seed)
+    recipe = None
+    if ray_wanted(workers, ray_address):
+        pipe_ref = settings.pipeline
+        if not isinstance(pipe_ref, Pipeline):
+            pipe_ref = pipeline_reference(pipe_ref)
+        recipe = EnvRecipe(str(Path(ds.root).resolve()), pipe_ref, tuple(test_keys), split, env_settings,
+                           use_depth=bool(getattr(ds, "use_depth", True)))
+    best_static_meta = None
+    if wants_best_static:
+        best_static_meta = {"max_length": int(best_static_length), "episodes": int(best_static_episodes),
+                            "seed": search_seed(seed), "train_images": len(train_keys),
+                            "note": "exhaustive search per lambda on train episodes; mean episode_cost"}
 
     bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(agents) * len(lams) * len(plan), desc="evaluate", unit="ep", dynamic_ncols=True)
     records: list[dict[str, Any]] = []
     per_episode: list[dict[str, Any]] = []
     writer = StoreWriter(out / STORE_NAME, lambda line: print(line, file=sys.stderr, flush=True)) \
@@ -178,21 +210,35 @@ def evaluate(
                                        dataset=str(ds.root), episode_seed=ep_seed)
 
     try:
-        if ray_wanted(workers, ray_address):
-            pipe_ref = settings.pipeline
-            if not isinstance(pipe_ref, Pipeline):
-                pipe_ref = pipeline_reference(pipe_ref)
-            recipe = EnvRecipe(str(Path(ds.root).resolve()), pipe_ref, tuple(test_keys), split, env_settings,
-                               use_depth=bool(getattr(ds, "use_depth", True)))
-            sweep = sweep_on_ray(recipe, agents, lams, plan, workers, ray_address, bar, storer)
-        else:
-            with open3d_single_thread(env_settings.time_mode == "cost_table"):
+        with (RayRunner(workers, ray_address) if recipe is not None else nullcontext()) as runner, \
+                open3d_single_thread(env_settings.time_mode == "cost_table"):
+            if wants_best_static:  # an env of the TRAIN images: the search never sees a test image
+                train_source = EpisodeSource(ds, train_keys, min_visib_fract=env_settings.min_visib_fract)
+                train_env = PerceptionConfigEnv(train_source, pipe, env_settings)
+                train_recipe = None if recipe is None else replace(recipe, image_keys=tuple(train_keys))
+                searched = best_static_agent(
+                    train_env, lams, episode_plan(len(train_env.source), best_static_episodes, search_seed(seed)),
+                    best_static_length, seed, runner, train_recipe, progress)
+                for ea in agents:
+                    if ea.agent is stand_in:
+                        ea.agent = searched
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(total=len(agents) * len(lams) * len(plan), desc="evaluate", unit="ep", dynamic_ncols=True)
+            if runner is not None:
+                sweep = sweep_on_ray(runner, recipe, agents, lams, plan, bar, storer)
+            else:
                 sweep = sweep_here(env, agents, lams, plan, bar, storer)
         for lam in lams:
             for ea in agents:
                 eps = [{"agent": ea.name, **rec} for rec in sweep[(ea.name, lam)]]
                 per_episode.extend(eps)
                 records.append({**summarise(ea.name, lam, eps), "kind": ea.kind})
+                if ea.kind == "best_static":
+                    records[-1]["sequence"] = ea.agent.sequence_for(lam)
+                    if lam in ea.agent.search:
+                        records[-1]["search"] = ea.agent.search[lam].to_json()
     finally:
         if bar is not None:
             bar.close()
@@ -214,6 +260,7 @@ def evaluate(
         "truncation_cost": es.truncation_cost, "min_visib_fract": es.min_visib_fract, "env_settings": es.to_json(),
         "settings_notes": settings.notes, "pipeline": pipe.describe(),
         "agents": [{"name": a.name, "kind": a.kind} for a in agents],
+        "best_static": best_static_meta,
         "definitions": DEFINITIONS,
     }
     atomic_write(out / "meta.json", json.dumps(meta, indent=1, allow_nan=False) + "\n")

@@ -1,6 +1,7 @@
 """The agents of an evaluation (learning/evaluation.py): the policies and agent names given, then
 the baselines: the hindsight oracle, the engineer pipelines the pipeline's actions allow
-(`fixed_sequences`) and the untrained random agent."""
+(`fixed_sequences`), the best static pipeline (searched on the train images:
+learning/evaluation_best_static.py) and the untrained random agent."""
 from __future__ import annotations
 
 import os
@@ -54,11 +55,14 @@ def _policy_name(path: Path, kind: str) -> str:
 def build_agents(
     env: PerceptionConfigEnv, policies: Sequence[Any], seed: int, include_baselines: bool = True,
     sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES, oracle_budget: int | None = None,
+    best_static: Any = None,
 ) -> list[EvalAgent]:
     """The agents to evaluate: policy files (checked against the env's action set), agent
     names, or (name, agent) pairs / objects with `act`; then the baselines (oracle, the fixed
-    pipelines, random) unless already given; `oracle_budget`: the oracle's operator calls per
-    episode (its `node_budget`; default 2000)."""
+    pipelines, the best static pipeline, random) unless already given; `oracle_budget`: the
+    oracle's operator calls per episode (its `node_budget`; default 2000). `best_static`: the
+    searched BestStaticAgent (the name "best_static" among `policies` is this agent; None: no
+    best_static baseline)."""
     from .. import agents
 
     out: list[EvalAgent] = []
@@ -70,6 +74,11 @@ def build_agents(
         elif is_policy_file(spec):
             agent = agents.load_agent(Path(spec), env)
             out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent, policy_version(spec)))
+        elif spec == "best_static":
+            if best_static is None:
+                raise ValueError("agent 'best_static' is the result of a search on the train images: "
+                                 "give best_static_episodes > 0 (CLI: --best-static-episodes N)")
+            out.append(EvalAgent(spec, spec, best_static))
         elif isinstance(spec, str):
             if spec not in agents.AGENTS:
                 hint = f" and there is no file {spec}" if (os.sep in spec or "." in spec) else ""
@@ -88,6 +97,8 @@ def build_agents(
             name = "fixed:" + "+".join(seq)
             if name not in names:
                 out.append(EvalAgent(name, "fixed", agents.make_agent("fixed", env=env, seed=seed, sequence=list(seq))))
+        if best_static is not None and "best_static" not in names:
+            out.append(EvalAgent("best_static", "best_static", best_static))
         if "random" not in names:
             out.append(EvalAgent("random", "random", agents.make_agent("random", env=env, seed=seed)))
     if not out:

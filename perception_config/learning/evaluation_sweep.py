@@ -44,41 +44,39 @@ def evaluation_chunk(recipe: EnvRecipe, agent: Any, lam: float,
     return list(zip(recs, trajs))
 
 
-def sweep_on_ray(recipe: EnvRecipe, agents: Sequence[EvalAgent], lams: Sequence[float],
-                 plan: Sequence[tuple[int, int]], workers: int | None, address: str | None, bar: Any,
-                 storer: Storer) -> Sweep:
-    """The sweep as Ray tasks: each (agent, lambda)'s plan in pieces (ray_workers.chunks)."""
+def sweep_on_ray(runner: RayRunner, recipe: EnvRecipe, agents: Sequence[EvalAgent], lams: Sequence[float],
+                 plan: Sequence[tuple[int, int]], bar: Any, storer: Storer) -> Sweep:
+    """The sweep as Ray tasks on `runner`: each (agent, lambda)'s plan in pieces (ray_workers.chunks)."""
     from ..agents.base import Agent
 
-    with RayRunner(workers, address) as runner:
-        recipe_ref = runner.put(recipe)
-        pieces = chunks(len(plan), len(agents) * len(lams), runner.cpus)
-        refs = [runner.put(snapshot(ea.agent) if isinstance(ea.agent, Agent) else ea.agent) for ea in agents]
-        calls, keys = [], []
-        for lam in lams:  # the in-process order
-            for ea, ref in zip(agents, refs):
-                for lo, hi in pieces:
-                    calls.append((recipe_ref, ref, lam, list(plan[lo:hi])))
-                    keys.append((ea, lam))
+    recipe_ref = runner.put(recipe)
+    pieces = chunks(len(plan), len(agents) * len(lams), runner.cpus)
+    refs = [runner.put(snapshot(ea.agent) if isinstance(ea.agent, Agent) else ea.agent) for ea in agents]
+    calls, keys = [], []
+    for lam in lams:  # the in-process order
+        for ea, ref in zip(agents, refs):
+            for lo, hi in pieces:
+                calls.append((recipe_ref, ref, lam, list(plan[lo:hi])))
+                keys.append((ea, lam))
 
-        done: dict[int, list[tuple[dict[str, Any], Trajectory]]] = {}
-        stored = [0]  # the calls before this one are in the store: it gets the in-process order
+    done: dict[int, list[tuple[dict[str, Any], Trajectory]]] = {}
+    stored = [0]  # the calls before this one are in the store: it gets the in-process order
 
-        def arrived(k: int, result: list[tuple[dict[str, Any], Trajectory]]) -> None:
-            done[k] = result
-            while stored[0] in done:
-                j = stored[0]
-                ea = keys[j][0]
-                for (_rec, traj), (_index, ep_seed) in zip(done.pop(j), calls[j][3]):
-                    store = storer(ea, ep_seed)
-                    if store is not None:
-                        store(traj)
-                stored[0] += 1
-            if bar is not None:
-                bar.set_postfix_str(f"{keys[k][0].name} lambda={keys[k][1]:g}")
-                bar.update(len(result))
+    def arrived(k: int, result: list[tuple[dict[str, Any], Trajectory]]) -> None:
+        done[k] = result
+        while stored[0] in done:
+            j = stored[0]
+            ea = keys[j][0]
+            for (_rec, traj), (_index, ep_seed) in zip(done.pop(j), calls[j][3]):
+                store = storer(ea, ep_seed)
+                if store is not None:
+                    store(traj)
+            stored[0] += 1
+        if bar is not None:
+            bar.set_postfix_str(f"{keys[k][0].name} lambda={keys[k][1]:g}")
+            bar.update(len(result))
 
-        results = runner.map(evaluation_chunk, calls, arrived)
+    results = runner.map(evaluation_chunk, calls, arrived)
     out: Sweep = {}
     for (ea, lam), result in zip(keys, results):
         out.setdefault((ea.name, lam), []).extend(rec for rec, _traj in result)

@@ -1,0 +1,89 @@
+"""The best static pipeline of an evaluation (agents/best_static.py): one exhaustive search per
+evaluated lambda, on TRAIN episodes (an env over the split's train image keys: the search never
+sees a test image), then a BestStaticAgent that plays, per lambda, the sequence found for it.
+
+At every lambda the search plays the same train episodes (the plan's episode indices and seeds,
+drawn from a seeded rng; common random numbers, as the evaluation's own plan) at that lambda.
+In this process, or with Ray workers as tasks of a few episodes each (`search_chunk`: each
+returns its episodes' cost rows; the rows are put together in episode order and summed on the
+driver, so the choice is the same bits for 1 and N workers).
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..agents.base import EnvRecipe, EnvSpec
+from ..agents.best_static import BestStaticAgent, SearchResult, search_costs, static_sequences
+from ..rl.episode_loop import acting_seed
+from .ray_workers import RayRunner, chunks, worker_env
+
+# Defaults measured on data/default (docs/concepts/evaluation.md): sequences up to 3 actions, 24
+# train episodes per lambda: a lambda's search in about a minute on 2 workers.
+DEFAULT_MAX_LENGTH = 3
+DEFAULT_EPISODES = 24
+
+
+def check_options(max_length: int, episodes: int) -> None:
+    """ValueError naming the option when the search's settings are out of range."""
+    for name, value, low in (("best_static_length", max_length, 1), ("best_static_episodes", episodes, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def search_seed(seed: int) -> int:
+    """The seed of the search's episode plan, derived from the evaluation's seed (not its
+    episode seeds: those are the test episodes')."""
+    return int(np.random.SeedSequence([int(seed), 7]).generate_state(1)[0] % 2**31)
+
+
+def search_chunk(recipe: EnvRecipe, sequences: Sequence[Sequence[str]],
+                 episodes: Sequence[tuple[dict[str, Any], int]]) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """A Ray task: the cost rows of some search episodes in the worker's train env, and their
+    images (agents/best_static.search_costs)."""
+    env, _spec = worker_env(recipe)
+    return search_costs(env, sequences, episodes)
+
+
+def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int, int]], max_length: int,
+                      seed: int = 0, runner: RayRunner | None = None, recipe: EnvRecipe | None = None,
+                      progress: bool = True) -> BestStaticAgent:
+    """Search every lambda of `lams` on the train episodes of `plan` ((episode index, episode
+    seed) of `env`'s source, an env over the TRAIN images) and return the agent that plays the
+    sequences found; its `search` holds each lambda's SearchResult. With `runner` (and the
+    `recipe` of the same train env) the episodes are played as Ray tasks."""
+    spec = EnvSpec.from_env(env)
+    sequences = static_sequences(spec.action_names, spec.action_kinds, max_length)
+    if not plan:
+        raise ValueError("the best_static search needs at least one train episode")
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(lams) * len(plan), desc="best_static search", unit="ep", dynamic_ncols=True)
+    results: dict[float, SearchResult] = {}
+    try:
+        recipe_ref = runner.put(recipe) if runner is not None else None
+        for lam in lams:
+            if bar is not None:
+                bar.set_postfix_str(f"lambda={lam:g} {len(sequences)} sequences")
+            episodes = [({"episode": int(i), "lambda": float(lam), "episode_seed": int(s)}, acting_seed(s))
+                        for i, s in plan]
+            t0 = time.perf_counter()
+            if runner is None:
+                costs, images = search_costs(env, sequences, episodes, bar.update if bar is not None else None)
+            else:
+                calls = [(recipe_ref, sequences, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
+                parts = runner.map(search_chunk, calls,
+                                   (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
+                costs = np.concatenate([rows for rows, _ in parts])
+                images = [key for _, keys in parts for key in keys]
+            results[lam] = SearchResult.from_costs(sequences, costs, max_length, time.perf_counter() - t0, images)
+    finally:
+        if bar is not None:
+            bar.close()
+    agent = BestStaticAgent(spec, {lam: r.sequence for lam, r in results.items()}, seed=seed)
+    agent.search = results
+    return agent
