@@ -164,7 +164,8 @@ def ros_node():
 # idle for one long file at the end.
 LONG_FILES = ("test_training_signals", "test_score_learning", "test_ray_cluster", "test_training_validation",
               "test_ray_workers", "test_colcon", "test_ros_nodes", "test_replay_check", "test_online_learning",
-              "test_cell_sim", "test_ppf", "test_resting_pose", "test_ros_replay")
+              "test_cell_sim", "test_cost_model", "test_best_static", "test_study", "test_ppf", "test_resting_pose",
+              "test_ros_replay")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
