@@ -42,11 +42,15 @@ def count(dataset: Path, policy: Path, lambdas: list[float], episodes: int, work
                            include_baselines=False, plots=False, store_episodes=False, workers=workers,
                            loop_mask=loop_mask, progress=True)
         records = json.loads(Path(results).read_text())
+        lines = [json.loads(line) for line in (Path(results).parent / "episodes.jsonl").read_text().splitlines()]
+    truncated = [e for e in lines if e.get("truncated")]
     n = sum(r["episodes"] for r in records)
     return {"policy": str(policy), "loop_mask_at_test": loop_mask, "episodes": n,
             "truncated": sum(r["truncated"] for r in records),
             "loop_truncations": sum(r["loop_truncations"] for r in records),
             "success": sum(r["n_success"] for r in records) / n,
+            "truncated_examples": [{"lambda": e["lambda"], "obj_id": e["obj_id"], "actions": e["actions"],
+                                    "loop_steps": e["loop_steps"]} for e in truncated[:8]],
             "per_lambda": {str(r["lambda"]): {"truncated": r["truncated"], "loop_truncations": r["loop_truncations"],
                                               "success": r["success"]} for r in records}}
 

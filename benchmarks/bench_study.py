@@ -68,13 +68,12 @@ def pipeline_for(name: str, dataset: Path, runs: Path) -> str:
     return str(path)
 
 
-def summary(study: dict) -> dict:
-    """The figures of the targets from a study.json."""
-    out = {}
-    for lam, block in study.get("lambdas", {}).items():
-        out[lam] = {k: block.get(k) for k in ("bar", "beats", "beats_significantly", "seeds", "pooled", "bar_figures",
-                                               "oracle", "oracle_ratio") if k in block}
-    return out
+def summary(study: dict) -> list:
+    """The figures of the targets from a study.json: per lambda, k of N seeds beating the bar, the
+    pooled cost / success against the bar's, the time ratio to the oracle (learning/study_report.py)."""
+    keys = ("lambda", "bar", "bar_kind", "n_seeds", "k_beats", "k_beats_surely", "pooled_cost", "bar_cost",
+            "pooled_success", "bar_success", "pooled_oracle_ratio")
+    return [{k: c.get(k) for k in keys} for c in study.get("comparisons", [])]
 
 
 def main() -> int:

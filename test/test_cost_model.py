@@ -34,8 +34,12 @@ def test_pose_memory_marks_actions_taken_at_a_hypothesis_reached_again():
     assert m.record(p0, 2, p0) is True and m.stale(p0) == {0, 2}  # an action that left it unchanged
     assert not same_pose(p0, _pose(0.0003), d) and not same_pose(p0, _pose(0.0, 0.003), d)
     assert same_pose(None, None, d) and not same_pose(p0, None, d)
-    # the evaluation's count: steps back to a hypothesis reached before, picks left out
-    assert loop_steps(p0, [p1, p0, p0, p0], ["refinement", "refinement", "pick", "refinement"], d) == 2
+    # the evaluation's count: an action repeated at the same hypothesis, picks left out
+    ref = "refinement"
+    assert loop_steps(p0, [p1, p0, p1], ["a", "b", "a"], [ref] * 3, d) == 1  # A, B, A: the cycle come round
+    assert loop_steps(p0, [p0, p0], ["a", "a"], [ref] * 2, d) == 1  # A unchanged, A again
+    assert loop_steps(p0, [p0, p0, p0], ["a", "b", "pick"], [ref, ref, "pick"], d) == 0  # each once
+    assert loop_steps(p0, [p0, p0], ["pick", "pick"], ["pick"] * 2, d) == 0
 
 
 def test_env_masks_an_action_that_left_the_hypothesis_unchanged(tmp_path_factory):

@@ -39,8 +39,9 @@ DEFINITIONS = {
                                                         "operators took on this machine (failed picks at their robot "
                                                         "cost), next to the cost model's seconds they were charged",
     "truncated": "episodes that used up max_ops without a successful pick",
-    "loop_truncations": "truncated episodes with a step that went back to a hypothesis the episode had already "
-                        "reached (an action that left it unchanged, or two that undo each other; picks left out)",
+    "loop_truncations": "truncated episodes with a step that repeated an action already taken at the same "
+                        "hypothesis (an action that left it unchanged taken again, or a cycle of two come round; "
+                        "picks left out)",
     "success": "share of episodes with a successful pick within max_ops",
     "first_pick_success": "share of all episodes whose first attempted pick succeeded",
     "recall_mssd": f"share of final poses with MSSD < {RECALL_MSSD_THRESHOLD} x diameter, strictly as every "
@@ -143,7 +144,7 @@ def episode_record(env: PerceptionConfigEnv, agent: Any, index: int, lam: float,
     kinds = [env.pipeline.action(n).kind.value for n in traj.names]
     failed_picks = sum(1 for p in traj.step_picked if p is False)
     truncated = not traj.success and not traj.stopped and traj.steps >= env.max_ops
-    loops = loop_steps(initial, traj.step_poses, kinds, float(model.diameter))
+    loops = loop_steps(initial, traj.step_poses, traj.names, kinds, float(model.diameter))
     rec: dict[str, Any] = {
         "episode": int(index), "episode_seed": int(ep_seed), "lambda": float(lam),
         "scene_id": int(scene_id), "im_id": int(im_id), "obj_id": int(obj_id),

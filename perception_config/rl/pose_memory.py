@@ -11,7 +11,8 @@ hypothesis already reached. The environment masks stale actions while the hypoth
 (rl/env.py). A stochastic action (regenerate, a randomised generator) moves elsewhere each call,
 so it is only stale when the episode really came back to where it was called.
 
-`loop_steps` finds such steps in a played episode (the evaluation's loop count).
+`loop_steps` counts the steps of a played episode that took a stale action (the evaluation's loop
+count).
 """
 from __future__ import annotations
 
@@ -85,17 +86,21 @@ class PoseMemory:
         return out
 
 
-def loop_steps(initial_pose: Any, step_poses: Sequence[Any], kinds: Sequence[str], diameter: float) -> int:
-    """How many actions of a played episode (the hypothesis after each, `kinds` "pick" or other)
-    ended at a hypothesis the episode had already reached (the one they started from included)
-    without being a pick: the steps of a loop. Picks are left out (a pick never moves the
-    hypothesis; a repeated failed pick is masked by its own rule)."""
+def loop_steps(initial_pose: Any, step_poses: Sequence[Any], actions: Sequence[str], kinds: Sequence[str],
+               diameter: float) -> int:
+    """How many actions of a played episode (the hypothesis after each, the action names, their
+    kinds "pick" or other) repeated an action already taken at the same hypothesis: an action that
+    left the hypothesis unchanged taken again, or a cycle (A, B, A with B undoing A) come round.
+    These are the steps the loop rule masks; picks are left out (a repeated failed pick has its own
+    rule)."""
     memory = PoseMemory(diameter)
     memory.visit(initial_pose)
+    names: dict[str, int] = {}
     before, count = initial_pose, 0
-    for pose, kind in zip(step_poses, kinds):
-        seen = memory.record(before, 0, pose)
-        if seen and kind != "pick":
+    for pose, name, kind in zip(step_poses, actions, kinds):
+        action = names.setdefault(name, len(names))
+        if kind != "pick" and action in memory.stale(before):
             count += 1
+        memory.record(before, action, pose)
         before = pose
     return count
