@@ -115,3 +115,32 @@ def own_ray_task_processes(title: str) -> dict[int, int]:
             if up == me:
                 out[pid] = parents[pid]
     return out
+
+
+# What an evaluation measures on the wall clock (different in every run by nature): the measured
+# wall time of the episodes beside the charged time, and the seconds best_static's search took.
+WALL_FIELDS = ("measured_time", "measured_time_to_success", "measured_episode_time", "seconds")
+
+
+def _without_wall_clock(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _without_wall_clock(v) for k, v in value.items()
+                if not (k in WALL_FIELDS and (k != "seconds" or "sequences" in value))}
+    if isinstance(value, list):
+        return [_without_wall_clock(v) for v in value]
+    return value
+
+
+def same_evaluation(results_a: Path, results_b: Path) -> None:
+    """Two evaluate() outputs give the same figures: results.json and episodes.jsonl equal, value
+    for value (JSON numbers as written, so bit for bit), except the wall-clock fields (WALL_FIELDS),
+    which must be there in both."""
+    import json
+
+    a, b = json.loads(results_a.read_text()), json.loads(results_b.read_text())
+    assert all("measured_time_to_success" in r for r in a + b)
+    assert _without_wall_clock(a) == _without_wall_clock(b)
+    lines_a = [json.loads(x) for x in (results_a.parent / "episodes.jsonl").read_text().splitlines()]
+    lines_b = [json.loads(x) for x in (results_b.parent / "episodes.jsonl").read_text().splitlines()]
+    assert all("measured_time" in e for e in lines_a + lines_b)
+    assert _without_wall_clock(lines_a) == _without_wall_clock(lines_b)

@@ -52,10 +52,11 @@ def test_chamfer_stays_within_its_candidate_budget_and_lowers_its_cost():
     model, gt = box_model(), default_pose()
     frame = synthetic_frame([model], [gt], seed=2)
     start = _perturbed(gt, np.random.default_rng(5))
-    r = create("chamfer", rounds=3, candidates=20)(BlockInput(frame=frame, model=model, pose=start))
+    # without the wall-clock bound: the budget under test is the candidates', on a loaded machine too
+    r = create("chamfer", rounds=3, candidates=20)(BlockInput(frame=frame, model=model, pose=start, time_bounded=False))
     assert r.ok and r.info["candidates"] <= 120  # the careful and the wide search, 60 each
     only = create("chamfer", rounds=3, candidates=20, wide_rotation_deg=0.0)
-    assert only(BlockInput(frame=frame, model=model, pose=start)).info["candidates"] <= 60
+    assert only(BlockInput(frame=frame, model=model, pose=start, time_bounded=False)).info["candidates"] <= 60
     assert r.scores["chamfer_cost"] < r.info["cost_before"]
     ray = start.t / np.linalg.norm(start.t)
     assert abs((r.pose.t - start.t) @ ray) < 1e-9  # depth along the viewing ray is not searched
@@ -97,7 +98,7 @@ def test_a_correct_pose_is_a_fixed_point_on_a_synthetic_frame():
         pose, cache = gt, {}
         for call in range(3):
             r = create(name)(BlockInput(frame=frame, model=model, pose=pose, cache=cache,
-                                        rng=np.random.default_rng(call)))
+                                        rng=np.random.default_rng(call), time_bounded=False))
             assert r.ok, r.reason
             pose = r.pose
         assert _add(model, pose, gt) < 0.03 * model.diameter, name

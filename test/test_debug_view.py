@@ -206,7 +206,8 @@ def test_the_configurator_shows_each_estimate_and_a_bag_of_the_view_decodes(ros_
     out = nodes["configurator_node"].output()
     timing = re.search(r"debug view: (\d+) estimates shown, median ([\d.]+) ms added", out)
     assert timing and int(timing.group(1)) >= 5, out[-2000:]
-    assert float(timing.group(2)) < 1.0, timing.group(0)  # handing over, not drawing
+    # handing over, not drawing: about 0.3 ms on an idle 2-core box; 2 ms leaves room for a loaded one
+    assert float(timing.group(2)) < 2.0, timing.group(0)
     print("\nlive view:", out.split("debug view: ")[-1].strip())
 
     # A bag of the view (rosbags' MCAP writer, the bytes as received): ros2msg schemas with the

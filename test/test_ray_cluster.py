@@ -14,7 +14,7 @@ import pytest
 from perception_config.learning.evaluation import evaluate
 from perception_config.learning.training import train
 from perception_config.rl.settings import EnvSettings
-from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
+from rl_helpers import own_ray_task_processes, pipeline_file, same_evaluation, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 
@@ -113,8 +113,7 @@ def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_f
     here = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev1", **kw)
     there = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev2", ray_address=c.address,
                      **kw)
-    assert here.read_bytes() == there.read_bytes()
-    assert (here.parent / "episodes.jsonl").read_bytes() == (there.parent / "episodes.jsonl").read_bytes()
+    same_evaluation(here, there)
     assert (there.parent / "fig5.png").exists() is False  # plots=False: nothing else differs
 
 

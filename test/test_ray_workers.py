@@ -22,7 +22,7 @@ from perception_config.learning.evaluation import evaluate
 from perception_config.learning.training import CHECKPOINT, train
 from perception_config.rl.settings import EnvSettings
 from perception_config.store.episode_store import STORE_NAME, EpisodeStore
-from rl_helpers import own_ray_task_processes, pipeline_file, same_run, tiny_dataset
+from rl_helpers import own_ray_task_processes, pipeline_file, same_evaluation, same_run, tiny_dataset
 
 FAST = EnvSettings(time_mode="cost_table", lambda_range=(0.2, 0.8), max_ops=5)
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,8 +77,7 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
     # Evaluation: the policy and the baselines (the oracle searches in the worker's env).
     r1 = _evaluate(tmp_path_factory, tmp_path / "ev1", policy, workers=1)
     r2 = _evaluate(tmp_path_factory, tmp_path / "ev2", policy, workers=2)
-    assert r1.read_bytes() == r2.read_bytes()
-    assert (r1.parent / "episodes.jsonl").read_bytes() == (r2.parent / "episodes.jsonl").read_bytes()
+    same_evaluation(r1, r2)
     agents = {r["agent"] for r in json.loads(r2.read_text())}
     assert {"pg:pg1", "oracle", "random"} <= agents, agents
     query = "SELECT agent, episode_seed, noise_lambda, steps FROM episodes ORDER BY rowid"
