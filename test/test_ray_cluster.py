@@ -109,7 +109,7 @@ def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_f
     same_run(tmp_path / "run", reference)
     assert seen.parents == _raylets(c) and len(seen.parents) == 2  # workers of both nodes played
     kw = dict(episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5,
-              progress=False, plots=False)
+              progress=False, plots=False, best_static_episodes=2)
     here = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev1", **kw)
     there = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev2", ray_address=c.address,
                      **kw)

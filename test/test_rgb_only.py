@@ -229,7 +229,7 @@ def test_train_and_evaluate_on_an_rgb_only_dataset(rgb_dataset, pipeline_path, t
     policy = train(rgb_dataset, "pg", tmp_path / "run", 8, settings=settings, pipeline=pipeline_path, workers=1,
                    progress=False, agent_kwargs={"batch_episodes": 4})
     results = evaluate(rgb_dataset, [policy], [0.3], tmp_path / "eval", episodes_per_lambda=3, progress=False,
-                       plots=False, fixed=[("icp_coarse", "d2co", "pick")])
+                       plots=False, fixed=[("icp_coarse", "d2co", "pick")], best_static_episodes=2)
     records = json.loads(results.read_text())
     assert {r["agent"] for r in records} >= {"random", "oracle", "fixed:icp_coarse+d2co+pick"}
     episodes = [json.loads(line) for line in (tmp_path / "eval" / "episodes.jsonl").read_text().splitlines()]
