@@ -133,9 +133,10 @@ def test_train_calibrates_by_default_and_keeps_the_model_in_the_policy(tmp_path_
     ds, pipe = tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory)
     out = tmp_path / "run"
     args = ["train", "--dataset", str(ds), "--pipeline", str(pipe), "--agent", "pg", "--out", str(out), "--quiet",
-            "--no-episode-store"]
+            "--no-episode-store", "--calibration-episodes", "3"]
     assert main([*args, "--episodes", "8"]) == 0
     model = json.loads((out / "cost_model.json").read_text())
+    assert model["episodes"] == 3  # --calibration-episodes
     meta, _ = read_file(out / "policy.safetensors")
     settings = EnvSettings.from_json(meta["extra"]["env_settings"])
     assert settings.time_mode == "cost_table" and settings.cost_table == model["cost_table"]

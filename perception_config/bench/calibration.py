@@ -39,7 +39,7 @@ from ..blocks.pipeline import Pipeline, load_pipeline
 from ..datasets.bop import BopDataset
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episodes import EpisodeSource
-from ..rl.settings import ACTION_KEY, GENERATE, SCORING_PASS, EnvSettings
+from ..rl.settings import ACTION_KEY, CALIBRATION_EPISODES, GENERATE, SCORING_PASS, EnvSettings
 from ..util.atomic_file import atomic_write
 from ..util.open3d_threads import open3d_single_thread
 
@@ -54,7 +54,7 @@ def _seconds(values: Sequence[float]) -> float:
 
 def calibrate(
     dataset: str | Path | BopDataset, pipeline: str | Path | Pipeline | None = None,
-    image_keys: Sequence[tuple[int, int]] | None = None, episodes: int = 24, seed: int = 0,
+    image_keys: Sequence[tuple[int, int]] | None = None, episodes: int = CALIBRATION_EPISODES, seed: int = 0,
     lambdas: tuple[float, float] = (0.1, 1.0), min_visib_fract: float = 0.3, use_depth: bool = True,
     progress: bool = True,
 ) -> dict[str, Any]:

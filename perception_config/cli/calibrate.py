@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..rl.settings import CALIBRATION_EPISODES
 from .args import add_dataset_args, one_core
 
 
@@ -50,7 +51,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="the cost model JSON to write")
     p.add_argument("--pipeline", type=Path, default=None,
                    help="pipeline YAML or shipped name (default, rgb, cell, pick_success; default: default)")
-    p.add_argument("--episodes", type=int, default=24, help="episodes timed (24)")
+    p.add_argument("--episodes", type=int, default=CALIBRATION_EPISODES,
+                   help=f"episodes timed ({CALIBRATION_EPISODES})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                    help="share of image ids held out for evaluation, never timed")

@@ -10,7 +10,7 @@ from typing import Any
 
 # Light imports only (numpy): the command imports the rest it needs.
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
-from ..rl.settings import TIME_MODES, EnvSettings
+from ..rl.settings import CALIBRATION_EPISODES, TIME_MODES, EnvSettings
 from .args import add_dataset_args, add_ray_args
 
 # The recipe that measured best (docs/results/learning.md): pg with more entropy early and a
@@ -97,8 +97,8 @@ def cost_table_for(args: argparse.Namespace, settings: EnvSettings) -> dict[str,
         return None  # train() refuses the run folder; no reason to measure first
     ds = BopDataset(args.dataset, use_depth=args.use_depth)
     train_keys, _ = split_image_keys(ds.image_keys(), args.test_fraction, args.split_seed)
-    model = calibrate(ds, args.pipeline, train_keys, seed=args.seed, use_depth=args.use_depth,
-                      progress=not args.quiet)
+    model = calibrate(ds, args.pipeline, train_keys, episodes=args.calibration_episodes, seed=args.seed,
+                      use_depth=args.use_depth, progress=not args.quiet)
     write_cost_model(model, Path(args.out) / "cost_model.json")
     if not args.quiet:
         print(format_cost_model(model))
@@ -155,6 +155,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="the cost model to charge (a `perception-config calibrate` output), or `blocks` for the "
                          "blocks' default costs; default: calibrated on the train images first (about 20 s), written "
                          "to OUT/cost_model.json; a resumed run keeps its own")
+    tr.add_argument("--calibration-episodes", type=int, default=CALIBRATION_EPISODES, metavar="N",
+                    help=f"train episodes the default calibration times every action on "
+                         f"(default {CALIBRATION_EPISODES}, as `perception-config calibrate`)")
     tr.add_argument("--max-ops", type=int, default=None, help=f"operations per episode (default {env.max_ops})")
     tr.add_argument("--no-loop-mask", dest="loop_mask", action="store_false",
                     help="do not mask the actions already taken at the current hypothesis (the loop rule, "

@@ -25,6 +25,7 @@ from ..core.geometry import check_noise_lambda
 
 TIME_MODES = ("measured", "cost_table")
 SCORING_PASS = "scoring"  # the cost-table key of the whole scoring pass (overrides the sum)
+CALIBRATION_EPISODES = 24  # train episodes a calibration times every action on
 ACTION_KEY = "action:"  # cost-table keys of single actions: action:<name> and action:<name>@<obj_id>
 GENERATE = "generate"  # the action name of an episode's first generator call (action:generate)
 MAX_OPS_LIMIT = 1000  # max_ops above this is refused (a policy file could otherwise ask for 10^7 operations)
