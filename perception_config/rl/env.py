@@ -48,19 +48,25 @@ that charge "never pick" would be the optimal policy: a few cheap operations cos
 one pick attempt. It is a penalty, not time: it is in the reward and in
 info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 
-Time: measured wall time by default; `time_mode="cost_table"` charges fixed seconds per action
-and per scoring pass (each block's `default_cost`, or the settings' `cost_table`), for
-reproducible runs and tests. In cost-table mode the in-process blocks run without their
+Loop rule (`settings.loop_mask`, on by default): an action other than pick already taken at the
+current hypothesis (the same pose within 2e-3 of the diameter and 2e-3 rad, rl/pose_memory.py:
+it left the hypothesis unchanged, or the episode came back to it) is masked, unless nothing
+else could run; `info["loop_mask"]` marks the actions masked by this rule alone.
+
+Time: `time_mode="cost_table"` by default: fixed seconds per action and per scoring pass (the
+settings' `cost_table`, a `perception-config calibrate` output, keyed `action:<name>@<obj_id>`,
+`action:<name>`, then the block's name; the block's `default_cost` otherwise), so the reward does
+not depend on the machine's load. In cost-table mode the in-process blocks run without their
 wall-clock bounds (`max_seconds`), to their iteration bounds, and Open3D runs on one thread
 during reset and step (its ICP sums in a scheduling-dependent order otherwise, ~1e-17 m apart;
 the previous limit is restored after each call): the same seed and actions then give bitwise
 the same observations, rewards and infos, on a loaded machine as on an idle one, which is what
-Gymnasium's `check_env` asks: it passes on
-`gymnasium.make("PerceptionConfig-v0", dataset=..., time_mode="cost_table")`. With measured
-time (the default) rewards are measured seconds, which no checker can find equal twice.
+Gymnasium's `check_env` asks: it passes on `gymnasium.make("PerceptionConfig-v0", dataset=...)`.
+`time_mode="measured"` charges measured wall time instead (rewards no checker can find equal
+twice); evaluation reports the measured wall time of the same episodes beside the charged one.
 
 Settings: one `EnvSettings` (rl/settings.py: max_ops, failed_pick_cost, truncation_cost,
-time_mode, cost_table, min_visib_fract, lambda_range); keyword arguments of the same names
+time_mode, cost_table, min_visib_fract, lambda_range, loop_mask); keyword arguments of the same names
 override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_ops=5)`).
 """
 from __future__ import annotations
