@@ -45,6 +45,7 @@ else
 fi
 perception-config show --dataset "$DATA" --out "$OUT/frame.png"
 
+t_fit=$(date +%s)
 say "2/6 fitting the pick-success score on the train images (${DEMO_SCORE_EPISODES:-400} episodes)"
 perception-config fit-score --dataset "$DATA" --episodes "${DEMO_SCORE_EPISODES:-400}" --out "$SCORE" --quiet
 # the shipped pick_success pipeline, with this score
@@ -52,15 +53,18 @@ sed "s#params: {model: pick_success}#params: {model: $SCORE}#" \
   "$("$PY" -c 'import perception_config.config as c, os; print(os.path.dirname(c.__file__))')/pick_success_pipeline.yaml" \
   > "$OUT/pick_success_pipeline.yaml"
 
+t_train=$(date +%s)
 say "3/6 training the policy-gradient agent (${DEMO_EPISODES:-1500} episodes, cost-model time)"
 perception-config train --dataset "$DATA" --agent pg --pipeline "$OUT/pick_success_pipeline.yaml" --out "$RUN" \
   --episodes "${DEMO_EPISODES:-1500}" --seed "${DEMO_SEED:-0}" --overwrite --workers "$WORKERS"
 
+t_eval=$(date +%s)
 say "4/6 evaluating over lambda = ${DEMO_LAMBDAS:-0.1,0.3,0.5,0.7,1.0} on the test images"
 perception-config evaluate --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/evaluation" \
   --lambdas "${DEMO_LAMBDAS:-0.1,0.3,0.5,0.7,1.0}" --episodes "${DEMO_EVAL_EPISODES:-40}" --workers "$WORKERS" \
   --best-static-episodes "${DEMO_SEARCH_EPISODES:-16}"
 
+t_cell=$(date +%s)
 say "5/6 the cell without ground truth: pg on the cell pipeline (${DEMO_CELL_SEEDS:-2} seeds x ${DEMO_CELL_EPISODES:-400} episodes; the seed of lowest validation cost ships)"
 perception-config train --dataset "$DATA" --agent pg --pipeline cell --out "$CELL_RUN" \
   --episodes "${DEMO_CELL_EPISODES:-400}" --seed "${DEMO_SEED:-0}" --seeds "${DEMO_CELL_SEEDS:-2}" --overwrite \
@@ -70,10 +74,12 @@ perception-config evaluate --dataset "$DATA" --policy "$CELL_RUN/policy.safetens
   --lambdas 0.5 --episodes "${DEMO_CELL_EVAL_EPISODES:-40}" --oracle-budget 300 --workers "$WORKERS" \
   --best-static-episodes "${DEMO_SEARCH_EPISODES:-16}"
 
+t_ros=$(date +%s)
 say "6/6 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
 perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \
   --images "${DEMO_REPLAY_IMAGES:-8}"
 
+t_end=$(date +%s)
 table() { "$PY" -c 'import json, sys; from perception_config.learning.evaluation_export import format_table
 print(format_table(json.load(open(sys.argv[1]))))' "$1"; }
 say "the lambda study (simulated initialisation, the pipeline with the learned pick-success score):"
@@ -82,7 +88,7 @@ perception-config study --verdict "$OUT/evaluation"
 say "the cell without ground truth (cell pipeline: resting_pose + ranked candidates, ppf, global_registration, ICP):"
 table "$OUT/cell/results.json"
 perception-config study --verdict "$OUT/cell"
-say "done in $(( $(date +%s) - start )) s. Look at:"
+say "done in $(( $(date +%s) - start )) s: score fit $(( t_train - t_fit )) s, training $(( t_eval - t_train )) s, evaluation $(( t_cell - t_eval )) s, cell $(( t_ros - t_cell )) s, ROS $(( t_end - t_ros )) s (load $(cut -d" " -f1 /proc/loadavg)). Look at:"
 echo "  $OUT/frame.png                      a frame with the ground truth overlaid"
 echo "  $RUN/learning_curve.png      the training curve"
 echo "  $OUT/evaluation/fig5.png           operations, time and first picks vs lambda (paper Fig. 5)"
