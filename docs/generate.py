@@ -35,19 +35,22 @@ HEADLINE = {
 DATASET_NAMES = {"default": "default", "seed1": "second (seed 1)"}
 
 
-def _interval(est: dict, fmt: str = ".2f", scale: float = 1.0, unit: str = "") -> str:
-    return (f"{scale * est['mean']:{fmt}}{unit} [{scale * est['lo']:{fmt}}, {scale * est['hi']:{fmt}}]"
-            if est.get("lo") is not None else f"{scale * est['mean']:{fmt}}{unit}")
+def _interval(est: dict, unit: str = "") -> str:
+    """'mean [lo, hi]' of a study Estimate (JSON), the mean alone where it has no interval."""
+    if est.get("lo") is None:
+        return f"{est['mean']:.2f}{unit}"
+    return f"{est['mean']:.2f}{unit} [{est['lo']:.2f}, {est['hi']:.2f}]"
 
 
-def headline_records(results: Path = RESULTS) -> list[dict]:
-    return [json.loads((results / f).read_text()) for f in HEADLINE["files"] if (results / f).exists()]
+def headline_records(results: Path = RESULTS) -> dict[str, dict]:
+    """The study records of HEADLINE's files present in `results`, by file name, in HEADLINE's order."""
+    return {f: json.loads((results / f).read_text()) for f in HEADLINE["files"] if (results / f).exists()}
 
 
 def headline_table(results: Path = RESULTS) -> str:
     """The README's results table: per study record and lambda, pg's seeds pooled against
     best_static (the best fixed sequence searched on the train images) and the oracle."""
-    records = headline_records(results)
+    records = list(headline_records(results).values())
     if not records:
         return "No study has been measured yet: `python benchmarks/bench_study.py`.\n"
     dates = sorted({r["date"] for r in records})
