@@ -35,13 +35,6 @@ HEADLINE = {
 DATASET_NAMES = {"default": "default", "seed1": "second (seed 1)"}
 
 
-def _interval(est: dict, unit: str = "") -> str:
-    """'mean [lo, hi]' of a study Estimate (JSON), the mean alone where it has no interval."""
-    if est.get("lo") is None:
-        return f"{est['mean']:.2f}{unit}"
-    return f"{est['mean']:.2f}{unit} [{est['lo']:.2f}, {est['hi']:.2f}]"
-
-
 def headline_records(results: Path = RESULTS) -> dict[str, dict]:
     """The study records of HEADLINE's files present in `results`, by file name, in HEADLINE's order."""
     return {f: json.loads((results / f).read_text()) for f in HEADLINE["files"] if (results / f).exists()}
@@ -50,6 +43,8 @@ def headline_records(results: Path = RESULTS) -> dict[str, dict]:
 def headline_table(results: Path = RESULTS) -> str:
     """The README's results table: per study record and lambda, pg's seeds pooled against
     best_static (the best fixed sequence searched on the train images) and the oracle."""
+    from perception_config.learning.study_report import format_estimate
+
     records = list(headline_records(results).values())
     if not records:
         return "No study has been measured yet: `python benchmarks/bench_study.py`.\n"
@@ -72,14 +67,14 @@ def headline_table(results: Path = RESULTS) -> str:
             bar = bar_rows.get(lam)
             seq = (study["bar"].get("sequences") or {}).get(str(lam)) or []
             bar_text = (f"{' > '.join(seq) or comp['bar']}, {100 * bar['success']['mean']:.1f} %, "
-                        f"{_interval(bar['episode_cost'])}" if bar else "-")
+                        f"{format_estimate(bar['episode_cost'])}" if bar else "-")
             lam_text = "-" if rec["pipeline"] == "cell" else f"{lam:g}"
             lines.append(
                 f"| {DATASET_NAMES.get(rec['dataset'], rec['dataset'])} | {rec['pipeline']} | {lam_text} "
                 f"| {100 * pg['success']['mean']:.1f} % / {100 * pg['first_pick_success']['mean']:.1f} % "
-                f"| {_interval(pg['episode_cost'])} | {bar_text} "
+                f"| {format_estimate(pg['episode_cost'])} | {bar_text} "
                 f"| {comp.get('k_beats', '-')} of {comp['n_seeds']} "
-                f"| {_interval(pg['oracle_ratio'], unit='x') if 'oracle_ratio' in pg else '-'} |")
+                f"| {format_estimate(pg.get('oracle_ratio'), unit='x')} |")
     lines += ["", "Per study: " + "; ".join(
         f"{rec['dataset']}/{rec['pipeline']} {len(rec['study']['learned'])} seeds x {rec['study']['episodes']} "
         f"training episodes, {rec['study']['eval_episodes']} test episodes per lambda" for rec in records) + ". "

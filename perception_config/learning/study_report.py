@@ -176,7 +176,9 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
                           "level": kw.get("level", st.LEVEL), "seed": kw.get("seed", st.BOOTSTRAP_SEED)}}
 
 
-def _est(d: dict[str, Any] | None, fmt: str = ".2f", unit: str = "", scale: float = 1.0) -> str:
+def format_estimate(d: dict[str, Any] | None, fmt: str = ".2f", unit: str = "", scale: float = 1.0) -> str:
+    """'mean [lo, hi]' of an Estimate's JSON (`unit` after the mean), the mean alone without an
+    interval, '-' without a mean."""
     if not d or d.get("mean") is None:
         return "-"
     e = st.Estimate(d["mean"], d.get("lo"), d.get("hi"), d.get("n", 0))
@@ -188,12 +190,12 @@ def verdict_line(comp: dict[str, Any], label: str, bar: dict[str, Any]) -> str:
     """`lambda 0.5: pg beats best_static in 4 of 5 seeds (...); 1.31x the oracle's time [1.22, 1.41]`."""
     head = f"lambda {comp['lambda']:g}: "
     if comp.get("k_beats") is None:
-        text = head + f"{label}: no bar to compare with (cost {_est(comp['pooled_cost'], '.3g', unit=' s')})"
+        text = head + f"{label}: no bar to compare with (cost {format_estimate(comp['pooled_cost'], '.3g', unit=' s')})"
     else:
         name = bar["name"] if bar["kind"] == "best_static" else f"the best fixed pipeline ({bar['name']})"
         text = (head + f"{label} beats {name} in {comp['k_beats']} of {comp['n_seeds']} seeds "
                 f"({comp['k_beats_surely']} with the paired cost difference's interval below 0; cost "
-                f"{_est(comp['pooled_cost'], '.3g', unit=' s')} vs {_est(comp['bar_cost'], '.3g')}; success "
+                f"{format_estimate(comp['pooled_cost'], '.3g', unit=' s')} vs {format_estimate(comp['bar_cost'], '.3g')}; success "
                 f"{100 * comp['pooled_success']:.1f} % vs {100 * comp['bar_success']:.1f} %)")
     ratio = comp.get("pooled_oracle_ratio")
     if ratio and ratio.get("mean") is not None:
@@ -220,10 +222,10 @@ def format_table(analysis: dict[str, Any]) -> str:
             c = cmp.get((lam, r["agent"]), r)
             name = r["agent"] + (" (bar)" if r["agent"] == analysis["bar"]["name"] else "") \
                 + (" *" if r["agent"] == analysis["best_fixed"] else "")
-            lines.append((f"{lam:.2f}", name, _est(r["success"], ".1f", scale=100),
-                          _est(r["first_pick_success"], ".1f", scale=100), _est(r["episode_cost"], ".3f"),
-                          _est(r["time_to_success"], ".3f"), _est(c.get("cost_difference"), "+.3f"),
-                          _est(c.get("oracle_ratio"), ".2f")))
+            lines.append((f"{lam:.2f}", name, format_estimate(r["success"], ".1f", scale=100),
+                          format_estimate(r["first_pick_success"], ".1f", scale=100), format_estimate(r["episode_cost"], ".3f"),
+                          format_estimate(r["time_to_success"], ".3f"), format_estimate(c.get("cost_difference"), "+.3f"),
+                          format_estimate(c.get("oracle_ratio"), ".2f")))
     widths = [max(len(x[i]) for x in [head, *lines]) for i in range(len(head))]
     out = ["  ".join(h.ljust(w) for h, w in zip(head, widths)), "-" * (sum(widths) + 2 * (len(widths) - 1))]
     out += ["  ".join(x.ljust(w) for x, w in zip(row, widths)).rstrip() for row in lines]
