@@ -195,7 +195,8 @@ def verdict_line(comp: dict[str, Any], label: str, bar: dict[str, Any]) -> str:
         name = bar["name"] if bar["kind"] == "best_static" else f"the best fixed pipeline ({bar['name']})"
         text = (head + f"{label} beats {name} in {comp['k_beats']} of {comp['n_seeds']} seeds "
                 f"({comp['k_beats_surely']} with the paired cost difference's interval below 0; cost "
-                f"{format_estimate(comp['pooled_cost'], '.3g', unit=' s')} vs {format_estimate(comp['bar_cost'], '.3g')}; success "
+                f"{format_estimate(comp['pooled_cost'], '.3g', unit=' s')} vs "
+                f"{format_estimate(comp['bar_cost'], '.3g')}; success "
                 f"{100 * comp['pooled_success']:.1f} % vs {100 * comp['bar_success']:.1f} %)")
     ratio = comp.get("pooled_oracle_ratio")
     if ratio and ratio.get("mean") is not None:
@@ -223,8 +224,9 @@ def format_table(analysis: dict[str, Any]) -> str:
             name = r["agent"] + (" (bar)" if r["agent"] == analysis["bar"]["name"] else "") \
                 + (" *" if r["agent"] == analysis["best_fixed"] else "")
             lines.append((f"{lam:.2f}", name, format_estimate(r["success"], ".1f", scale=100),
-                          format_estimate(r["first_pick_success"], ".1f", scale=100), format_estimate(r["episode_cost"], ".3f"),
-                          format_estimate(r["time_to_success"], ".3f"), format_estimate(c.get("cost_difference"), "+.3f"),
+                          format_estimate(r["first_pick_success"], ".1f", scale=100),
+                          format_estimate(r["episode_cost"], ".3f"), format_estimate(r["time_to_success"], ".3f"),
+                          format_estimate(c.get("cost_difference"), "+.3f"),
                           format_estimate(c.get("oracle_ratio"), ".2f")))
     widths = [max(len(x[i]) for x in [head, *lines]) for i in range(len(head))]
     out = ["  ".join(h.ljust(w) for h, w in zip(head, widths)), "-" * (sum(widths) + 2 * (len(widths) - 1))]
