@@ -186,6 +186,31 @@ def test_pick_is_masked_on_the_hypothesis_it_failed_on(tmp_path_factory):
     assert played == ["pick", "depth_refine", "pick", "depth_refine"], played
 
 
+def test_the_last_operation_is_a_pick_unless_the_pick_cannot_run(tmp_path_factory):
+    """The final-pick rule: at the last of max_ops operations only the picks are allowed; where the
+    pick is masked itself (it just failed on this hypothesis) the rule keeps nothing from running;
+    `final_pick=False` turns it off."""
+    e = make_env(tmp_path_factory, max_ops=3)
+    pick, refine = e.action_names.index("pick"), e.action_names.index("depth_refine")
+    _, info = e.reset(options={"episode": 0, "lambda": 2.0, "episode_seed": 3})  # far off: the pick fails
+    assert info["action_mask"].all()
+    info = e.step(refine)[4]
+    assert info["action_mask"].all()  # one more operation may follow this one
+    info = e.step(refine)[4]
+    assert info["action_mask"].tolist() == [int(i == pick) for i in range(len(e.action_names))]
+    assert info["loop_mask"].sum() == 0  # a rule for every agent, fixed plans included
+    # a failed pick on the hypothesis: the last operation may be anything else
+    e2 = make_env(tmp_path_factory, max_ops=2)
+    e2.reset(options={"episode": 0, "lambda": 2.0, "episode_seed": 3})
+    info = e2.step(pick)[4]
+    assert info["picked"] is False and info["action_mask"][pick] == 0
+    assert info["action_mask"].sum() == len(e2.action_names) - 1
+    off = make_env(tmp_path_factory, max_ops=3, final_pick=False)
+    off.reset(options={"episode": 0, "lambda": 2.0, "episode_seed": 3})
+    off.step(refine)
+    assert off.step(refine)[4]["action_mask"].all()
+
+
 def test_truncation_at_max_ops_is_charged(tmp_path_factory):
     e = make_env(tmp_path_factory, max_ops=3, truncation_cost=4.0)
     e.reset(options={"episode": 0, "lambda": 0.5, "episode_seed": 0})

@@ -168,5 +168,7 @@ def test_pg_learns_a_clear_best_action(tmp_path_factory, tmp_path):
     before, random_ret = mean_return(untrained), mean_return(make_agent("random", env, seed=1))
     after = mean_return(load_agent(path, env))
     best = -(0.5 + 0.008)  # one successful pick
-    assert after > 0.5 * random_ret and after > 0.5 * before, (after, random_ret, before)
+    # by a wide margin: random and the untrained policy spend 0.4-0.6 s more per episode (the
+    # final-pick rule saves them the truncation, so the gap is not a factor of 2 any more)
+    assert after > random_ret + 0.3 and after > before + 0.3, (after, random_ret, before)
     assert after == pytest.approx(best, abs=0.1)

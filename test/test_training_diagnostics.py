@@ -92,3 +92,22 @@ def test_history_records_each_updates_figures_and_resumes_old_checkpoints(batch)
     assert has_diagnostics({**arrays, "entropy": np.array([np.nan] * 5 + [1.0, 1.0])})
     with pytest.raises(ValueError, match="'steps'"):
         record_round(history, [trajs[:1]], {"steps": 1.0}, 3)
+
+
+def test_pg_further_passes_use_the_clipped_ratio(batch):
+    """update_epochs = 1 is the REINFORCE step, bit for bit; K = 4 takes the same first step, then
+    three clipped passes on the same episodes: the policy moves further (a larger approx_kl), and
+    the passes stop pushing an action once its ratio leaves [1 - clip, 1 + clip]."""
+    env, trajs = batch
+    one = make_agent("pg", env, seed=0, batch_episodes=4)
+    same = make_agent("pg", env, seed=0, batch_episodes=4, update_epochs=1)
+    four = make_agent("pg", env, seed=0, batch_episodes=4, update_epochs=4, clip=0.1)
+    wide = make_agent("pg", env, seed=0, batch_episodes=4, update_epochs=4, clip=5.0)
+    f1, f_same, f4, f_wide = (a.update([trajs]) for a in (one, same, four, wide))
+    assert f1 == f_same and all(np.array_equal(one.tensors()[k], same.tensors()[k]) for k in one.tensors())
+    assert f4["loss"] == f1["loss"] and f4["grad_norm"] == f1["grad_norm"]  # the first pass is the same step
+    assert f1["approx_kl"] < f4["approx_kl"] < f_wide["approx_kl"]  # the clip bounds how far the passes go
+    assert four.hparams()["update_epochs"] == 4 and four.hparams()["clip"] == 0.1
+    for bad in ({"update_epochs": 0}, {"clip": 0.0}):
+        with pytest.raises(ValueError, match="update_epochs|clip"):
+            make_agent("pg", env, seed=0, **bad)

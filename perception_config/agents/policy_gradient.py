@@ -16,6 +16,12 @@ Learning rate: constant by default; `lr_half_life` = H > 0 halves the policy's e
 episodes (lr * 0.5^(episodes learned / H), episodes learned = updates x batch_episodes): late
 updates then move the policy less, so it settles instead of jumping between neighbours (the
 value network keeps its rate: it has to track the changing policy).
+Several passes over a batch (`update_epochs` = K > 1; PPO's clipped surrogate, Schulman et al.
+2017): the first pass is the REINFORCE step above; each further pass steps again on the same
+episodes with the importance ratio rho = pi(a|s) / pi_old(a|s) (pi_old: the policy that sampled
+them) and the objective mean_t[min(rho A_t, clip(rho, 1 - clip, 1 + clip) A_t)] (gradient
+log pi A at rho = 1, as REINFORCE's), so no step moves an action's probability far from the
+sampling policy's. The value network keeps one step per batch. K = 1 is plain REINFORCE, op for op.
 Diagnostics: `update` also reports, read off without changing the step, the gradient norms before
 clipping, the learning rate used and the approximate KL between the policy before and after the
 step over the batch (CleanRL's approx_kl); training.py writes them to history.csv.
@@ -80,7 +86,8 @@ class PolicyGradientAgent(Agent):
     HPARAM_BOUNDS = {"hidden": Int(1, MAX_HIDDEN), "lr": Float(0.0, 10.0), "value_lr": Float(0.0, 10.0),
                      "gamma": Float(0.0, 1.0), "batch_episodes": Int(1, 10_000), "entropy_coef": Float(0.0, 100.0),
                      "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
-                     "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9), "seed": SEED}
+                     "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9),
+                     "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0), "seed": SEED}
 
     @classmethod
     def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
@@ -91,7 +98,7 @@ class PolicyGradientAgent(Agent):
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
                  baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, lr_half_life: float = 0.0,
-                 seed: int = 0) -> None:
+                 update_epochs: int = 1, clip: float = 0.2, seed: int = 0) -> None:
         super().__init__(spec, seed)
         if baseline not in ("value", "mean"):
             raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
@@ -105,6 +112,9 @@ class PolicyGradientAgent(Agent):
         if lr_half_life < 0:
             raise ValueError(f"lr_half_life must be >= 0 (0: a constant learning rate), got {lr_half_life}")
         self.lr_half_life = float(lr_half_life)
+        if int(update_epochs) < 1 or not clip > 0:
+            raise ValueError(f"need update_epochs >= 1 and clip > 0, got {update_epochs}, {clip}")
+        self.update_epochs, self.clip = int(update_epochs), float(clip)
         gen = torch.Generator().manual_seed(int(seed))
         self.policy = PolicyNet(spec.obs_dim, spec.n_actions, self.hidden)
         self.value = PolicyNet(spec.obs_dim, 1, self.hidden)
@@ -220,6 +230,20 @@ class PolicyGradientAgent(Agent):
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)  # the norm before clipping
         self.optimizer.step()
+        logp = logp.detach()  # pi_old of the further passes (the approx_kl below compares with it too)
+        for _ in range(self.update_epochs - 1):
+            logits = self.policy(obs)
+            if masked:
+                logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+            logp_all = torch.log_softmax(logits, -1)
+            ratio = (logp_all.gather(1, actions.view(-1, 1)).squeeze(1) - logp).exp()
+            surrogate = torch.minimum(ratio * advantages, ratio.clamp(1 - self.clip, 1 + self.clip) * advantages)
+            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(())) if masked else logp_all
+            entropy_k = -(logp_all.exp() * safe).sum(-1).mean()
+            self.optimizer.zero_grad()
+            (-surrogate.mean() - self.entropy_coef * entropy_k).backward()
+            nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
+            self.optimizer.step()
         self.updates += 1
 
         # Diagnostics (CleanRL's): how far the step moved the policy on this batch's states and actions,
@@ -239,7 +263,8 @@ class PolicyGradientAgent(Agent):
         return {"hidden": self.hidden, "lr": self.lr, "value_lr": self.value_lr, "gamma": self.gamma,
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
                 "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
-                "lr_half_life": self.lr_half_life, "seed": self.seed}
+                "lr_half_life": self.lr_half_life, "update_epochs": self.update_epochs, "clip": self.clip,
+                "seed": self.seed}
 
     def tensors(self) -> dict[str, np.ndarray]:
         return {f"policy.{k}": v.detach().numpy().copy() for k, v in self.policy.state_dict().items()}

@@ -36,7 +36,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.validation_fraction = RECIPE_VALIDATION_FRACTION if args.agent in LEARNING_AGENTS else 0.0
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range,
-                                     loop_mask=args.loop_mask)
+                                     loop_mask=args.loop_mask, final_pick=args.final_pick)
     if args.seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
@@ -162,6 +162,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--no-loop-mask", dest="loop_mask", action="store_false",
                     help="do not mask the actions already taken at the current hypothesis (the loop rule, "
                          "docs/concepts/environment.md): the agent must learn to avoid loops from its observation")
+    tr.add_argument("--no-final-pick", dest="final_pick", action="store_false",
+                    help="do not make the last of the max-ops operations a pick (the final-pick rule, "
+                         "docs/concepts/environment.md)")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                     help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)

@@ -53,6 +53,11 @@ current hypothesis (the same pose within 2e-3 of the diameter and 2e-3 rad, rl/p
 it left the hypothesis unchanged, or the episode came back to it) is masked, unless nothing
 else could run; `info["loop_mask"]` marks the actions masked by this rule alone.
 
+Final-pick rule (`settings.final_pick`, on by default): the last of the `max_ops` operations is
+a pick: every other action is masked there (they could only end the episode truncated, at the
+truncation charge; a pick may succeed), unless the pick cannot run itself (it just failed on this
+hypothesis). It binds every agent, fixed pipelines included; `info["loop_mask"]` does not mark it.
+
 Time: `time_mode="cost_table"` by default: fixed seconds per action and per scoring pass (the
 settings' `cost_table`, a `perception-config calibrate` output, keyed `action:<name>@<obj_id>`,
 `action:<name>`, then the block's name; the block's `default_cost` otherwise), so the reward does
@@ -66,7 +71,7 @@ Gymnasium's `check_env` asks: it passes on `gymnasium.make("PerceptionConfig-v0"
 twice); evaluation reports the measured wall time of the same episodes beside the charged one.
 
 Settings: one `EnvSettings` (rl/settings.py: max_ops, failed_pick_cost, truncation_cost,
-time_mode, cost_table, min_visib_fract, lambda_range, loop_mask); keyword arguments of the same names
+time_mode, cost_table, min_visib_fract, lambda_range, loop_mask, final_pick); keyword arguments of the same names
 override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_ops=5)`).
 """
 from __future__ import annotations
@@ -203,7 +208,8 @@ class PerceptionConfigEnv(gym.Env):
         the same search, the same answer); while there is no hypothesis, 0 for the refiners
         (`refines_nothing`) and, once a pick was refused for want of one, for the picks too (giving
         up once is the pick's use there: looped to max_ops it was a cell agent's way to waste the
-        candidates a refused generator call left); with `settings.loop_mask`, 0 for the actions other
+        candidates a refused generator call left); with `settings.final_pick`, 0 for every action
+        but the picks at the last operation; with `settings.loop_mask`, 0 for the actions other
         than picks already taken at the current hypothesis (rl/pose_memory.py: they would go round
         in a loop); each unless nothing else could run. np.int8 of n actions."""
         return self._masks()[0]
@@ -228,6 +234,8 @@ class PerceptionConfigEnv(gym.Env):
         if self._failed_pick_pose is not None and pose is not None and _same_pose(pose, self._failed_pick_pose):
             drop([i for i, a in enumerate(self.pipeline.actions) if a.block.kind == Kind.PICK])
         drop(sorted(self._searched))
+        if self.settings.final_pick and self.steps == self.max_ops - 1:
+            drop([i for i, a in enumerate(self.pipeline.actions) if a.block.kind != Kind.PICK])
         before_loop = mask.copy()
         if self.settings.loop_mask and self._memory is not None:
             drop(sorted(i for i in self._memory.stale(pose) if self.pipeline.actions[i].block.kind != Kind.PICK))

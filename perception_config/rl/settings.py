@@ -46,6 +46,7 @@ class EnvSettings:
     min_visib_fract: float = 0.3  # episodes: objects at least this visible
     lambda_range: tuple[float, float] = (0.1, 1.0)  # lambda ~ U(range) when a reset names none
     loop_mask: bool = True  # mask actions already taken at the current hypothesis (rl/pose_memory.py)
+    final_pick: bool = True  # the last of max_ops operations is a pick (rl/env.py: the final-pick rule)
 
     def __post_init__(self) -> None:
         m = self.max_ops
@@ -75,8 +76,9 @@ class EnvSettings:
         if lo > hi:
             raise ValueError(f"lambda_range must satisfy low <= high, got {self.lambda_range!r}")
         object.__setattr__(self, "lambda_range", (lo, hi))
-        if not isinstance(self.loop_mask, bool):
-            raise ValueError(f"loop_mask must be true or false, got {self.loop_mask!r}")
+        for name in ("loop_mask", "final_pick"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
 
     # -- building and comparing -------------------------------------------------------------
     def replace(self, **changes: Any) -> "EnvSettings":
@@ -93,6 +95,7 @@ class EnvSettings:
             "truncation_cost": self.truncation_cost, "time_mode": self.time_mode,
             "cost_table": dict(self.cost_table), "min_visib_fract": self.min_visib_fract,
             "lambda_range": list(self.lambda_range), "loop_mask": self.loop_mask,
+            "final_pick": self.final_pick,
         }
 
     @classmethod
