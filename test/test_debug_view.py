@@ -134,7 +134,7 @@ def test_the_configurator_shows_each_estimate_and_a_bag_of_the_view_decodes(ros_
     common = {"models_dir": synthetic_dataset / "models", "pipeline": pipeline_file(tmp_path_factory, PIPELINE)}
     nodes = {"generation_node": NodeProcess("generation_node", common, logs),
              "configurator_node": NodeProcess("configurator_node", {**common, "fixed_sequence": "[regenerate]",
-                                                                    "max_ops": 1, "debug_image_max_width": 320}, logs)}
+                                                                    "debug_image_max_width": 320}, logs)}
     got: dict[str, list[bytes]] = {"image": [], "markers": []}
     subs = [ros_node.create_subscription(MarkerArray, "perception/markers", got["markers"].append, 10, raw=True)]
     pubs = [ros_node.create_publisher(t, n, 10) for t, n in (
@@ -156,7 +156,8 @@ def test_the_configurator_shows_each_estimate_and_a_bag_of_the_view_decodes(ros_
         # the configurator follows the camera once it sees this process watch the debug image
         for pub, msg, n in zip(pubs, (gt, info, depth, color), (1, 2, 1, 2)):
             publish_when_matched(ros_node, pub, msg, subscribers=n)
-        req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.0, seed=3)
+        # one operation, asked by the request (a node's max_ops of 1 would make it the final pick)
+        req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.0, seed=3, max_operations=1)
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp, 1_000_000_000)
         # A subscription just created can match late and get its first image after a reliability
         # heartbeat: estimate again until the image of the frame is there (at most 3 times).

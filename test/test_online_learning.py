@@ -38,10 +38,11 @@ def data(synthetic_dataset, tmp_path_factory):
     return {"root": synthetic_dataset, "pipeline": pipe, "env": env}
 
 
-def settings_for(data, **kw):
+def settings_for(data, env_settings=None, **kw):
     from perception_config.online.policy_learner import LearnerSettings
 
-    return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), data["env"].settings.to_json(), **kw)
+    env_settings = env_settings or data["env"].settings.to_json()
+    return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), env_settings, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +72,10 @@ def recorded(data, tmp_path_factory):
     return out
 
 
-def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence: list[str]) -> int:
-    """A learn_dir with the recorded estimates and version 0 = the fixed `sequence`; the count."""
+def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence: list[str],
+                                 env_settings: dict | None = None) -> int:
+    """A learn_dir with the recorded estimates and version 0 = the fixed `sequence` (served with
+    `env_settings`, default the env's); the count."""
     import shutil
 
     from perception_config.agents import make_agent, save_agent
@@ -81,7 +84,7 @@ def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence
     shutil.copytree(recorded, learn_dir)
     env = data["env"]
     path = save_agent(make_agent("fixed", env, sequence=sequence), learn_dir / "start.json",
-                      {"env_settings": env.settings.to_json(), "pipeline": str(data["pipeline"])})
+                      {"env_settings": env_settings or env.settings.to_json(), "pipeline": str(data["pipeline"])})
     assert PolicyVersions(learn_dir / POLICIES).promote(path, {"start": "fixed"}) == "v0000"
     return len(env.source.episodes)
 
@@ -183,9 +186,11 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     from perception_config.online.policy_learner import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
 
     bad = tmp_path / "bad"
-    n = record_like_the_configurator(bad, data, recorded, ["regenerate"])
+    # without the final-pick rule: with it, the last operation of "regenerate" forever is a pick
+    never_picks = data["env"].settings.replace(final_pick=False).to_json()
+    n = record_like_the_configurator(bad, data, recorded, ["regenerate"], never_picks)
     lines: list[str] = []
-    r = learn_once(bad, settings_for(data, train_episodes=16), lines.append)
+    r = learn_once(bad, settings_for(data, never_picks, train_episodes=16), lines.append)
     line = format_result(r)
     m = LINE.match(line)
     assert m, line

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..core.geometry import rotation_angle
+from ..rl.trajectory import allowed_actions
 from .base import Agent, EnvSpec
 from .hparams import SEED, Float, Int
 
@@ -154,7 +155,8 @@ class OracleAgent(Agent):
     and the sequence runs out before the episode ends, it searches again from there. If no
     sequence is found (a hopeless episode, or the budget ran out) it spends the rest of the
     episode on the cheapest non-pick action: in hindsight every pick fails, and the cheapest
-    way to the end of the episode is the best return there is.
+    way to the end of the episode is the best return there is (where the env's mask forbids it,
+    at the last operation under the final-pick rule, a pick).
     """
 
     kind = "oracle"
@@ -186,7 +188,14 @@ class OracleAgent(Agent):
             self.last_result = res
             self.results.append(res)
             self.plan = [self.spec.action_names.index(n) for n in res.actions] if res.found else [res.cheapest_non_pick]
-        return self.plan.pop(0)
+        a = self.plan.pop(0)
+        allowed = allowed_actions(info, self.spec.n_actions)
+        if allowed is not None and not allowed[a] and allowed.any():
+            # the fallback's action, forbidden by a rule of the env's (the final-pick rule at the
+            # last operation): a pick where one may run, else the first action that may
+            picks = [i for i in self.spec.pick_actions if allowed[i]]
+            a = picks[0] if picks else int(np.flatnonzero(allowed)[0])
+        return a
 
     def hparams(self) -> dict[str, Any]:
         return {"node_budget": self.node_budget, "noop_tol": self.noop_tol, "seed": self.seed}
