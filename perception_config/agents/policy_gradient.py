@@ -169,6 +169,21 @@ class PolicyGradientAgent(Agent):
     def episodes_per_actor(self) -> int:
         return self.batch_episodes
 
+    def _log_pi(self, obs: torch.Tensor, actions: torch.Tensor, allowed: np.ndarray,
+                masked: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """log pi(a_t | s_t) of the taken actions (masked actions: -inf logits, as when they were
+        sampled) and the mean entropy over the states. Without a restricting mask the graph is the
+        unmasked one, op for op (bitwise the same update)."""
+        logits = self.policy(obs)
+        if masked:
+            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+        logp_all = torch.log_softmax(logits, -1)
+        logp = logp_all.gather(1, actions.view(-1, 1)).squeeze(1)
+        if masked:  # p log p is 0 where p = 0: the -inf log p is kept out of the product and its gradient
+            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(()))
+            return logp, -(logp_all.exp() * safe).sum(-1).mean()
+        return logp, -(logp_all.exp() * logp_all).sum(-1).mean()
+
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
         """One REINFORCE step on the round's episodes (module docstring); returns its figures:
         loss, value_loss (MSE, seconds^2), entropy (nats, mean over states), grad_norm and
@@ -207,21 +222,10 @@ class PolicyGradientAgent(Agent):
         if len(advantages) > 1:
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
-        # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy.
-        # Masked actions (the trajectories' masks): -inf logits, as when the actions were sampled.
-        # Without a restricting mask the graph is the unmasked one, op for op (bitwise the same update).
+        # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy (masks: _log_pi).
         allowed = np.concatenate([t.allowed_actions(self.spec.n_actions) for t in trajs])
         masked = not allowed.all()
-        logits = self.policy(obs)
-        if masked:
-            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
-        logp_all = torch.log_softmax(logits, -1)
-        logp = logp_all.gather(1, actions.view(-1, 1)).squeeze(1)
-        if masked:  # p log p is 0 where p = 0: the -inf log p is kept out of the product and its gradient
-            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(()))
-            entropy = -(logp_all.exp() * safe).sum(-1).mean()
-        else:
-            entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+        logp, entropy = self._log_pi(obs, actions, allowed, masked)
         loss = -(logp * advantages).mean() - self.entropy_coef * entropy
         if self.lr_half_life > 0:
             for group in self.optimizer.param_groups:
@@ -232,14 +236,9 @@ class PolicyGradientAgent(Agent):
         self.optimizer.step()
         logp = logp.detach()  # pi_old of the further passes (the approx_kl below compares with it too)
         for _ in range(self.update_epochs - 1):
-            logits = self.policy(obs)
-            if masked:
-                logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
-            logp_all = torch.log_softmax(logits, -1)
-            ratio = (logp_all.gather(1, actions.view(-1, 1)).squeeze(1) - logp).exp()
+            logp_k, entropy_k = self._log_pi(obs, actions, allowed, masked)
+            ratio = (logp_k - logp).exp()
             surrogate = torch.minimum(ratio * advantages, ratio.clamp(1 - self.clip, 1 + self.clip) * advantages)
-            safe = torch.where(torch.as_tensor(allowed), logp_all, torch.zeros(())) if masked else logp_all
-            entropy_k = -(logp_all.exp() * safe).sum(-1).mean()
             self.optimizer.zero_grad()
             (-surrogate.mean() - self.entropy_coef * entropy_k).backward()
             nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
@@ -249,10 +248,7 @@ class PolicyGradientAgent(Agent):
         # Diagnostics (CleanRL's): how far the step moved the policy on this batch's states and actions,
         # approx_kl = mean[(ratio - 1) - log ratio], ratio = pi_new(a|s) / pi_old(a|s) (Schulman's k3 estimator).
         with torch.no_grad():
-            new_logits = self.policy(obs)
-            if masked:
-                new_logits = new_logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
-            log_ratio = torch.log_softmax(new_logits, -1).gather(1, actions.view(-1, 1)).squeeze(1) - logp
+            log_ratio = self._log_pi(obs, actions, allowed, masked)[0] - logp
             approx_kl = ((log_ratio.exp() - 1) - log_ratio).mean()
         return {"loss": loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
                 "grad_norm": grad_norm.item(), **figures, "lr": float(self.optimizer.param_groups[0]["lr"]),
