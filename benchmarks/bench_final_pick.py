@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from perception_config.learning.evaluation import evaluate
+from perception_config.learning.study_stats import count_beats
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -37,7 +38,7 @@ def figures(results: list[dict]) -> dict:
     for per in out.values():
         bar = per["best_static"]
         seeds = [a for a in per if a.startswith("pg")]
-        per["k_beats"] = sum(per[a]["cost"] < bar["cost"] and per[a]["success"] >= bar["success"] for a in seeds)
+        per["k_beats"] = count_beats([per[a] for a in seeds], bar)
         per["n_seeds"] = len(seeds)
     return out
 
