@@ -55,7 +55,9 @@ class NodeProcess:
     """A node started from its console script; stopped with SIGINT, then SIGKILL."""
 
     def __init__(self, script: str, params: dict[str, object] | None = None, log_dir: Path | None = None,
-                 remap: dict[str, str] | None = None) -> None:
+                 remap: dict[str, str] | None = None, own_group: bool = False) -> None:
+        """`own_group`: the node leads a process group of its own (its learner process joins it), as
+        under systemd or a container runtime, so `signal_group` reaches them all."""
         args = [str(VENV_BIN / script), "--ros-args"]
         for key, value in (params or {}).items():
             args += ["-p", f"{key}:={value}"]
@@ -63,7 +65,8 @@ class NodeProcess:
             args += ["-r", f"{old}:={new}"]
         self.log = (log_dir or Path("/tmp")) / f"{script}-{os.getpid()}-{time.time_ns()}.log"
         self._log_file = open(self.log, "w")
-        self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT,
+                                     start_new_session=own_group)
         _STARTED.append(self)
 
     def output(self) -> str:
@@ -73,6 +76,19 @@ class NodeProcess:
 
     def alive(self) -> bool:
         return self.proc.poll() is None
+
+    def signal_group(self, sig: signal.Signals, timeout: float) -> tuple[int | None, float]:
+        """Send `sig` to the node's process group (started with own_group); (exit code or None if it
+        was still running after `timeout` s, seconds it took). A node still running is killed."""
+        start = time.monotonic()
+        os.killpg(self.proc.pid, sig)
+        try:
+            code: int | None = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            code = None
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(5)
+        return code, time.monotonic() - start
 
     def stop(self, timeout: float = 10.0) -> int:
         if self.proc.poll() is None:

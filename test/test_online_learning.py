@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import threading
 import time
 from pathlib import Path
@@ -17,25 +18,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rl_helpers import PIPELINE, pipeline_file
+from learn_helpers import learner_log, make_data, make_recorded, record_like_the_configurator, stamp_ns
 from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
 
 LINE = re.compile(r"^learner: candidate from (\d+) episodes: cost ([0-9.]+) vs serving ([0-9.]+) -> "
                   r"(promoted v\d{4}|discarded)$")
-BASE_SEC = 1_700_000_000
-
-
-def stamp_ns(i: int) -> int:
-    return (BASE_SEC + i) * 1_000_000_000
 
 
 @pytest.fixture(scope="module")
 def data(synthetic_dataset, tmp_path_factory):
-    from perception_config.rl.env import PerceptionConfigEnv
+    return make_data(synthetic_dataset, tmp_path_factory)
 
-    pipe = pipeline_file(tmp_path_factory, PIPELINE)
-    env = PerceptionConfigEnv(synthetic_dataset, pipe, time_mode="cost_table", min_visib_fract=0.3)
-    return {"root": synthetic_dataset, "pipeline": pipe, "env": env}
+
+@pytest.fixture(scope="module")
+def recorded(data, tmp_path_factory):
+    return make_recorded(data, tmp_path_factory)
 
 
 def settings_for(data, env_settings=None, **kw):
@@ -45,51 +42,6 @@ def settings_for(data, env_settings=None, **kw):
     return LearnerSettings(str(data["root"] / "models"), str(data["pipeline"]), env_settings, **kw)
 
 
-@pytest.fixture(scope="module")
-def recorded(data, tmp_path_factory):
-    """Every episode of the tiny dataset played by the engineer's sequence, stored as the
-    configurator stores an estimate (an episode in the store + its frame with ground truth)."""
-    from perception_config.agents import make_agent
-    from perception_config.online.policy_learner import FRAMES
-    from perception_config.rl.episode_loop import acting_seed, play_episode
-    from perception_config.store.episode_store import STORE_NAME, StoreWriter, store_episode
-    from perception_config.store.frames import save_frame
-
-    env = data["env"]
-    out = tmp_path_factory.mktemp("recorded")
-    agent = make_agent("fixed", env)
-    writer = StoreWriter(out / STORE_NAME, print)
-    keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
-    for j, ek in enumerate(env.source.episodes):
-        stamp, seed = stamp_ns(keys.index((ek.scene_id, ek.im_id))), 1000 + j
-        traj = play_episode(env, agent, {"episode": j, "lambda": 0.5, "episode_seed": seed}, acting_seed(seed))
-        assert store_episode(writer, traj, source="configurator", agent="fixed", policy_version="v0000",
-                             episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
-    for i, key in enumerate(keys):  # each image's frame once (the configurator saves a stamp once)
-        frame = env.source.frame(*key)
-        save_frame(out / FRAMES, stamp_ns(i), frame, {o.obj_id: o.gt for o in frame.objects})
-    writer.close()
-    return out
-
-
-def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence: list[str],
-                                 env_settings: dict | None = None) -> int:
-    """A learn_dir with the recorded estimates and version 0 = the fixed `sequence` (served with
-    `env_settings`, default the env's); the count."""
-    import shutil
-
-    from perception_config.agents import make_agent, save_agent
-    from perception_config.online.policy_learner import POLICIES, PolicyVersions
-
-    shutil.copytree(recorded, learn_dir)
-    env = data["env"]
-    path = save_agent(make_agent("fixed", env, sequence=sequence), learn_dir / "start.json",
-                      {"env_settings": env_settings or env.settings.to_json(), "pipeline": str(data["pipeline"])})
-    assert PolicyVersions(learn_dir / POLICIES).promote(path, {"start": "fixed"}) == "v0000"
-    return len(env.source.episodes)
-
-
-# -- versions ------------------------------------------------------------------------------------
 def test_policy_versions_promote_select_roll_back_and_never_lose_a_version(tmp_path):
     from perception_config.util.versions import PolicyVersionError, PolicyVersions
 
@@ -263,11 +215,6 @@ OPERATORS = ("generation_node", "refinement_node", "scoring_node", "pick_node")
 IDLE = BUSY = int(os.environ.get("PERCEPTION_CONFIG_LEARN_LATENCY_SAMPLES", "6"))
 
 
-def _learner_log(learn_dir: Path) -> str:
-    p = learn_dir / "learner.log"
-    return p.read_text() if p.exists() else ""
-
-
 def _wait(cond, timeout: float, what: str, node=None) -> None:
     import rclpy
 
@@ -334,7 +281,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
     nodes["configurator_node"] = NodeProcess("configurator_node", {
         **common, "operator_timeout": 5.0, "noise_lambda": 0.5, "learn": "true", "learn_dir": str(learn),
         "learn_every": IDLE, "learn_train_episodes": 100000, "learn_check_episodes": 8, "publish_debug": "false"},
-        tmp_path)
+        tmp_path, own_group=True)
     seen: list[str] = []
     traces: list = []
     subs = [ros_node.create_subscription(String, "perception/policy_version", lambda m: seen.append(m.data),
@@ -367,7 +314,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             publish_when_matched(ros_node, pubs["depth"], depth, subscribers=5)
             publish_when_matched(ros_node, pubs["color"], color, subscribers=5)
             objects += [(stamp_ns(i), o.obj_id) for o in frame.objects if (o.visib_fract or 0) >= 0.3]
-        _wait(lambda: "learner: started" in _learner_log(learn), 60.0, "the learner process did not start")
+        _wait(lambda: "learner: started" in learner_log(learn), 60.0, "the learner process did not start")
 
         def estimate(k: int):
             stamp, obj = objects[k % len(objects)]
@@ -386,16 +333,16 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             idle.append(wall)
             # the last idle estimate reaches learn_every: the learner may start training before we look
             if k < IDLE - 1:
-                assert "training a candidate" not in _learner_log(learn), "the learner trained before learn_every"
-        _wait(lambda: "training a candidate" in _learner_log(learn), 10.0, "the learner did not start training")
-        started = re.search(r"training a candidate \((\d+) estimates stored\)", _learner_log(learn))
+                assert "training a candidate" not in learner_log(learn), "the learner trained before learn_every"
+        _wait(lambda: "training a candidate" in learner_log(learn), 10.0, "the learner did not start training")
+        started = re.search(r"training a candidate \((\d+) estimates stored\)", learner_log(learn))
         assert started and int(started.group(1)) >= IDLE, "the learner trained before learn_every"
         busy = []
         for k in range(IDLE, IDLE + BUSY):
             res, wall = estimate(k)
             answers.append(res)
             busy.append(wall)
-        log = _learner_log(learn)
+        log = learner_log(learn)
         assert "learner: candidate from" not in log and "no candidate" not in log, "training ended too early:\n" + log
         print(f"estimate_pose wall time, median of {IDLE} / {BUSY}: learner idle {np.median(idle):.3f} s, "
               f"learner training {np.median(busy):.3f} s; mean {np.mean(idle):.3f} / {np.mean(busy):.3f} s, "
@@ -452,7 +399,12 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
         assert nodes["configurator_node"].alive()
         first = nodes["configurator_node"]
         pid = int(re.search(r"learner process (\d+) started", first.output()).group(1))
-        assert first.stop() == 0, first.output()
+        # SIGTERM to the process group (systemd, `timeout`, a container runtime) with the learner
+        # mid-cycle (training its 100000 episodes): both end within 5 s, the store and versions intact
+        assert "learner: training a candidate" in learner_log(learn)
+        code, took = first.signal_group(signal.SIGTERM, 5.0)
+        assert code == 0 and took < 5.0, (code, took, first.output())
+        first.stop()
         assert not Path(f"/proc/{pid}").exists(), "the learner process outlived its configurator"
 
         # A restart on the same learn_dir keeps the versions and the store; a short cycle after one
@@ -463,7 +415,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             tmp_path)
         seen.clear()
         _wait(lambda: seen and seen[-1] == "v0001", 30.0, "the restarted node did not publish v0001", ros_node)
-        _wait(lambda: _learner_log(learn).count("learner: started") == 2, 60.0, "the learner did not restart")
+        _wait(lambda: learner_log(learn).count("learner: started") == 2, 60.0, "the learner did not restart")
         estimate(2)
         _wait(lambda: "learner: candidate from" in nodes["configurator_node"].output(), 90.0,
               "no candidate line in the node's log")

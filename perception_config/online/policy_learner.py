@@ -57,6 +57,7 @@ from ..rl.settings import EnvSettings
 from ..store.episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
 from ..store.frames import frame_path, load_frame
 from ..util.versions import PolicyVersionError, PolicyVersions
+from .learner_link import LearnerEnd
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
 
 __all__ = ["PolicyVersions", "LearnerSettings", "learn_once", "run_learner", "format_result"]
@@ -245,13 +246,13 @@ def _stored_count(learn_dir: Path) -> int | None:
         return None
 
 
-def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any = None, stop: Any = None,
-                nice: int = 10, ready: Any = None) -> None:
+def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerEnd | None = None,
+                nice: int = 10) -> None:
     """The worker process: every `settings.every` new stored estimates one `learn_once`; each
-    result goes to `results` (a multiprocessing queue, read by the configurator) and, as its
-    line, to `<learn_dir>/learner.log`. Ends when `stop` (an Event) is set or the parent dies.
-    `ready` (an Event) is set once the worker has started (its imports done): before that it
-    has done nothing, and its configurator may end it at once instead of waiting for it."""
+    result goes to the configurator through `link` (learner_link.py) and, as its line, to
+    `<learn_dir>/learner.log`. Ends when the link says stop, or the parent dies. The link's
+    ready flag is set once the worker has started (its imports done): before that it has done
+    nothing, and its configurator may end it at once instead of waiting for it."""
     learn_dir = Path(learn_dir)
     parent = os.getppid()
     # A launcher stops a node with SIGINT to its whole process group: the configurator ends this
@@ -274,21 +275,18 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
             pass
 
     def report(kind: str, payload: dict[str, Any]) -> None:
-        if results is not None:
-            try:
-                results.put((kind, payload))
-            except (OSError, ValueError):
-                pass
+        if link is not None:
+            link.send(kind, payload)
 
     def stopped() -> bool:
-        return (stop is not None and stop.is_set()) or os.getppid() != parent
+        return (link is not None and link.stopped()) or os.getppid() != parent
 
     env = None
     models = None
     last = None
     log(f"learner: started (pid {os.getpid()}, nice {nice}), a candidate every {settings.every} new estimates")
-    if ready is not None:
-        ready.set()
+    if link is not None:
+        link.set_ready()
     while not stopped():
         count = _stored_count(learn_dir)
         if count is not None and last is None:
@@ -312,7 +310,7 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, results: Any =
             log(format_result(result))
             report("result", result)
             report("status", {"state": "idle", "stored": count})
-        if stop is not None:
-            stop.wait(settings.poll_seconds)
+        if link is not None:
+            link.wait(settings.poll_seconds)
         else:
             time.sleep(settings.poll_seconds)

@@ -35,6 +35,7 @@ from std_msgs.msg import String
 from ..agents import Agent, load_agent, make_agent
 from ..agents.policy_io import save_agent
 from ..blocks.pipeline import pipeline_reference
+from ..online.learner_link import LearnerLink
 from ..online.policy_learner import FRAMES, POLICIES, LearnerSettings, format_result, run_learner
 from ..online.score_learner import (
     SCORES,
@@ -144,13 +145,11 @@ class NodeLearning:
                                         env_settings=extra["env_settings"], margin=float(margin), every=int(every),
                                         train_episodes=int(train_episodes), check_episodes=int(check_episodes))
         ctx = multiprocessing.get_context("spawn")
-        self.results = ctx.Queue()
-        self.stop = ctx.Event()
-        self.ready = ctx.Event()
+        self.link = LearnerLink(ctx)  # never blocks this node when the learner dies (learner_link.py)
         self.process = ctx.Process(target=run_learner, args=(str(self.dir), self.settings),
-                                   kwargs={"results": self.results, "stop": self.stop, "ready": self.ready},
-                                   name="learner", daemon=True)
+                                   kwargs={"link": self.link.learner_end}, name="learner", daemon=True)
         self.process.start()
+        self.link.started()
         self.log.info(f"learn: learner process {self.process.pid} started (a candidate every {every} stored "
                       f"estimates, {train_episodes} training episodes, replay check on the newest {check_episodes}, "
                       f"margin {margin:g}); state in {self.dir}")
@@ -206,11 +205,7 @@ class NodeLearning:
 
     def drain(self) -> None:
         """The learner's results: one log line each (the cell simulation parses them)."""
-        while True:
-            try:
-                kind, payload = self.results.get_nowait()
-            except (queue.Empty, OSError, ValueError, EOFError):
-                return
+        for kind, payload in self.link.results():
             if kind == "result":
                 line = format_score_result(payload) if payload.get("what") == "pick_success" else \
                     format_result(payload)
@@ -265,13 +260,13 @@ class NodeLearning:
                                "the estimate is stored, serving goes on")
 
     def close(self) -> None:
-        self.stop.set()
+        self.link.stop()
         try:
             self._save_queue.put(None, timeout=2.0)
         except queue.Full:
             pass
         self._saver.join(timeout=10.0)
-        if not self.ready.is_set():
+        if not self.link.ready():
             # still starting (importing): it has read and written nothing yet, so nothing is lost by
             # ending it now, and it would not look at `stop` before its imports are done
             self.process.terminate()
@@ -282,3 +277,4 @@ class NodeLearning:
         if self.process.is_alive():
             self.process.kill()
             self.process.join(2.0)
+        self.link.close()
