@@ -20,7 +20,7 @@ from typing import Any
 
 import yaml
 
-from .base import Block, Kind, create
+from .base import DEPTH, Block, Kind, create
 
 
 class PipelineError(ValueError):
@@ -62,6 +62,16 @@ class Pipeline:
     def lower_is_better(self) -> frozenset[str]:
         """The scores of the scoring set where small means good."""
         return frozenset(n for b in self.scoring for n in b.lower_is_better)
+
+    @property
+    def depth_actions(self) -> list[str]:
+        """The actions whose block needs depth: masked on an RGB-only frame (rl/env.py)."""
+        return [a.name for a in self.actions if DEPTH in a.block.inputs]
+
+    @property
+    def depth_scoring(self) -> list[str]:
+        """The scoring blocks that need depth: their scores are missing on an RGB-only frame."""
+        return [b.name for b in self.scoring if DEPTH in b.inputs]
 
     def action(self, name: str) -> Action:
         for a in self.actions:

@@ -9,13 +9,20 @@ from ..learning.evaluation_best_static import DEFAULT_EPISODES, DEFAULT_MAX_LENG
 from ..rl.episodes import DEFAULT_TEST_FRACTION
 from ..rl.settings import TIME_MODES, EnvSettings
 from .args import add_dataset_args, add_ray_args
+from .notices import rgb_only_warning, warn
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from ..agents.policy_settings import policy_settings
     from ..learning.evaluation import DEFAULT_LAMBDAS, evaluate
     from ..learning.evaluation_export import format_table
 
     lambdas = [float(x) for x in args.lambdas.split(",")] if args.lambdas else list(DEFAULT_LAMBDAS)
+    # the pipeline evaluate() plays: --pipeline, else the policies', else the default
+    pipeline = policy_settings(args.policy, pipeline=args.pipeline).pipeline
+    note = rgb_only_warning(args.dataset, pipeline, split=args.split, use_depth=args.use_depth)
+    if note:
+        warn(note)
     results = evaluate(
         args.dataset, args.policy, lambdas, args.out, episodes_per_lambda=args.episodes, seed=args.seed,
         pipeline=args.pipeline, split_seed=args.split_seed, test_fraction=args.test_fraction,

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .notices import warn
+
 
 def _cmd_launch(args: argparse.Namespace) -> int:
     from ..launcher.resolution import parse_nodes, resolve_nodes
@@ -12,7 +14,7 @@ def _cmd_launch(args: argparse.Namespace) -> int:
     specs = resolve_nodes(
         parse_nodes(args.nodes) if args.nodes else None, models=args.models, pipeline=args.pipeline,
         policy=args.policy, bag=args.bag, rate=args.rate, params_file=args.params_file,
-        say=lambda text: print(f"[launch] {text}", flush=True), remaps=_remaps(args.remap or []),
+        say=lambda text: print(f"[launch] {text}", flush=True), remaps=_remaps(args.remap or []), warn=warn,
     )
     return run(specs, log_dir=args.log_dir)
 

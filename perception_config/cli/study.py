@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 
 from .args import add_ray_args
+from .notices import rgb_only_warning, warn
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
@@ -28,6 +29,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
         lambdas = [float(x) for x in args.lambdas.split(",") if x.strip()]
     except ValueError:
         raise ValueError(f"--lambdas: expected comma-separated numbers, got {args.lambdas!r}") from None
+    note = rgb_only_warning(args.dataset, args.pipeline, use_depth=args.use_depth)
+    if note:  # once for the study, not once per seed's training and evaluation
+        warn(note)
     study = run_study(
         args.dataset, args.out, pipeline=args.pipeline, agent=args.agent, seeds=args.seeds, seed=args.seed,
         episodes=args.episodes, eval_episodes=args.eval_episodes, lambdas=lambdas, workers=args.workers,

@@ -12,6 +12,7 @@ from typing import Any
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
 from ..rl.settings import CALIBRATION_EPISODES, TIME_MODES, EnvSettings
 from .args import add_dataset_args, add_ray_args
+from .notices import rgb_only_warning, warn
 
 # The recipe that measured best (docs/results/learning.md): pg with more entropy early and a
 # learning rate that halves every 2000 episodes, the validation-best policy shipped. An
@@ -42,6 +43,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
         raise ValueError("seed selection compares the runs' validation costs: validation_fraction must be > 0")
     agent_kwargs = recipe_params(args.agent, args.agent_param)
+    note = rgb_only_warning(args.dataset, args.pipeline, use_depth=args.use_depth)
+    if note:  # once, before the calibration and the episodes that play without those actions
+        warn(note)
     settings = settings.replace(cost_table=cost_table_for(args, settings))
     common = dict(
         settings=settings, pipeline=args.pipeline, progress=not args.quiet, resume=args.resume,

@@ -122,13 +122,17 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
                   pipeline: str | os.PathLike | None = None, policy: str | None = None,
                   bag: str | os.PathLike | None = None, rate: float | None = None,
                   params_file: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None,
-                  say: Callable[[str], None] = print, remaps: dict[str, str] | None = None) -> list[NodeSpec]:
+                  say: Callable[[str], None] = print, remaps: dict[str, str] | None = None,
+                  warn: Callable[[str], None] | None = None) -> list[NodeSpec]:
     """The NodeSpecs of `perception-config launch`, with every default resolved and every path
     absolute. Explicit options become `-p` parameters (they win over `params_file`); defaults
     are passed only where `params_file` does not set that parameter. `remaps` (topic: the
     camera driver's topic) go to every node that takes models and frames (the operator nodes
-    and the configurator): a params file cannot remap."""
+    and the configurator): a params file cannot remap. `say` tells what was resolved; `warn`
+    (default: `say` with "warning: ") gets the one line of a bag that yields no frame
+    (`bag_frames_problem`), before any node starts."""
     cwd = Path(cwd or Path.cwd()).resolve()
+    warn = warn or (lambda text: say(f"warning: {text}"))
 
     def absolute(p: str | os.PathLike, what: str, is_dir: bool | None = False) -> Path:
         """`p` made absolute; it must be a folder (is_dir), a file (not is_dir) or either (None)."""
@@ -202,6 +206,9 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
                 raise ValueError(f"--rate must be positive, got {rate}")
             set_param(replay, "rate", float(rate), True)
         info = readable_bag_info(replay.params.get("bag"))
+        problem = bag_frames_problem(info, remapped=bool(remaps))
+        if problem:
+            warn(problem)
         remaps = camera_remaps(info)
         if remaps:
             layout = info["frame_topics"].get("layout") or "chosen by name"
@@ -234,6 +241,41 @@ def readable_bag_info(bag: str | None) -> dict | None:
         return bag_info(bag)
     except Exception:  # noqa: BLE001 - any unreadable bag: the replay node names the problem
         return None
+
+
+def bag_frames_problem(info: dict | None, remapped: bool = False, shown: int = 10) -> str | None:
+    """Why the nodes will receive no camera frame from a bag (its `bag_info`), as one line naming
+    the bag, what is missing and the topics it has (the first `shown`); None when it yields
+    frames, or cannot be read (bag_replay_node then names the problem). A frame is a colour image
+    with the colour camera's camera_info (and the depth image of an RGB-D recording): from images
+    alone the nodes build nothing. `remapped`: --remap names the camera topics, so a bag whose
+    camera topics launch cannot choose is not reported."""
+    from ..datasets.bag.topics import CAMERA_INFO, IMAGE_TYPES
+
+    if info is None or info.get("frames"):
+        return None
+    topics = info.get("topics") or []
+    types = {t["type"] for t in topics}
+    chosen = info.get("frame_topics")
+    if not types & set(IMAGE_TYPES):
+        missing = "it has no image topic (sensor_msgs/msg/Image or CompressedImage)"
+    elif CAMERA_INFO not in types:
+        missing = f"it has images but no {CAMERA_INFO} topic, and a frame needs the colour camera's camera_info"
+    elif isinstance(chosen, dict):
+        counts = {t["topic"]: t["count"] for t in topics}
+        empty = [chosen[role] for role in ("color", "depth", "camera_info") if chosen.get(role)
+                 and not counts.get(chosen[role])]
+        missing = f"no messages on {', '.join(empty)}"
+    elif remapped:
+        return None
+    else:
+        why = str(info.get("frame_topics_error", "")).removeprefix(f"{info.get('path')}: ")
+        missing = (f"launch cannot choose its camera topics ({why}) and the nodes subscribe to "
+                   f"{', '.join(CAMERA_TOPICS)}: name the bag's with --remap FROM:=TO")
+    listed = ", ".join(f"{t['topic']} ({t['type'].rsplit('/', 1)[-1]}, {t['count']} msgs)" for t in topics[:shown])
+    more = f", ... ({len(topics)} in all)" if len(topics) > shown else ""
+    return (f"bag {info.get('path')} yields no frames, the nodes will receive no camera frame: {missing}; "
+            f"topics: {listed or 'none'}{more}")
 
 
 def replayed_topic(topic: str) -> str:
