@@ -12,21 +12,28 @@ whose action set or observation layout differs from the environment's, saying wh
 a policy's output index i means "action i of the set it was trained with", nothing else.
 Writes are atomic (perception_config.util.atomic_file). The metadata's `extra` holds what training
 records: the environment settings (`env_settings`), the split, the pipeline.
+
+A checksum only shows that a file is as it was written, not that what was written is sane: a
+file re-checksummed after an edit passes it. So every number is range-checked too (`read_file`):
+every number of the metadata finite, the training record's seeds, fractions, lambdas and counts
+within `EXTRA_BOUNDS`, every tensor finite and the policy's weights within +-MAX_ABS_WEIGHT.
 """
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
+from ..core.geometry import LAMBDA_MAX, check_noise_lambda
 from ..rl.settings import MAX_OPS_LIMIT, settings_from_policy_meta
 from ..util.atomic_file import atomic_write
 from ..util.checksum import CHECKSUM_KEY, content_checksum
 from ..util.safe_json import JsonLimitError, loads_limited, read_limited
 from .base import Agent, EnvSpec
-from .hparams import check_hparams
+from .hparams import MAX_SEED, check_hparams
 from .registry import AGENTS
 
 FORMAT = "perception_config.policy"
@@ -36,6 +43,15 @@ MAX_POLICY_BYTES = 256 * 1024 * 1024  # a policy/checkpoint file larger than thi
 MAX_HEADER_BYTES = 16 * 1024 * 1024  # the safetensors header (tensor table + metadata JSON)
 MAX_JSON_DEPTH = 32  # nesting of the metadata JSON (what training writes nests <= 8 levels)
 MAX_NAMES = 10_000  # entries of the action set / observation layout
+MAX_ABS_WEIGHT = 1e6  # |policy weight| above this is refused (trained weights are of order 1 to 100)
+MAX_COUNT = 2**62  # episodes, updates and other counters of the training record
+# extra.<key>: (integer?, low, high) of the numbers training records (learning/training.py)
+EXTRA_BOUNDS: dict[str, tuple[bool, float, float]] = {
+    "split_seed": (True, 0, MAX_SEED), "seed": (True, 0, MAX_SEED), "test_fraction": (False, 0.0, 1.0),
+    "validation_fraction": (False, 0.0, 1.0), "episodes": (True, 0, MAX_COUNT),
+    "train_episodes_available": (True, 0, MAX_COUNT), "validation_episodes": (True, 0, MAX_COUNT),
+    "validate_every": (True, 0, MAX_COUNT),
+}
 _DTYPES = {"F16": 2, "BF16": 2, "F32": 4, "F64": 8, "I8": 1, "I16": 2, "I32": 4, "I64": 8,
            "U8": 1, "U16": 2, "U32": 4, "U64": 8, "BOOL": 1}
 
@@ -132,6 +148,82 @@ def check_meta_schema(meta: Any, path: Path) -> None:
         raise PolicyError(f"policy file {path} is corrupt: env.actions must be a list of JSON objects")
 
 
+def _walk_numbers(node: Any, where: str) -> Iterator[tuple[str, int | float]]:
+    """(field, value) of every number in a JSON value, depth first (its depth is bounded by
+    MAX_JSON_DEPTH); booleans are not numbers."""
+    stack = [(where, node)]
+    while stack:
+        field, value = stack.pop()
+        if isinstance(value, dict):
+            stack.extend((f"{field}.{k}" if field else str(k), v) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((f"{field}[{i}]", v) for i, v in enumerate(value))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            yield field, value
+
+
+def _finite(value: int | float) -> bool:
+    return isinstance(value, int) or math.isfinite(value)  # an int of any size is finite
+
+
+def _in_range(path: Path, field: str, value: Any, integer: bool, lo: float, hi: float) -> None:
+    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and _finite(value) \
+        and (not integer or isinstance(value, int) or value.is_integer()) and lo <= value <= hi
+    if not ok:
+        kind = "an integer" if integer else "a number"
+        raise PolicyError(f"policy file {path} is corrupt: {field} must be {kind} in [{lo:g}, {hi:g}], "
+                          f"got {value!r}"[:300])
+
+
+def check_meta_ranges(meta: dict[str, Any], path: Path) -> None:
+    """Every number of the metadata finite (JSON's NaN/Infinity refused); the training record's
+    numbers (EXTRA_BOUNDS, the lambdas, the selected and checkpointed episode counts) in range.
+    PolicyError naming the file, the field and the value."""
+    for field, value in _walk_numbers(meta, ""):
+        if not _finite(value):
+            raise PolicyError(f"policy file {path} is corrupt: {field} = {value!r} is not a finite number")
+    extra = meta.get("extra") or {}
+    for key, (integer, lo, hi) in EXTRA_BOUNDS.items():
+        if extra.get(key) is not None:
+            _in_range(path, f"extra.{key}", extra[key], integer, lo, hi)
+    for key in ("validation_lambdas", "lambda_range"):
+        values = extra.get(key)
+        if values is None:
+            continue
+        if not isinstance(values, list) or len(values) > MAX_NAMES:
+            raise PolicyError(f"policy file {path} is corrupt: extra.{key} must be a list of noise levels, "
+                              f"got {values!r}"[:300])
+        for i, lam in enumerate(values):
+            if isinstance(lam, bool):
+                lam = None  # a boolean is no noise level
+            try:
+                check_noise_lambda(lam, f"extra.{key}[{i}]")
+            except ValueError as exc:
+                raise PolicyError(f"policy file {path} is corrupt: {exc} (noise levels are in [0, {LAMBDA_MAX:g}])") \
+                    from None
+    selected = extra.get("selected")
+    if isinstance(selected, dict) and "episode" in selected:
+        _in_range(path, "extra.selected.episode", selected["episode"], True, 0, MAX_COUNT)
+    trainer = meta.get("trainer") or {}
+    if "episodes_done" in trainer:
+        _in_range(path, "trainer.episodes_done", trainer["episodes_done"], True, 0, MAX_COUNT)
+
+
+def check_tensor_ranges(tensors: dict[str, np.ndarray], path: Path) -> None:
+    """Every tensor finite except the training history (it holds NaN for figures not reported);
+    the policy's weights (all but "train/" and "history/" tensors) within +-MAX_ABS_WEIGHT."""
+    for name, t in tensors.items():
+        if name.startswith("history/") or t.dtype.kind != "f":
+            continue
+        if not np.isfinite(t).all():
+            raise PolicyError(f"policy file {path} is corrupt: tensor {name!r} holds NaN or infinite values")
+        if not name.startswith("train/") and t.size:
+            worst = float(np.abs(t).max())
+            if worst > MAX_ABS_WEIGHT:
+                raise PolicyError(f"policy file {path} is corrupt: tensor {name!r} holds {worst:g}, outside "
+                                  f"[-{MAX_ABS_WEIGHT:g}, {MAX_ABS_WEIGHT:g}] (trained weights are of order 1)")
+
+
 def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """(metadata, tensors) of a policy/checkpoint file, validated; PolicyError naming the file.
 
@@ -139,7 +231,8 @@ def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     at most MAX_POLICY_BYTES; the JSON (metadata, safetensors header) at most MAX_JSON_DEPTH
     levels deep; the tensor table (dtypes, shapes against offsets and file size); the metadata
     schema (check_meta_schema) and the environment settings it records (rl/settings.py bounds);
-    the content checksum; every tensor except the training history finite.
+    the metadata's numbers (check_meta_ranges); the content checksum; the tensors' values
+    (check_tensor_ranges).
     Files written before the checksum existed have none: they are accepted with the other checks.
     """
     path = Path(path)
@@ -179,12 +272,11 @@ def read_file(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         settings_from_policy_meta(meta, f"policy file {path}")
     except ValueError as exc:
         raise PolicyError(str(exc)) from None
+    check_meta_ranges(meta, path)
     if CHECKSUM_KEY in meta and content_checksum(meta, tensors) != meta[CHECKSUM_KEY]:
         raise PolicyError(f"policy file {path} is corrupt: its content does not match its {CHECKSUM_KEY} checksum "
                           "(modified or damaged after it was written)")
-    for name, t in tensors.items():
-        if not name.startswith("history/") and t.dtype.kind == "f" and not np.isfinite(t).all():
-            raise PolicyError(f"policy file {path} is corrupt: tensor {name!r} holds NaN or infinite values")
+    check_tensor_ranges(tensors, path)
     return meta, tensors
 
 

@@ -42,10 +42,13 @@ from ..rl.episodes import EpisodeSource
 from ..rl.settings import ACTION_KEY, CALIBRATION_EPISODES, GENERATE, SCORING_PASS, EnvSettings
 from ..util.atomic_file import atomic_write
 from ..util.open3d_threads import open3d_single_thread
+from ..util.safe_json import read_json_file
 
 MIN_CALLS_PER_OBJECT = 3  # fewer calls of an action on an object: only the pooled median is kept
 RESOLUTION = 1e-4  # s: the model's unit (0.1 ms: 4 decimals), also its smallest value
 FORMAT = "perception_config.cost_model/1"
+MAX_COST_MODEL_BYTES = 64 * 1024 * 1024  # a cost model file larger than this is refused before reading
+MAX_JSON_DEPTH = 32  # a calibrate output nests about 6 levels (its pipeline description)
 
 
 def _seconds(values: Sequence[float]) -> float:
@@ -151,14 +154,18 @@ def write_cost_model(model: Mapping[str, Any], path: str | Path) -> Path:
 
 def read_cost_table(path: str | Path) -> dict[str, float]:
     """The cost table of a `calibrate` output (or of a plain {key: seconds} JSON mapping); errors
-    name the file. The values are checked by EnvSettings when used."""
+    name the file. Read as a hostile file (safe_json: a regular file of at most MAX_COST_MODEL_BYTES,
+    nested at most MAX_JSON_DEPTH levels), and every entry checked as EnvSettings checks a cost
+    table (rl/settings.py): a finite number of seconds in [0, MAX_SECONDS] (NaN, Infinity,
+    negative, 1e300 or a boolean refused, naming the file, the entry and the value), at most
+    MAX_COST_TABLE_ENTRIES entries."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = read_json_file(path, MAX_COST_MODEL_BYTES, MAX_JSON_DEPTH, "cost model")
     except FileNotFoundError:
         raise FileNotFoundError(f"cost model {path} does not exist (write one with `perception-config calibrate`)") \
             from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # JsonLimitError (a ValueError): too large, too deep, not JSON
         raise ValueError(f"cost model {path}: not a readable JSON file ({exc})") from None
     table = data.get("cost_table", data) if isinstance(data, dict) else None
     if not isinstance(table, dict) or not all(isinstance(k, str) for k in table):

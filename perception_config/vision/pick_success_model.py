@@ -11,6 +11,14 @@ version, feature names, layer shapes, calibration, training record, a sha256 ove
 agents/policy_io.py writes policies): loading runs no code (no pickle), and a file for other
 features, damaged or modified, is refused with a PickSuccessModelError naming it and what
 differs. Inference is numpy (a few small matrix products); torch only trains (fit_mlp).
+
+The checksum shows only that a file is as it was written; a file edited and re-checksummed passes
+it. So every number is range-checked as well (`check_ranges`): the Platt calibration 0 < a <=
+MAX_CALIBRATION and |b| <= MAX_CALIBRATION (fit_platt keeps a in [0.001, 10], b in [-50, 50]),
+every tensor finite, the weights within +-MAX_ABS_WEIGHT, the feature medians within
++-MAX_ABS_FEATURE and the spreads in [MIN_SPREAD, MAX_ABS_FEATURE] (robust_scaling keeps them >=
+0.001). A file outside these is refused with a PickSuccessModelError naming it, the field and
+the value.
 """
 from __future__ import annotations
 
@@ -34,6 +42,10 @@ MODEL_FILE = "pick_success.safetensors"
 MAX_MODEL_BYTES = 16 * 1024 * 1024  # a model file larger than this is refused before reading
 MAX_JSON_DEPTH = 16
 MAX_LAYERS = 8
+MAX_CALIBRATION = 1e3  # |a|, |b| of the Platt scaling above this are refused (fit_platt: a <= 10, |b| <= 50)
+MAX_ABS_WEIGHT = 1e4  # |weight| or |bias| above this is refused (trained ones are of order 1; inputs are <= 10)
+MAX_ABS_FEATURE = 1e6  # |median| and spread of a feature above this are refused (the features are O(1))
+MIN_SPREAD = 1e-6  # a spread below this is refused (robust_scaling keeps spreads >= 1e-3)
 
 
 class PickSuccessModelError(ValueError):
@@ -186,10 +198,34 @@ def _read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     if CHECKSUM_KEY not in meta or content_checksum(meta, tensors) != meta[CHECKSUM_KEY]:
         raise PickSuccessModelError(f"{what} is corrupt: its content does not match its {CHECKSUM_KEY} checksum "
                                     f"(modified or damaged after it was written)")
+    check_ranges(meta, tensors, what)
+    return meta, tensors
+
+
+def check_ranges(meta: dict[str, Any], tensors: dict[str, np.ndarray], what: str) -> None:
+    """Every number of a model within the bounds of the module docstring; PickSuccessModelError
+    naming `what` (the model and its file), the field and the value otherwise."""
+    a, b = meta["calibration"]["a"], meta["calibration"]["b"]
+    if not 0 < a <= MAX_CALIBRATION:
+        raise PickSuccessModelError(f"{what} is corrupt: calibration.a = {a!r} is outside (0, {MAX_CALIBRATION:g}] "
+                                    f"(fit-score fits a in [0.001, 10]; a <= 0 would reverse or flatten the score)")
+    if not abs(b) <= MAX_CALIBRATION:
+        raise PickSuccessModelError(f"{what} is corrupt: calibration.b = {b!r} is outside [-{MAX_CALIBRATION:g}, "
+                                    f"{MAX_CALIBRATION:g}] (fit-score fits b in [-50, 50])")
     for name, t in tensors.items():
         if t.dtype.kind != "f" or not np.isfinite(t).all():
             raise PickSuccessModelError(f"{what} is corrupt: tensor {name!r} is not finite floating point")
-    return meta, tensors
+        if name == "spread":
+            lo, hi = MIN_SPREAD, MAX_ABS_FEATURE
+        elif name == "median":
+            lo, hi = -MAX_ABS_FEATURE, MAX_ABS_FEATURE
+        else:
+            lo, hi = -MAX_ABS_WEIGHT, MAX_ABS_WEIGHT
+        bad = np.flatnonzero((t < lo) | (t > hi))
+        if bad.size:
+            value = float(t.reshape(-1)[bad[0]])
+            raise PickSuccessModelError(f"{what} is corrupt: tensor {name!r} holds {value:g} (element {int(bad[0])}), "
+                                        f"outside [{lo:g}, {hi:g}]")
 
 
 # -- training (torch) --------------------------------------------------------------------
@@ -250,5 +286,5 @@ def fit_platt(logits: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(res.x[0]), float(res.x[1])
 
 
-__all__ = ["PickSuccessModel", "PickSuccessModelError", "encode", "robust_scaling", "fit_mlp", "fit_platt",
-           "MODEL_FILE", "FORMAT", "VERSION"]
+__all__ = ["PickSuccessModel", "PickSuccessModelError", "check_ranges", "encode", "robust_scaling", "fit_mlp",
+           "fit_platt", "MODEL_FILE", "FORMAT", "VERSION"]
