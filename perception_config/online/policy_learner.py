@@ -31,6 +31,10 @@ A failure (the store locked or corrupt, a frame file unreadable, training raisin
 When the pipeline scores pick_success, each cycle first refits that score (online/score_learner.py:
 candidates checked on held-out stored frames, promoted by the same margin, versions in
 `<learn_dir>/pick_success/`), then trains the policy candidate on the score that then serves.
+
+The learner reads and writes only inside `learn_dir` (the store, the frames, the versions, the
+candidate, learner.log): a symbolic link leading out of it is refused (util/confine.py), the
+cycle fails naming the path and where it leads, and nothing is read or written outside.
 """
 from __future__ import annotations
 
@@ -56,6 +60,7 @@ from ..rl.operators import Episode
 from ..rl.settings import EnvSettings
 from ..store.episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
 from ..store.frames import frame_path, load_frame
+from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from .learner_link import LearnerEnd
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
@@ -105,12 +110,13 @@ def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None 
     object's ground truth), newest last, at most `limit` (the newest); and how many estimates
     were looked at."""
     try:
-        with EpisodeStore(learn_dir / STORE_NAME, readonly=True, busy_timeout=2.0) as store:
+        with EpisodeStore(confined(learn_dir / STORE_NAME, learn_dir, "episode store"), readonly=True,
+                          busy_timeout=2.0) as store:
             rows = store.query(
                 "SELECT id, frame_stamp_ns, obj_id, noise_lambda, episode_seed FROM episodes "
                 "WHERE source = 'configurator' AND frame_stamp_ns IS NOT NULL AND episode_seed IS NOT NULL "
                 "AND obj_id IS NOT NULL ORDER BY id DESC")
-    except (sqlite3.Error, OSError, EpisodeStoreError) as exc:
+    except (sqlite3.Error, OSError, EpisodeStoreError, ValueError) as exc:  # ValueError: a link out of learn_dir
         raise LearnError(f"episode store {learn_dir / STORE_NAME} cannot be read: {exc}") from None
     frames: dict[int, Any] = {}
     out: list[Episode] = []
@@ -122,7 +128,7 @@ def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None 
             frames[stamp] = None
             if path.exists():
                 try:
-                    frames[stamp] = load_frame(path)
+                    frames[stamp] = load_frame(path, root=learn_dir)
                 except ValueError as exc:
                     log(f"learner: skipped {exc}")
         loaded = frames[stamp]
@@ -180,7 +186,7 @@ def replay_cost(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode])
 
 
 def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, extra: dict[str, Any]) -> Path:
-    folder = learn_dir / CANDIDATES
+    folder = confined(learn_dir / CANDIDATES, learn_dir, "candidates folder")
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "candidate.safetensors"
     save_agent(agent, path, {"env_settings": settings.env_settings, "pipeline": settings.pipeline,
@@ -194,9 +200,9 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
     """One cycle (module docstring); the result: outcome "promoted" | "discarded" | "failed",
     episodes, cost, serving_cost, serving (version), version (promoted), reason (failed)."""
     learn_dir = Path(learn_dir)
-    versions = PolicyVersions(learn_dir / POLICIES)
     serving = None
     try:
+        versions = PolicyVersions(learn_dir / POLICIES, root=learn_dir)
         serving = versions.current()
         if serving is None:
             raise LearnError(f"no serving version in {versions.folder}")
@@ -240,9 +246,10 @@ def format_result(r: dict[str, Any]) -> str:
 # -- the worker process ----------------------------------------------------------------------
 def _stored_count(learn_dir: Path) -> int | None:
     try:
-        with EpisodeStore(learn_dir / STORE_NAME, readonly=True, busy_timeout=1.0) as store:
-            return int(store.query("SELECT COUNT(*) FROM episodes WHERE source = 'configurator'")[0][0])
-    except (sqlite3.Error, OSError, EpisodeStoreError):
+        store = confined(learn_dir / STORE_NAME, learn_dir, "episode store")
+        with EpisodeStore(store, readonly=True, busy_timeout=1.0) as db:
+            return int(db.query("SELECT COUNT(*) FROM episodes WHERE source = 'configurator'")[0][0])
+    except (sqlite3.Error, OSError, EpisodeStoreError, ValueError):  # ValueError: a link out of learn_dir
         return None
 
 
@@ -269,9 +276,9 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerE
 
     def log(line: str) -> None:
         try:
-            with open(learn_dir / LEARNER_LOG, "a") as f:
+            with open(confined(learn_dir / LEARNER_LOG, learn_dir, "learner log"), "a") as f:
                 f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
-        except OSError:
+        except (OSError, ValueError):  # ValueError: a link out of learn_dir, not written
             pass
 
     def report(kind: str, payload: dict[str, Any]) -> None:
@@ -285,6 +292,10 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerE
     models = None
     last = None
     log(f"learner: started (pid {os.getpid()}, nice {nice}), a candidate every {settings.every} new estimates")
+    try:
+        confined(learn_dir / STORE_NAME, learn_dir, "episode store")
+    except ValueError as exc:
+        log(f"learner: {exc}; no candidate is trained until it is replaced")
     if link is not None:
         link.set_ready()
     while not stopped():

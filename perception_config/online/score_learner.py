@@ -27,6 +27,10 @@ the policies): version 0 is the pipeline's model, written at the configurator's 
 `pick_success_versions`), so a promotion or a rollback (the configurator's `score_version`)
 serves from the next scoring on; the learner's own environment follows it too, so its policy
 candidates are trained and checked on the score that serves.
+
+Every file a cycle reads or writes (the store, the frames, the versions, the candidate) stays in
+`learn_dir`: a symbolic link leading out of it is refused (util/confine.py) and the cycle fails
+with the path named.
 """
 from __future__ import annotations
 
@@ -41,6 +45,7 @@ from ..blocks.pick_success import PickSuccess, load_model, resolve_model_path
 from ..learning.pick_success_data import featurise, load_step_rows
 from ..learning.pick_success_fit import fit_model, score_metrics, split_images
 from ..store.episode_store import STORE_NAME, EpisodeStoreError
+from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from ..vision.pick_success_model import MODEL_FILE, PickSuccessModelError
 
@@ -57,7 +62,9 @@ class ScoreLearnError(RuntimeError):
 
 
 def score_versions(learn_dir: str | Path) -> PolicyVersions:
-    return PolicyVersions(Path(learn_dir) / SCORES, "pick_success")
+    """The score versions of `learn_dir`, confined to it (PolicyVersionError when its
+    pick_success/ folder leads out of it)."""
+    return PolicyVersions(Path(learn_dir) / SCORES, "pick_success", root=learn_dir)
 
 
 def pick_success_block(pipeline: Any) -> PickSuccess | None:
@@ -82,7 +89,7 @@ def initial_score_version(learn_dir: str | Path, pipeline: Any) -> str | None:
 def labelled_rows(learn_dir: Path, models_dir: str | Path) -> Any:
     """The FeatureTable of the stored hypotheses that carry a label (module docstring)."""
     try:
-        rows = load_step_rows(learn_dir / STORE_NAME, busy_timeout=2.0)
+        rows = load_step_rows(confined(learn_dir / STORE_NAME, learn_dir, "episode store"), busy_timeout=2.0)
     except (sqlite3.Error, OSError, EpisodeStoreError) as exc:
         raise ScoreLearnError(f"episode store {learn_dir / STORE_NAME} cannot be read: {exc}") from None
     if not rows:
@@ -100,9 +107,9 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
     """One cycle (module docstring); the result: outcome "promoted" | "discarded" | "failed",
     rows, frames, brier, serving_brier, candidate ("recalibrated" | "refit"), serving, version."""
     learn_dir = Path(learn_dir)
-    versions = score_versions(learn_dir)
     serving = None
     try:
+        versions = score_versions(learn_dir)
         serving = versions.current()
         if serving is None:
             raise ScoreLearnError(f"no pick_success version in {versions.folder}")
@@ -143,7 +150,7 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
             "serving_brier": serving_brier, "gain_t": t, "auc": held["auc"], "serving": serving, "margin": margin,
             "seconds": time.perf_counter() - started}
         if brier < (1.0 - margin) * serving_brier and t >= MIN_T:
-            folder = learn_dir / "candidates"
+            folder = confined(learn_dir / "candidates", learn_dir, "candidates folder")
             folder.mkdir(parents=True, exist_ok=True)
             best.record["learned_from"] = serving
             path = best.save(folder / MODEL_FILE)

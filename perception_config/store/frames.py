@@ -12,6 +12,11 @@ the record but cannot be replayed (`load_frame` returns no poses; the learner sk
 Writes are atomic (a reader never sees half a file); the folder is a bounded ring: beyond
 `keep` files the oldest (by stamp) are removed, so disk use stays bounded (a 640x480 RGB-D
 frame is about 0.3-1 MB compressed). npz is read with allow_pickle=False: no code in a frame file.
+
+Frames are read, written and pruned only inside the learn directory (`root`; default: the frames
+folder's parent): a frames folder or a frame file that is a symbolic link leading out of it is
+refused (util/confine.py: a ConfinementError, a ValueError naming the path and where it leads)
+before anything is read, written or removed; links that stay inside are allowed.
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ import numpy as np
 from ..core.geometry import Pose
 from ..core.scene import Frame
 from ..util.atomic_file import atomic_output
+from ..util.confine import confined
 
 FRAME_RING = 300  # frames kept
 
@@ -31,13 +37,22 @@ def frame_path(folder: str | Path, stamp_ns: int) -> Path:
     return Path(folder) / f"{int(stamp_ns)}.npz"
 
 
-def save_frame(folder: str | Path, stamp_ns: int, frame: Frame, ground_truth: dict[int, Pose] | None,
-               keep: int = FRAME_RING) -> Path:
-    """Write one frame (and its objects' ground truth, when known) atomically; prune the ring.
-    Raises OSError (a full disk ...) with nothing half-written left behind."""
+def _frames_folder(folder: str | Path, root: str | Path | None) -> Path:
+    """The frames folder resolved, when it stays inside `root` (default: its parent)."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    return confined(folder, folder.parent if root is None else root, "frames folder")
+
+
+def save_frame(folder: str | Path, stamp_ns: int, frame: Frame, ground_truth: dict[int, Pose] | None,
+               keep: int = FRAME_RING, root: str | Path | None = None) -> Path:
+    """Write one frame (and its objects' ground truth, when known) atomically; prune the ring.
+    Raises OSError (a full disk ...) with nothing half-written left behind; ConfinementError (a
+    ValueError) when the folder or the file leads out of `root` (module docstring)."""
+    top = Path(folder).parent if root is None else Path(root)
+    real = _frames_folder(folder, top)
+    real.mkdir(parents=True, exist_ok=True)
     path = frame_path(folder, stamp_ns)
+    target = confined(path, top, "frame file")
     gt = ground_truth or {}
     ids = sorted(gt)
     arrays = {"rgb": np.ascontiguousarray(frame.rgb, np.uint8), "K": np.asarray(frame.K, np.float64),
@@ -46,16 +61,17 @@ def save_frame(folder: str | Path, stamp_ns: int, frame: Frame, ground_truth: di
               "gt_t": np.asarray([gt[i].t for i in ids], np.float64).reshape(len(ids), 3)}
     if frame.depth is not None:
         arrays["depth"] = np.ascontiguousarray(frame.depth, np.float32)
-    with atomic_output(path) as tmp:
+    with atomic_output(target) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
-    prune_frames(folder, keep)
+    prune_frames(real, keep, top)
     return path
 
 
-def prune_frames(folder: str | Path, keep: int) -> int:
-    """Remove the oldest frames beyond `keep`; how many were removed."""
-    files = sorted(Path(folder).glob("*.npz"), key=lambda p: int(p.stem) if p.stem.isdigit() else -1)
+def prune_frames(folder: str | Path, keep: int, root: str | Path | None = None) -> int:
+    """Remove the oldest frames beyond `keep` (the folder confined to `root`, default its
+    parent; a frame file that is a link loses the link only); how many were removed."""
+    files = sorted(_frames_folder(folder, root).glob("*.npz"), key=lambda p: int(p.stem) if p.stem.isdigit() else -1)
     removed = 0
     for p in files[: max(0, len(files) - keep)]:
         p.unlink(missing_ok=True)
@@ -63,12 +79,14 @@ def prune_frames(folder: str | Path, keep: int) -> int:
     return removed
 
 
-def load_frame(path: str | Path) -> tuple[Frame, dict[int, Pose]]:
+def load_frame(path: str | Path, root: str | Path | None = None) -> tuple[Frame, dict[int, Pose]]:
     """A saved frame and its ground truth ({} when it had none). ValueError naming the file when
-    it is not a frame file (corrupt, truncated, foreign)."""
+    it is not a frame file (corrupt, truncated, foreign) or when it leads out of `root` (default:
+    its frames folder's parent, the learn directory)."""
     path = Path(path)
+    real = confined(path, path.parent.parent if root is None else root, "frame file")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(real, allow_pickle=False) as z:
             rgb, K, stamp = z["rgb"], z["K"], int(z["stamp_ns"])
             depth = z["depth"] if "depth" in z.files else None
             ids, R, t = z["gt_ids"], z["gt_R"], z["gt_t"]

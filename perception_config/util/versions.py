@@ -12,6 +12,13 @@ A folder (`<learn_dir>/policies/`) holds `v0000.<ext>` (version 0: what served f
 rewritten: a promotion writes a new file, then the index, both atomically (atomic_file), under an
 exclusive lock (`.lock`, fcntl) because the configurator (select) and the learner process
 (promote) both change the index. A reader sees the old index or the new one, never a mix.
+
+Everything stays inside `root` (the learn directory; default: the folder's parent): the folder,
+the index, the lock and every version file are checked before each read or write
+(util/confine.py), so a link that leads out of it (`policies/` linked to another folder, a
+version file or versions.json linked to a file elsewhere) is a PolicyVersionError naming the
+path and where it leads; a folder that leads out is refused when the object is built, before
+anything is created. Links that stay inside `root` are allowed.
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .atomic_file import atomic_write
+from .confine import confined
 from .safe_json import read_json_file
 
 INDEX = "versions.json"
@@ -35,20 +43,32 @@ class PolicyVersionError(ValueError):
 
 
 class PolicyVersions:
-    """The versions in `folder` (created when absent)."""
+    """The versions in `folder` (created when absent), confined to `root` (default: the folder's
+    parent, the learn directory)."""
 
-    def __init__(self, folder: str | Path, what: str = "policy") -> None:
+    def __init__(self, folder: str | Path, what: str = "policy", root: str | Path | None = None) -> None:
         self.folder = Path(folder)
         self.what = what
+        self.root = Path(root) if root is not None else self.folder.parent
+        self._inside(self.folder, "versions folder")  # before mkdir: nothing is created outside
         self.folder.mkdir(parents=True, exist_ok=True)
         self.index = self.folder / INDEX
 
+    def _inside(self, path: Path, what: str) -> Path:
+        """`path` resolved; PolicyVersionError when it (or the folder) leads out of the root."""
+        return confined(path, self.root, f"{self.what} {what}", PolicyVersionError)
+
+    def _checked(self, path: Path, what: str) -> Path:
+        self._inside(self.folder, "versions folder")
+        return self._inside(path, what)
+
     # -- reading -------------------------------------------------------------------------------
     def _read(self) -> dict[str, Any]:
-        if not self.index.exists():
+        index = self._checked(self.index, "versions index")
+        if not index.exists():
             return {"versions": [], "selected": None}
         try:
-            data = read_json_file(self.index)
+            data = read_json_file(index)
         except (OSError, ValueError) as exc:
             raise PolicyVersionError(f"{self.what} versions {self.index} cannot be read ({exc}): the {self.what} "
                                      "files are kept; restore the index or move the folder aside") from None
@@ -81,7 +101,9 @@ class PolicyVersions:
         """The file of `version`; PolicyVersionError naming the kept ones when unknown."""
         for v in self.list():
             if v["version"] == version:
-                return self.folder / Path(v["file"]).name
+                path = self.folder / Path(v["file"]).name
+                self._checked(path, f"version {version} file")
+                return path
         raise PolicyVersionError(f"unknown {self.what} version {version!r} in {self.folder} "
                                  f"(kept: {', '.join(v['version'] for v in self.list()) or 'none'})")
 
@@ -96,7 +118,7 @@ class PolicyVersions:
     # -- writing -------------------------------------------------------------------------------
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:
-        with open(self.folder / ".lock", "a+") as f:
+        with open(self._checked(self.folder / ".lock", "versions lock"), "a+") as f:
             fcntl.flock(f, fcntl.LOCK_EX)
             try:
                 yield
@@ -104,7 +126,7 @@ class PolicyVersions:
                 fcntl.flock(f, fcntl.LOCK_UN)
 
     def _write(self, data: dict[str, Any]) -> None:
-        atomic_write(self.index, json.dumps(data, indent=1) + "\n")
+        atomic_write(self._checked(self.index, "versions index"), json.dumps(data, indent=1) + "\n")
 
     def promote(self, src_path: str | Path, info: dict[str, Any] | None = None) -> str:
         """Keep a copy of the file `src_path` as the next version; its name ("v0003").
@@ -116,7 +138,7 @@ class PolicyVersions:
             number = max((int(v["version"][1:]) for v in data["versions"]), default=-1) + 1
             version = f"v{number:04d}"
             name = version + (src.suffix or ".safetensors")
-            atomic_write(self.folder / name, payload)
+            atomic_write(self._checked(self.folder / name, f"version {version} file"), payload)
             data["versions"].append({"version": version, "file": name, "created": time.time(),
                                      "info": json.loads(json.dumps(info or {}))})
             self._write(data)
