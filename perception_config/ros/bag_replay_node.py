@@ -46,7 +46,6 @@ import rclpy
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -57,6 +56,7 @@ from ..datasets.bag.topics import COMPRESSED_IMAGE
 from ..datasets.bag.type_names import check_type_name
 from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
+from .guard import GuardedNode
 from .parameters import NodeParameter, declare
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
@@ -125,7 +125,7 @@ def message_class(type_name: str) -> type:
     return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
-class BagReplayNode(Node):
+class BagReplayNode(GuardedNode):
     """Publishes a bag's messages on their topics at the recorded pace (times `rate`), raw CDR."""
 
     def __init__(self) -> None:

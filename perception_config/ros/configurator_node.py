@@ -44,7 +44,6 @@ from perception_config_interfaces.msg import OperatorTrace
 from perception_config_interfaces.srv import EstimatePose, ReportPickOutcome
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from std_msgs.msg import Header, String
 
 from ..agents import load_agent, make_agent
@@ -67,17 +66,18 @@ from .auto_estimates import AutoEstimates
 from .camera_frames import stamp_text
 from .configurator_parameters import PARAMETERS
 from .debug_view import DebugView
+from .guard import GuardedNode
 from .learning import NodeLearning, version_qos
 from .operator_node import make_hypothesis, spin
 from .parameters import declare
-from .request_fields import parse_object_id, parse_stamp
+from .request_fields import parse_estimate_id, parse_noise_lambda, parse_object_id, parse_stamp
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
 
 STORE_BUSY_TIMEOUT = 0.5  # s an estimate's answer may wait for another process's lock on the episode store
 
 
-class ConfiguratorNode(Node):
+class ConfiguratorNode(GuardedNode):
     """Serves `estimate_pose`: the agent plays one episode of the same environment as in
     training, whose operators are service calls to the operator nodes (RosOperators)."""
 
@@ -334,6 +334,7 @@ class ConfiguratorNode(Node):
         """The robot's pick result for a stored estimate: recorded on the episode's last step."""
         eid = int(request.estimate_id)
         try:
+            eid = parse_estimate_id(eid)
             if self.episode_writer is None:
                 raise EpisodeStoreError("no episode store: set episode_store (or learn with learn_dir)")
             store = self.episode_writer._ensure_open()
@@ -342,7 +343,7 @@ class ConfiguratorNode(Node):
                 raise EpisodeStoreError(f"unknown estimate {eid}: not an estimate of this store "
                                         f"({self.episode_writer.path})")
             store.record_pick_outcome(eid, int(rows[0][0] or 0), bool(request.picked), "robot")
-        except (EpisodeStoreError, sqlite3.Error, OSError) as exc:
+        except (EpisodeStoreError, sqlite3.Error, OSError, ValueError) as exc:
             self.get_logger().warning(f"report_pick_outcome for estimate {eid} refused: {exc}")
             response.success, response.message = False, str(exc)
             return response
@@ -366,6 +367,11 @@ class ConfiguratorNode(Node):
 
     async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response
                            ) -> EstimatePose.Response:
+        try:  # a bad request is answered at once, without waiting in the queue
+            parse_estimate_request(request)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+            return response
         busy = self.requests.busy()
         if busy is not None:
             response.success, response.message = False, busy
@@ -376,11 +382,19 @@ class ConfiguratorNode(Node):
             self.requests.done()
 
     def _estimate_request(self, request: EstimatePose.Request) -> EstimatePose.Response:
-        try:
-            stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
-        except ValueError as exc:
-            return EstimatePose.Response(success=False, message=str(exc))
+        stamp_ns = parse_estimate_request(request)
         return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed)
+
+
+def parse_estimate_request(request: EstimatePose.Request) -> int:
+    """Check every field of an estimate request (request_fields.py); the frame's stamp in ns.
+    max_operations and seed are uint32 (any value is meaningful), noise_lambda is finite."""
+    stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
+    parse_object_id(request.object_id)
+    lam = parse_noise_lambda(request.noise_lambda)
+    if lam is not None:
+        check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
+    return stamp_ns
 
 
 def main(args: list[str] | None = None) -> None:

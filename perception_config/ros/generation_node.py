@@ -14,8 +14,6 @@ also with success=false when the best of them verified below the generator's thr
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from perception_config_interfaces.srv import GenerateHypothesis
 
@@ -24,7 +22,7 @@ from ..core.geometry import LAMBDA_MAX, check_noise_lambda
 from .conversions import stamp_to_nanoseconds
 from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, make_hypothesis, spin
 from .parameters import NodeParameter
-from .request_fields import parse_method, parse_object_id, parse_stamp
+from .request_fields import parse_method, parse_noise_lambda, parse_object_id, parse_stamp
 
 PARAMETERS = OPERATOR_PARAMETERS + (
     NodeParameter("default_method", "", "generator used when a request's method is empty "
@@ -46,8 +44,8 @@ class GenerationNode(OperatorNode):
 
     def _on_generate(self, request: GenerateHypothesis.Request, response: GenerateHypothesis.Response) -> None:
         method = parse_method(request.method) or self.param("default_method") or self.pipeline.generator.name
-        lam = float(request.noise_lambda)
-        if math.isfinite(lam) and lam < 0:
+        lam = parse_noise_lambda(request.noise_lambda)
+        if lam is None:
             lam = float(self.param("default_lambda"))
         lam = check_noise_lambda(lam, "noise_lambda (negative = the node's default)")
         object_id = parse_object_id(request.object_id)

@@ -49,8 +49,9 @@ from ..launcher.ros_environment import configure_ros_environment
 from ..rl.operators import FrameCaches
 from .camera_frames import CAMERA_QOS, CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+from .guard import GuardedNode
 from .parameters import INT_MAX, NodeParameter, declare
-from .request_fields import excerpt, parse_method, parse_object_id, parse_stamp
+from .request_fields import excerpt, parse_method, parse_object_id, parse_position, parse_scores, parse_stamp
 from .request_queue import MAX_REQUEST_QUEUE, RequestQueue, service_qos
 from .stamp_cache import StampCache
 
@@ -80,7 +81,7 @@ OPERATOR_PARAMETERS = (
 )
 
 
-class OperatorNode(Node):
+class OperatorNode(GuardedNode):
     """What every operator node shares: parameters, the models folder, the pipeline's blocks,
     the camera frame cache (and replayed ground truth) by stamp, awaiting a frame not yet
     arrived, and answering every request (success=false with a message on bad input)."""
@@ -330,6 +331,8 @@ def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:
     a malformed object id or stamp (request_fields.py)."""
     try:
         pose = msg_to_pose(msg.pose)
+        parse_position(*pose.t, what="hypothesis.pose.position")
+        parse_scores(msg.scores, msg.score_names)
     except ValueError as exc:
         raise ValueError(f"the hypothesis is unusable: {exc}") from None
     if not msg.object_id:

@@ -7,6 +7,7 @@ silently named the next second's frame. Messages echo at most a short prefix of 
 """
 from __future__ import annotations
 
+import math
 from typing import Any, Iterable
 
 MAX_OBJECT_ID = 64  # characters
@@ -14,6 +15,8 @@ MAX_METHOD = 64  # characters of one method name
 MAX_METHODS = 16  # methods in one request
 ECHO = 40  # characters of bad input quoted in a message
 NANOSECONDS = 1_000_000_000
+MAX_ESTIMATE_ID = 2**63 - 1  # the episode store's ids are SQLite INTEGERs
+MAX_DISTANCE = 1000.0  # m: a hypothesis' position beyond this from the camera is not a pose of a part
 
 
 def excerpt(text: Any, limit: int = ECHO) -> str:
@@ -73,3 +76,36 @@ def parse_methods(methods: Iterable[Any]) -> list[str]:
             raise ValueError(f"method {excerpt(name)} is requested twice")
         seen.add(name)
     return names
+
+
+def parse_estimate_id(value: Any) -> int:
+    """An episode store id as EstimatePose answered it: 1..2^63-1 (0 means "not stored")."""
+    eid = int(value)
+    if eid == 0:
+        raise ValueError("estimate_id is 0: that estimate was not stored (no episode store), so it has no outcome "
+                         "to record")
+    if not 1 <= eid <= MAX_ESTIMATE_ID:
+        raise ValueError(f"estimate_id {eid} is out of range: estimate ids are 1..{MAX_ESTIMATE_ID}")
+    return eid
+
+
+def parse_noise_lambda(value: Any, what: str = "noise_lambda") -> float | None:
+    """A request's noise level: None for a negative one (the node's default); ValueError for NaN or
+    an infinite one (the range is checked where the level is used: core.geometry.check_noise_lambda)."""
+    lam = float(value)
+    if not math.isfinite(lam):
+        raise ValueError(f"{what} must be a finite number (negative = the default), got {lam}")
+    return None if lam < 0 else lam
+
+
+def parse_position(x: float, y: float, z: float, what: str = "pose.position") -> None:
+    """ValueError when a finite position lies farther than MAX_DISTANCE from the camera."""
+    distance = math.hypot(float(x), float(y), float(z))
+    if distance > MAX_DISTANCE:
+        raise ValueError(f"{what} is {distance:.3g} m from the camera (at most {MAX_DISTANCE:g} m)")
+
+
+def parse_scores(scores: Any, names: Any, what: str = "hypothesis") -> None:
+    """ValueError when a hypothesis' parallel arrays scores / score_names differ in length."""
+    if len(scores) != len(names):
+        raise ValueError(f"{what} has {len(scores)} scores for {len(names)} score_names (parallel arrays)")
