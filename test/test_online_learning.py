@@ -239,15 +239,37 @@ def _set_version(ros_node, client, value: str):
 
 @pytest.mark.ros
 def test_learn_without_learn_dir_or_with_an_unknown_version_does_not_start(data, tmp_path):
+    """A learning configurator that cannot serve what its folder says refuses to start (exit 2)
+    with one line naming the reason: no learn_dir, an unknown pinned version, a truncated version
+    file (it once served the fixed pipeline instead, logging twice a second), an episode store
+    linked out of learn_dir."""
+    from perception_config.agents import make_agent, save_agent
+    from perception_config.online.policy_learner import POLICIES, PolicyVersions
+
     base = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "publish_debug": "false"}
+    truncated = tmp_path / "truncated"
+    versions = PolicyVersions(truncated / POLICIES)
+    extra = {"env_settings": data["env"].settings.to_json(), "pipeline": str(data["pipeline"])}
+    versions.promote(save_agent(make_agent("pg", data["env"], seed=0), tmp_path / "pg.safetensors", extra))
+    path = versions.path("v0000")
+    path.write_bytes(path.read_bytes()[:100])
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    (tmp_path / "elsewhere.sqlite").write_bytes(b"")
+    (linked / "episodes.sqlite").symlink_to(tmp_path / "elsewhere.sqlite")
     started = []
     for params, says in (({"learn": "true"}, "learn is true but learn_dir is not set"),
                          ({"learn": "true", "learn_dir": str(tmp_path / "l"), "policy_version": "v0007"},
-                          "unknown policy version 'v0007'")):
+                          "unknown policy version 'v0007'"),
+                         ({"learn": "true", "learn_dir": str(truncated)}, "v0000"),
+                         ({"learn": "true", "learn_dir": str(linked)}, "episode store")):
         started.append((NodeProcess("configurator_node", {**base, **params}, tmp_path), says))
     for node, says in started:  # started together: one start-up's time
         node.proc.wait(60)
-        assert node.stop() == 2 and says in node.output(), node.output()
+        out = node.output()
+        assert node.stop() == 2 and says in out, out
+        assert len([line for line in out.splitlines() if "cannot start" in line]) == 1, out
+        assert "keeps serving" not in out, out
 
 
 @pytest.mark.ros

@@ -62,6 +62,7 @@ from ..store.episode_store import (
     policy_version,
     store_episode,
 )
+from ..util.confine import confined
 from .auto_estimates import AutoEstimates
 from .camera_frames import stamp_text
 from .configurator_parameters import PARAMETERS
@@ -131,7 +132,8 @@ class ConfiguratorNode(GuardedNode):
         pinned = str(self.get_parameter("policy_version").value or "")
         if self.get_parameter("learn").value:
             learn_dir = str(self.get_parameter("learn_dir").value or "")
-            store = store or (str(Path(learn_dir) / STORE_NAME) if learn_dir else "")
+            if learn_dir and not store:  # the store in learn_dir, never through a link out of it
+                store = str(confined(Path(learn_dir) / STORE_NAME, learn_dir, "episode store"))
             self.learning = NodeLearning(
                 self, self.env, learn_dir, start=str(self.get_parameter("learn_start").value), policy=policy,
                 fixed_sequence=[s for s in p["fixed_sequence"] if s],
@@ -142,7 +144,7 @@ class ConfiguratorNode(GuardedNode):
                 check_episodes=int(self.get_parameter("learn_check_episodes").value), pinned=pinned,
                 camera_qos=p["camera_qos"], use_depth=self.use_depth,
                 score_pinned=str(self.get_parameter("score_version").value or ""))
-            self.learning.sync(self._swap)
+            self.learning.start(self._swap)  # refuses to start when the selected version cannot be loaded
             self.create_timer(0.5, self._learning_tick, callback_group=MutuallyExclusiveCallbackGroup())
         elif pinned or self.get_parameter("score_version").value:
             raise ValueError("policy_version or score_version is set but learn is false: versions exist only with "

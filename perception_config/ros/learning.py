@@ -164,12 +164,28 @@ class NodeLearning:
     def load(self, version: str) -> Agent:
         return load_agent(self.versions.path(version), self.env)
 
+    def start(self, swap: Callable[[str, Agent], None]) -> None:
+        """At start-up: serve the version the folder selects, or refuse to start (ValueError naming
+        the version and why it cannot be loaded: a node that cannot serve what it was told to
+        must not serve something else silently)."""
+        version = self.wanted()
+        try:
+            agent = self.load(version)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"learn: policy version {version} in {self.versions.folder} cannot be loaded ({exc}); "
+                             "pin a kept version with policy_version, or restore the file") from None
+        swap(version, agent)
+        self.serving = version
+        self._synced_stamp = self.versions.stamp()
+        self.log.info(f"learn: serving policy version {version}")
+        self.pub.publish(String(data=version))
+
     def sync(self, swap: Callable[[str, Agent], None]) -> None:
         """Call with the estimate lock held: when the version that should serve changed (a
         promotion, a pin), load it and `swap(version, agent)`; publish the serving version.
         A version that cannot be loaded is logged and the current one keeps serving."""
         stamp = self.versions.stamp()
-        if stamp == self._synced_stamp and self.serving is not None:
+        if stamp == self._synced_stamp:  # one try (and at most one error line) per change of the index
             return
         try:
             version = self.wanted()

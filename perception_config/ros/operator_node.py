@@ -106,6 +106,7 @@ class OperatorNode(GuardedNode):
         cache_size = int(self.param("cache_size"))
         self._block_caches = FrameCaches(cache_size)
         self._blocks: OrderedDict[tuple[str, float | None], Block] = OrderedDict()  # LRU, MAX_BLOCKS
+        self._problems_said: set[str] = set()  # degradations logged (once each)
         self._service_group = ReentrantCallbackGroup()  # requests are taken at once; the queue orders them
         self.requests = RequestQueue(self, self.param("request_queue"), name)
         self._wait_group = ReentrantCallbackGroup()  # the timer and clients a waiting service callback awaits
@@ -319,11 +320,20 @@ class OperatorNode(GuardedNode):
         header = Header()
         for block in (self.pipeline.scoring if blocks is None else blocks):
             result, header = self.run_block(block, stamp_ns, object_id, pose)
+            self._say_once((result.info or {}).get("problem"))
             for name in block.score_names:
                 scores[name] = float(result.scores.get(name, math.nan)) if result.ok else math.nan
             if not result.ok:
                 failed.append(f"{block.name}: {result.reason}")
         return scores, failed, header
+
+
+    def _say_once(self, problem: str | None) -> None:
+        """A block's degradation (e.g. a pick_success version that cannot be loaded, the previous
+        model serving): one warning line per distinct problem, not one per request."""
+        if problem and problem not in self._problems_said:
+            self._problems_said.add(problem)
+            self.get_logger().warning(problem)
 
 
 def hypothesis_pose(msg: Hypothesis) -> tuple[int, str, Pose]:
