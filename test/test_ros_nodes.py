@@ -469,16 +469,18 @@ def test_pick_node_forwards_to_the_robot_cell(ros_node, cell, data, tmp_path):
         assert node.stop() == 0, node.output()
 
 
-def burst(ros_node, srv_type, name, request, n: int = 5 * REQUEST_QUEUE, clients: int = 4, timeout: float = 90.0):
+def burst(ros_node, srv_type, name, request, n: int = 5 * REQUEST_QUEUE, clients: int = 4, timeout: float = 90.0,
+          depth: int = 10):
     """`n` simultaneous calls from `clients` clients of this process; (answers or None, the
     seconds after which each came, or None).
-    The clients keep up to 100 answers (each client's reader sees every answer of the service;
-    rclpy's default keeps 10), and each first makes one call: a client seeing the service does
-    not mean the service sees the client's answer reader yet (an answer sent before is lost)."""
+    The clients keep `depth` answers (rclpy's default 10; each client's reader sees every answer
+    of the service: the node paces its busy answers so that such a reader keeps up), and each
+    first makes one call: a client seeing the service does not mean the service sees the
+    client's answer reader yet (an answer sent before is lost)."""
     import rclpy
     from rclpy.qos import QoSProfile
 
-    cs = [ros_node.create_client(srv_type, name, qos_profile=QoSProfile(depth=100)) for _ in range(clients)]
+    cs = [ros_node.create_client(srv_type, name, qos_profile=QoSProfile(depth=depth)) for _ in range(clients)]
     try:
         for c in cs:
             wait_for_service(ros_node, c)
@@ -512,13 +514,15 @@ def check_burst(answers, what: str) -> tuple[int, int]:
 
 
 def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_lost(ros_node, cell):
-    """5x request_queue simultaneous calls from 4 clients to scoring_node and configurator_node:
-    each answered, the queued ones served, the others refused at once as busy; then both serve."""
+    """10x (scoring_node) and 5x (configurator_node) request_queue simultaneous calls from 4
+    clients with rclpy's default QoS (each client's reader keeps 10 of the 40 answers it sees; 19
+    of 80 were lost before busy answers were paced): each answered, the queued ones served, the
+    others refused at once as busy; then both serve."""
     from perception_config_interfaces.srv import EstimatePose, ScoreHypothesis
 
     obj = cell["frames"][stamp_ns(0)].objects[0]
     score = ScoreHypothesis.Request(hypothesis=hypothesis(stamp_ns(0), obj.obj_id, obj.gt))
-    answers, seconds = burst(ros_node, ScoreHypothesis, "score_hypothesis", score)
+    answers, seconds = burst(ros_node, ScoreHypothesis, "score_hypothesis", score, n=10 * REQUEST_QUEUE)
     ok, busy = check_burst(answers, "score_hypothesis")
     print(f"score_hypothesis burst of {len(answers)}: {ok} served, {busy} busy, {max(seconds):.3f} s")
 

@@ -376,6 +376,7 @@ class ConfiguratorNode(GuardedNode):
             return response
         busy = self.requests.busy()
         if busy is not None:
+            await self.requests.pace()
             response.success, response.message = False, busy
             return response
         try:

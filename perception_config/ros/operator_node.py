@@ -138,6 +138,7 @@ class OperatorNode(GuardedNode):
         async def callback(request: Any, response: Any) -> Any:
             busy = self.requests.busy()
             if busy is not None:
+                await self.requests.pace()
                 response.success, response.message = False, busy
                 return response
             try:

@@ -17,11 +17,17 @@ The answers of a service go to every client's reader of that service, which sort
 a client whose reader keeps the last 10 (rclpy's default) can lose its answer among many others
 (14 clients in one process, 10 requests each: about a third lost). Clients that expect bursts
 create their clients with a deeper QoS (e.g. `QoSProfile(depth=1000)`).
+
+Busy answers are paced: at most one leaves the node every PACE (2 ms), so that a burst's
+refusals do not arrive at the clients' readers faster than their executors take them (the busy
+answers of a burst are otherwise all sent within a millisecond or two, and a default client
+lost its own among them). The served answers are paced by the work itself.
 """
 from __future__ import annotations
 
 import queue
 import threading
+from collections import deque
 from typing import Any, Callable
 
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -30,6 +36,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 MAX_REQUEST_QUEUE = 1000
+PACE = 0.002  # s between two busy answers (paced refusals, below)
+MAX_PACED = 1000  # busy answers waiting for their turn; beyond, answered at once
 
 
 def check_request_queue(depth: Any) -> int:
@@ -59,6 +67,9 @@ class RequestQueue:
         self.most_held = 0  # the high-water mark, for diagnostics
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
         self._wake = node.create_guard_condition(lambda: None, callback_group=ReentrantCallbackGroup())
+        self._paced: deque[Future] = deque()  # busy answers waiting for their turn
+        self._pace_timer = node.create_timer(PACE, self._release, callback_group=ReentrantCallbackGroup())
+        self._pace_timer.cancel()  # runs only while a busy answer waits
         # A daemon thread: a block that never returns must not keep the process from exiting.
         self._thread = threading.Thread(target=self._work, name=f"{name}_worker", daemon=True)
         self._thread.start()
@@ -73,6 +84,23 @@ class RequestQueue:
 
     def done(self) -> None:
         self.held -= 1
+
+    async def pace(self) -> None:
+        """Await this busy answer's turn: at most one busy answer per PACE seconds leaves the node
+        (module docstring); beyond MAX_PACED waiting, at once."""
+        if len(self._paced) >= MAX_PACED:
+            return
+        turn: Future = Future()
+        self._paced.append(turn)
+        if self._pace_timer.is_canceled():
+            self._pace_timer.reset()
+        await turn
+
+    def _release(self) -> None:
+        if self._paced:
+            self._paced.popleft().set_result(None)
+        if not self._paced:
+            self._pace_timer.cancel()
 
     async def run(self, fn: Callable[..., Any], *args: Any) -> Any:
         """fn(*args) on the worker thread, after the work queued before it; its result, or what it raised."""
