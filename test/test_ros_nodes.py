@@ -113,7 +113,7 @@ def cell(data, tmp_path_factory, ros_node):
             publish_when_matched(ros_node, pubs["info"], info, subscribers=CAMERA_SUBSCRIBERS)
             publish_when_matched(ros_node, pubs["depth"], depth, subscribers=CAMERA_SUBSCRIBERS)
             publish_when_matched(ros_node, pubs["color"], color, subscribers=CAMERA_SUBSCRIBERS)
-        yield {"nodes": nodes, "frames": frames, "pubs": pubs, "episode_store": store}
+        yield {"nodes": nodes, "frames": frames, "pubs": pubs, "episode_store": store, "logs": logs}
         for pub in pubs.values():
             ros_node.destroy_publisher(pub)
     finally:
@@ -727,11 +727,11 @@ def test_every_field_of_every_request_at_its_boundaries_is_answered_and_no_node_
     print(f"fuzz: {sent} requests answered ({refused} refused with a message), 0 nodes died")
 
 
-def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell):
+def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell, data):
     import os
     import signal
 
-    from perception_config_interfaces.srv import EstimatePose
+    from perception_config_interfaces.srv import EstimatePose, RefineHypothesis
 
     est = client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node")
     refinement = cell["nodes"]["refinement_node"].proc
@@ -763,4 +763,16 @@ def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps
         assert not res.success and "refine_hypothesis" in res.message and "refinement_node" in res.message, res.message
         assert seconds < 5.0 + 3.0
     assert cell["nodes"]["configurator_node"].alive()
+
+    # Restarted: it serves again, but it never received the frame the estimate names (published
+    # before it started); the answer says so, naming the node, not only that time ran out.
+    common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "frame_timeout": 1.0,
+              "request_queue": REQUEST_QUEUE}
+    restarted = cell["nodes"]["refinement_node"] = NodeProcess("refinement_node", common, cell["logs"])
+    client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
+    req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4, max_operations=2)
+    req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+    res = call(ros_node, est, req, timeout=30)
+    assert not res.picked and "refinement_node has received none since it started" in res.message, res.message
+    assert restarted.alive()
 

@@ -69,6 +69,7 @@ def play_episode(
     sec_l: list[float] = []
     names: list[str] = []
     oks: list[bool] = []
+    reasons: list[str] = []
     op_seconds: list[float] = []
     block_seconds: list[float] = []
     mask_l: list[np.ndarray] = []
@@ -94,6 +95,7 @@ def play_episode(
         sec_l.append(float(info["seconds"]))
         names.append(env_.action_names[a])
         oks.append(bool(info["ok"]))
+        reasons.append("" if info["ok"] else str(info.get("reason") or ""))
         op_seconds.append(float(env_.last_outcome.elapsed))  # measured, whatever the time mode charges
         block_seconds.append(float(env_.last_outcome.result.elapsed))
         pick_ran = bool(info["ok"]) and env_.pipeline.actions[a].kind == Kind.PICK
@@ -117,6 +119,7 @@ def play_episode(
         stopped=stopped,
         names=names,
         oks=oks,
+        reasons=reasons,
         operation_seconds=op_seconds,
         block_seconds=block_seconds,
         time=float(env_.episode_time),

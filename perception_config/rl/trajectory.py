@@ -24,6 +24,7 @@ class Trajectory:
     stopped: bool = False  # ended by play_episode's `stop` (a deadline), not by the env or max_steps
     names: list[str] = field(default_factory=list)  # action names, as actions
     oks: list[bool] = field(default_factory=list)  # whether each operator succeeded
+    reasons: list[str] = field(default_factory=list)  # why each failed operator failed ("" where it succeeded)
     operation_seconds: list[float] = field(default_factory=list)  # measured seconds of each operator call
     block_seconds: list[float] = field(default_factory=list)  # of which the block itself (through ROS: in its node)
     time: float = 0.0  # seconds charged (env.episode_time: failed picks at their robot cost)

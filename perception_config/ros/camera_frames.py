@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
@@ -117,6 +118,8 @@ class CameraFrames:
         self._lock = threading.Lock()
         self._info_stamped_with_images = False
         self._logger = node.get_logger()
+        self._node_name = node.get_name()
+        self._started = time.monotonic()
         self._on_arrival = on_arrival
         self.use_depth = bool(use_depth)
         # the image roles a frame is made of: an RGB-only camera has no depth to wait for
@@ -195,6 +198,10 @@ class CameraFrames:
         if self._on_arrival is not None:
             self._on_arrival()
 
+    def age(self) -> float:
+        """Seconds since these subscriptions were made (the node's start)."""
+        return time.monotonic() - self._started
+
     # -- requests ----------------------------------------------------------------------------
     def get(self, stamp_ns: int, timeout: float) -> CameraFrame:
         """The frame with this stamp (0 = the latest), without waiting: FrameNotReady when it has
@@ -205,7 +212,9 @@ class CameraFrames:
             which = "no camera frame" if stamp_ns == 0 else f"no camera frame stamped {stamp_text(stamp_ns)}"
             cached = self.frames.stamps()
             have = (f"{len(cached)} cached, {stamp_text(cached[0])} .. {stamp_text(cached[-1])}" if cached
-                    else "none received yet: check the camera topics, their remapping and camera_qos")
+                    else f"{self._node_name} has received none since it started {self.age():.0f} s ago: check the "
+                         "camera topics, their remapping and camera_qos; a node (re)started after a frame was "
+                         "published never receives that frame")
             raise FrameNotReady(f"{which} arrived within {timeout:g} s ({have})")
         if isinstance(item, FrameError):
             raise ValueError(f"the camera frame at {stamp_text(item.stamp_ns)} is unusable: {item.problem}")

@@ -260,6 +260,9 @@ class ConfiguratorNode(GuardedNode):
         response.operation_elapsed = traj.operation_seconds  # measured (info["seconds"] adds charges)
         response.success = True
         response.message = "picked" if picked else f"no successful pick within {len(names)} operations"
+        failed = [(n, r) for n, ok, r in zip(names, traj.oks, traj.reasons) if not ok and r]
+        if not picked and failed:  # why the operators failed, e.g. a restarted node without the frame
+            response.message += f"; {len(failed)} failed, the last: {failed[-1][0]}: {failed[-1][1]}"[:600]
         if traj.stopped:
             response.message = (f"estimate_timeout ({self.estimate_timeout:g} s) reached after {len(names)} "
                                 "operations; not picked")

@@ -241,8 +241,11 @@ class OperatorNode(GuardedNode):
         item = self.ground_truth.get(stamp_ns)
         if item is None:
             which = "any frame" if stamp_ns == 0 else f"the frame at {stamp_text(stamp_ns)}"
+            none = "" if self.ground_truth.stamps() else (
+                f" ({self.get_name()} has received none since it started {self.camera.age():.0f} s ago; a node "
+                "(re)started after a frame was published never receives that frame's ground truth)")
             raise FrameNotReady(f"no ground truth for {which} arrived on perception/ground_truth "
-                                f"within {float(self.param('frame_timeout')):g} s")
+                                f"within {float(self.param('frame_timeout')):g} s{none}")
         if object_id not in item["poses"]:
             raise ValueError(f"object {object_id!r} is not in the ground truth of that frame "
                              f"(objects: {excerpt(', '.join(sorted(item['poses'])), 200)})")
