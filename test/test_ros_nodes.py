@@ -584,7 +584,8 @@ def test_malformed_ids_stamps_and_oversized_requests_are_refused_briefly(ros_nod
 def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(ros_node, cell, data, tmp_path):
     """A configurator with estimate_timeout 1.5 s and max_ops_cap 2: an estimate runs at most 2
     operators; with refinement_node stopped it answers "estimate_timeout" after about 1.5 s,
-    although operator_timeout is 5 s."""
+    although operator_timeout is 5 s, and so do three sent at once: the deadline counts from
+    each request's arrival, the time it waits in the queue included."""
     import os
     import signal
 
@@ -602,7 +603,7 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
         for _ in range(10):  # the first estimates may hit the deadline while the operators are discovered
             res = call(ros_node, est, req, timeout=30)
-            if res.success or "discovered" not in res.message:
+            if res.success or "estimate_timeout" not in res.message:
                 break
         assert res.success and list(res.operations) == ["icp_coarse", "icp_fine"], (res.message, res.operations)
         os.kill(refinement.pid, signal.SIGSTOP)
@@ -610,10 +611,18 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
             t0 = time.monotonic()
             res = call(ros_node, est, req, timeout=30)
             seconds = time.monotonic() - t0
+            # three at once: the deadline counts from each request's arrival, queueing included
+            # (the third would otherwise answer after three deadlines, about 4.5 s)
+            answers, came = burst(ros_node, EstimatePose, "capped/estimate_pose", req, n=3, clients=1, timeout=30)
         finally:
             os.kill(refinement.pid, signal.SIGCONT)
         assert not res.success and res.message.startswith("estimate_timeout (1.5 s) reached"), res.message
         assert "refine_hypothesis" in res.message and 1.4 < seconds < 3.5, (res.message, seconds)
+        assert all(a is not None and not a.success and a.message.startswith("estimate_timeout (1.5 s) reached")
+                   for a in answers), [a and a.message for a in answers]
+        assert max(came) < 1.5 + 1.5, came
+        assert any("in the queue" in a.message or "before this one" in a.message for a in answers), \
+            [a.message for a in answers]
     finally:
         assert node.stop() == 0, node.output()
 

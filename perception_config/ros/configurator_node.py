@@ -182,10 +182,14 @@ class ConfiguratorNode(GuardedNode):
 
     # -- one estimate --------------------------------------------------------------------------
     def estimate(self, stamp_ns: int, object_id: str, max_operations: int = 0, noise_lambda: float = -1.0,
-                 seed: int = 0) -> EstimatePose.Response:
-        """Run the agent on one object in one frame; the response (never raises)."""
+                 seed: int = 0, arrived: float | None = None) -> EstimatePose.Response:
+        """Run the agent on one object in one frame; the response (never raises). `arrived`: the
+        request's arrival (time.monotonic(); default now): estimate_timeout counts from there,
+        the time it waited in the queue included."""
         response = EstimatePose.Response()
-        start = time.perf_counter()
+        arrived = time.monotonic() if arrived is None else arrived
+        deadline = arrived + self.estimate_timeout
+        start = time.perf_counter() - (time.monotonic() - arrived)  # elapsed counts from the arrival
         oks: list[bool] = []
         try:
             object_id = parse_object_id(object_id)
@@ -193,8 +197,15 @@ class ConfiguratorNode(GuardedNode):
             response.success, response.message = False, str(exc)
             return response
         try:
-            with self._busy:
-                oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed)
+            if not self._busy.acquire(timeout=max(0.0, deadline - time.monotonic())):
+                raise DeadlineReached("the deadline came while waiting for the estimate before this one")
+            try:
+                if time.monotonic() >= deadline:
+                    raise DeadlineReached(f"the deadline came while this request waited "
+                                          f"{time.monotonic() - arrived:.3g} s in the queue")
+                oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed, deadline)
+            finally:
+                self._busy.release()
         except DeadlineReached as exc:
             response.success = False
             response.message = f"estimate_timeout ({self.estimate_timeout:g} s) reached: {exc}"
@@ -215,7 +226,7 @@ class ConfiguratorNode(GuardedNode):
         return response
 
     def _run(self, response: EstimatePose.Response, stamp_ns: int, object_id: str, max_operations: int,
-             noise_lambda: float, seed: int) -> list[bool]:
+             noise_lambda: float, seed: int, deadline: float) -> list[bool]:
         """Fill the response; returns the ok flag of each operation."""
         lam = self.default_lambda if (math.isfinite(noise_lambda) and noise_lambda < 0) else float(noise_lambda)
         lam = check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
@@ -225,7 +236,6 @@ class ConfiguratorNode(GuardedNode):
                           key=(0, 0, model.obj_id), stamp_ns=stamp_ns, has_depth=self.use_depth)
         limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
         limit = min(limit, self.max_ops_cap)
-        deadline = time.monotonic() + self.estimate_timeout
         self.operators.deadline = deadline
         if self.learning is not None:  # between estimates: a promoted or pinned version starts serving here
             self.learning.sync(self._swap)
@@ -377,19 +387,21 @@ class ConfiguratorNode(GuardedNode):
         except ValueError as exc:
             response.success, response.message = False, str(exc)
             return response
+        arrived = time.monotonic()
         busy = self.requests.busy()
         if busy is not None:
             await self.requests.pace()
             response.success, response.message = False, busy
             return response
         try:
-            return await self.requests.run(self._estimate_request, request)
+            return await self.requests.run(self._estimate_request, request, arrived)
         finally:
             self.requests.done()
 
-    def _estimate_request(self, request: EstimatePose.Request) -> EstimatePose.Response:
+    def _estimate_request(self, request: EstimatePose.Request, arrived: float) -> EstimatePose.Response:
         stamp_ns = parse_estimate_request(request)
-        return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed)
+        return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed,
+                             arrived)
 
 
 def parse_estimate_request(request: EstimatePose.Request) -> int:

@@ -31,10 +31,12 @@ PARAMETERS = (
                   limits=(0, MAX_OPS_LIMIT), read_only=True),
     NodeParameter("max_ops_cap", 50, "operators per estimate at most, whatever the policy file or request says",
                   limits=(1, INT_MAX), read_only=True),
-    NodeParameter("estimate_timeout", 10.0, "seconds one estimate may take (> 0), checked before each operator and "
-                  "bounding each operator call's wait. An estimate that reaches it between two operators answers "
-                  "success=true, picked=false with the hypothesis so far; one that reaches it while waiting for an "
-                  "operator's answer answers success=false. Both messages begin \"estimate_timeout (X s) reached\"",
+    NodeParameter("estimate_timeout", 10.0, "seconds from a request's arrival to its answer (> 0), queueing "
+                  "included: checked before the estimate starts and before each operator, and bounding each "
+                  "operator call's wait. An estimate that reaches it while queued, or while waiting for an "
+                  "operator's answer, answers success=false; one that reaches it between two operators answers "
+                  "success=true, picked=false with the hypothesis so far. Every such message begins "
+                  "\"estimate_timeout (X s) reached\"",
                   limits=(0.0, math.inf), read_only=True),
     NodeParameter("request_queue", 10, "estimate requests that may wait while one runs; one more is answered at "
                   "once with success=false \"busy: N requests queued (request_queue=M)\"",
