@@ -100,4 +100,4 @@ echo "  $RUN/cost_model.json          the cost model the agent was trained and e
 echo "  $CELL_RUN/learning_curve.png  the cell agent's training curve"
 echo "  $OUT/cell/results.json             the cell pipeline: agent vs fixed ground-truth-free pipelines and oracle"
 echo "  $OUT/replay/replay_check.png       through ROS vs in-process: success and operator time"
-echo "  $OUT/replay/replay.mcap            the recorded bag (perception-config launch --bag ... replays it)"
+echo "  $OUT/replay/replay.mcap            the recorded bag (perception-config launch --bag ... --policy ... replays it)"

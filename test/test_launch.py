@@ -286,7 +286,16 @@ def test_defaults_full_set_newest_policy_and_absolute_paths(tmp_path):
     broken.write_bytes(b"x")  # newest of all, unreadable: passed over
     (tmp_path / "replay.mcap").write_bytes(b"")
     said: list[str] = []
-    specs = resolve_nodes(cwd=tmp_path, bag="replay.mcap", rate=2, say=said.append)
+    # No --policy: launch refuses, naming the newest policy trained on the pipeline as the candidate
+    # (a cell must not start serving a policy nobody chose)
+    with pytest.raises(ValueError, match=r"no --policy.*runs/new/policy.safetensors"):
+        resolve_nodes(cwd=tmp_path, bag="replay.mcap", rate=2, say=said.append)
+    with pytest.raises(ValueError, match=r"newest trained on pipeline cell here is .*runs/cell/policy.safetensors"):
+        resolve_nodes(cwd=tmp_path, pipeline="cell", say=said.append)
+    with pytest.raises(ValueError, match=r"no runs/\*/policy.safetensors trained on pipeline rgb"):
+        resolve_nodes(cwd=tmp_path, pipeline="rgb", say=said.append)
+    chosen = tmp_path / "runs" / "old" / "policy.safetensors"
+    specs = resolve_nodes(cwd=tmp_path, bag="replay.mcap", rate=2, policy=str(chosen), say=said.append)
 
     assert [s.name for s in specs] == ["generation_node", "refinement_node", "scoring_node", "pick_node",
                                        "configurator_node", "bag_replay_node"]
@@ -295,23 +304,28 @@ def test_defaults_full_set_newest_policy_and_absolute_paths(tmp_path):
         assert spec.command()[:2] == [spec.name, "--ros-args"]
         assert _p(spec)["models_dir"] == str(models.resolve())
     assert "policy" not in _p(specs[0])
-    assert _p(specs[4])["policy"] == str((tmp_path / "runs" / "new" / "policy.safetensors").resolve())
-    assert any("runs/new/policy.safetensors" in s for s in said), said
+    assert _p(specs[4])["policy"] == str(chosen.resolve())
+    assert any("runs/old/policy.safetensors" in s for s in said), said
     assert _p(specs[5]) == {"bag": str((tmp_path / "replay.mcap").resolve()), "rate": "2.0"}
     assert specs[5].may_finish and not specs[0].may_finish
-    # --pipeline cell: the newest policy trained on that pipeline, and the pipeline to every node
-    specs = resolve_nodes(cwd=tmp_path, pipeline="cell", say=said.append)
-    assert _p(specs[4])["policy"] == str((tmp_path / "runs" / "cell" / "policy.safetensors").resolve())
+    # --pipeline cell: the pipeline to every node
+    specs = resolve_nodes(cwd=tmp_path, pipeline="cell", policy="none", say=said.append)
+    assert _p(specs[4])["policy"] == "''"
     assert all(_p(s)["pipeline"] == "cell" for s in specs[:5])
-    specs = resolve_nodes(cwd=tmp_path, pipeline="rgb", say=said.append)
-    assert _p(specs[4])["policy"] == "''" and "trained on pipeline rgb" in said[-1], said[-1]
+    # the operator nodes alone need no policy
+    assert len(resolve_nodes(["scoring"], cwd=tmp_path, say=said.append)) == 1
 
 
 def test_defaults_no_policy_none_and_models_fallback(tmp_path):
     said: list[str] = []
-    specs = resolve_nodes(["configurator"], cwd=tmp_path, say=said.append)
+    specs = resolve_nodes(["configurator"], cwd=tmp_path, policy="none", say=said.append)
     assert _p(specs[0])["policy"] == "''"  # empty string: the fixed pipeline
     assert any("policy: none" in s for s in said), said
+    # a params file that turns on learning names what serves (the learn directory's versions)
+    learn = tmp_path / "learn.yaml"
+    learn.write_text("configurator_node:\n  ros__parameters:\n    learn: true\n    learn_dir: /tmp/l\n")
+    specs = resolve_nodes(["configurator"], cwd=tmp_path, params_file=str(learn), say=said.append)
+    assert "policy" not in _p(specs[0]) and said[-1].startswith("policy: as set in"), said[-1]
     # models fallback: the procedural parts written into data/parts_models, and said so
     fallback = (tmp_path / "data" / "parts_models").resolve()
     assert _p(specs[0])["models_dir"] == str(fallback)
@@ -488,11 +502,12 @@ def test_the_shipped_real_camera_example_sets_only_declared_parameters_and_remap
               "camera/depth/image_raw": "/camera/camera/aligned_depth_to_color/image_raw",
               "camera/camera_info": "/camera/camera/color/camera_info"}
     specs = resolve_nodes(cwd=tmp_path, models="models", pipeline="cell", params_file=str(example), remaps=remaps,
-                          say=lambda _: None)
+                          policy="none", say=lambda _: None)
     for spec in specs:
         cmd = spec.command()
         assert cmd[2:4] == ["--params-file", str(example)]
         assert [cmd[i + 1] for i, a in enumerate(cmd) if a == "-r"] == [f"{k}:={v}" for k, v in remaps.items()]
         assert _p(spec)["pipeline"] == "cell"
     with pytest.raises(ValueError, match="FROM:=TO"):
-        resolve_nodes(cwd=tmp_path, models="models", remaps={"camera/camera_info": ""}, say=lambda _: None)
+        resolve_nodes(cwd=tmp_path, models="models", remaps={"camera/camera_info": ""}, policy="none",
+                      say=lambda _: None)

@@ -49,8 +49,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "(default: default; cell = the real-camera set-up without ground truth, "
                          "docs/concepts/cell_without_ground_truth.md)")
     la.add_argument("--policy", default=None, metavar="FILE|none",
-                    help="configurator policy "
-                         "(default: the newest runs/*/policy.safetensors; none = the fixed pipeline)")
+                    help="the policy the configurator serves, or none for its fixed pipeline; required when "
+                         "the configurator starts, unless a --params-file sets policy or learn")
     la.add_argument("--bag", type=Path, default=None, metavar="FILE",
                     help="also start bag_replay_node on this MCAP bag")
     la.add_argument("--rate", type=float, default=None, metavar="R", help="bag_replay_node's replay rate")

@@ -1,8 +1,10 @@
 """The nodes `perception-config launch` starts, resolved: the short names of --nodes, every
-default (the models folder, the newest policy trained on the pipeline, a bag's camera topics and
-what bag_replay_node waits for) and every path made absolute, as NodeSpecs for the supervisor
-(launcher/supervisor.py). An explicit option wins over a ROS params file, which wins over the
-defaults."""
+default (the models folder, a bag's camera topics and what bag_replay_node waits for) and every
+path made absolute, as NodeSpecs for the supervisor (launcher/supervisor.py). An explicit option
+wins over a ROS params file, which wins over the defaults. The configurator's policy has no
+default: --policy FILE, --policy none (its fixed pipeline), or a params file that sets `policy`
+or `learn` (the learn directory's versions serve); else launch refuses, naming the newest
+policy trained on the pipeline as the candidate."""
 from __future__ import annotations
 
 import collections
@@ -187,15 +189,15 @@ def resolve_nodes(nodes: list[str] | None = None, models: str | os.PathLike | No
             value = "" if policy.lower() == "none" else str(absolute(policy, "policy"))
             set_param(conf, "policy", value, True)
             say(f"policy: {value or 'none (the configurator runs the fixed pipeline)'}")
-        elif "policy" in params_file_sets(pfile, conf.name):
+        elif params_file_sets(pfile, conf.name) & {"policy", "learn"}:  # learning: learn_dir's versions serve
             say(f"policy: as set in {pfile}")
-        else:
+        else:  # never a policy nobody chose (the newest file by date could be anyone's experiment)
             newest = newest_policy(cwd, pipeline_ref)
             on = f"pipeline {pipeline}" if pipeline is not None else "the default pipeline"
-            set_param(conf, "policy", str(newest) if newest else "", False)
-            say(f"policy: {newest} (the newest runs/*/policy.safetensors trained on {on})" if newest
-                else f"policy: none (no runs/*/policy.safetensors trained on {on} here): the configurator runs "
-                     "the fixed pipeline")
+            found = (f"the newest trained on {on} here is {newest}" if newest
+                     else f"there is no runs/*/policy.safetensors trained on {on} here")
+            raise ValueError(f"no --policy: name the policy the configurator serves (--policy FILE), or --policy none "
+                             f"for its fixed pipeline; launch does not choose one ({found})")
 
     if "bag_replay" in names:
         replay = specs[names.index("bag_replay")]
