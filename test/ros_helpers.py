@@ -149,3 +149,40 @@ def call(node, client, request, timeout: float = 10.0):
     if not future.done():
         raise AssertionError(f"no answer from {client.srv_name} within {timeout} s")
     return future.result()
+
+
+class GoalRun:
+    """One goal sent to an action server from the test's node: its acceptance, feedback, result."""
+
+    def __init__(self, node, client, goal) -> None:
+        self.node = node
+        self.feedback: list = []
+        self.sent = time.monotonic()
+        self._accept = client.send_goal_async(goal, feedback_callback=lambda m: self.feedback.append(m.feedback))
+        self.handle = None
+        self._result = None
+
+    def spin_until(self, cond, timeout: float, what: str) -> None:
+        import rclpy
+
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{what} within {timeout} s")
+            rclpy.spin_once(self.node, timeout_sec=0.02)
+
+    def accepted(self, timeout: float = 10.0) -> bool:
+        self.spin_until(self._accept.done, timeout, "no goal response")
+        self.handle = self._accept.result()
+        return bool(self.handle.accepted)
+
+    def cancel(self) -> None:
+        self.handle.cancel_goal_async()
+
+    def result(self, timeout: float = 30.0):
+        """(status, result message) once the result has arrived."""
+        if self._result is None:
+            self._result = self.handle.get_result_async()
+        self.spin_until(self._result.done, timeout, "no result")
+        res = self._result.result()
+        return res.status, res.result

@@ -736,6 +736,101 @@ def test_every_field_of_every_request_at_its_boundaries_is_answered_and_no_node_
     print(f"fuzz: {sent} requests answered ({refused} refused with a message), 0 nodes died")
 
 
+def test_the_estimate_action_reports_each_operator_cancels_between_them_and_rejects_when_full(ros_node, cell):
+    """The estimate_pose action beside the service: feedback after every operator (the same
+    operators as the service's answer), a goal cancelled while an operator is in flight ends
+    right after it returns with the hypothesis so far (CANCELED, cancelled, not picked), goals
+    beyond the request queue are rejected at once, a bad goal is aborted with the reason."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from action_msgs.msg import GoalStatus
+    from perception_config_interfaces.action import EstimatePose as EstimatePoseAction
+    from perception_config_interfaces.srv import EstimatePose
+    from rclpy.action import ActionClient
+
+    from ros_helpers import GoalRun, ros_test_env
+
+    obj = cell["frames"][stamp_ns(0)].objects[0]
+
+    def goal(**kw):
+        g = EstimatePoseAction.Goal(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4, **kw)
+        g.frame.stamp.sec, g.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
+        return g
+
+    REPO = Path(__file__).resolve().parents[1]
+    action = ActionClient(ros_node, EstimatePoseAction, "estimate_pose")
+    refinement = cell["nodes"]["refinement_node"].proc
+    try:
+        assert action.wait_for_server(timeout_sec=20.0)
+        run = GoalRun(ros_node, action, goal())
+        assert run.accepted()
+        status, result = run.result()
+        assert status == GoalStatus.STATUS_SUCCEEDED and result.success and not result.cancelled, result.message
+        assert [f.action for f in run.feedback] == list(result.operations) and result.operations
+        assert [f.operators_done for f in run.feedback] == list(range(1, len(result.operations) + 1))
+        assert all(f.score_names and len(f.scores) == len(f.score_names) for f in run.feedback)
+        req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4)
+        req.frame.stamp = goal().frame.stamp
+        same = call(ros_node, client(ros_node, cell, EstimatePose, "estimate_pose", "configurator_node"), req, 30)
+        assert (list(same.operations), same.picked) == (list(result.operations), result.picked)
+
+        # cancel while the first operator waits on a stopped refinement_node
+        os.kill(refinement.pid, signal.SIGSTOP)
+        try:
+            run = GoalRun(ros_node, action, goal())
+            assert run.accepted()
+            time.sleep(0.3)
+            run.cancel()
+            time.sleep(0.3)
+        finally:
+            os.kill(refinement.pid, signal.SIGCONT)
+        resumed = time.monotonic()
+        status, result = run.result()
+        after = time.monotonic() - resumed
+        assert status == GoalStatus.STATUS_CANCELED and result.cancelled and not result.picked, result.message
+        assert list(result.operations) == ["icp_coarse"] and result.message.startswith("cancelled after 1"), \
+            (result.operations, result.message)
+        assert after < 2.0, after  # the operator in flight, then the result at once
+        print(f"cancel: result {after * 1000:.0f} ms after the stopped operator node resumed")
+
+        # beyond the queue: rejected at once; the accepted ones cancelled and answered
+        os.kill(refinement.pid, signal.SIGSTOP)
+        try:
+            runs = [GoalRun(ros_node, action, goal()) for _ in range(REQUEST_QUEUE + 3)]
+            accepted = [r.accepted() for r in runs]
+            for r, ok in zip(runs, accepted):
+                if ok:
+                    r.cancel()
+        finally:
+            os.kill(refinement.pid, signal.SIGCONT)
+        assert accepted.count(True) == REQUEST_QUEUE + 1 and accepted.count(False) == 2, accepted
+        for r, ok in zip(runs, accepted):
+            if ok:
+                status, result = r.result()
+                assert status == GoalStatus.STATUS_CANCELED and result.cancelled, (status, result.message)
+
+        # perception-config estimate: the progress a robot program sees, a line per operator
+        cli = subprocess.run([sys.executable, "-m", "perception_config.cli", "estimate", "--object", str(obj.obj_id),
+                              "--stamp", f"{stamp_ns(0) / 1e9:.9f}", "--lambda", "0.3", "--seed", "4"],
+                             cwd=REPO, env=ros_test_env(), capture_output=True, text=True, timeout=120)
+        lines = cli.stdout.splitlines()
+        assert cli.returncode == 0 and lines[-1].startswith("succeeded: "), cli.stdout + cli.stderr
+        assert [line.split()[3] for line in lines[:-1]] == list(same.operations), cli.stdout
+
+        run = GoalRun(ros_node, action, goal(max_operations=1))
+        run_bad = GoalRun(ros_node, action, EstimatePoseAction.Goal(object_id=" 1"))
+        assert run_bad.accepted() and run.accepted()
+        status, result = run_bad.result()
+        assert status == GoalStatus.STATUS_ABORTED and not result.success and "object_id" in result.message
+        assert run.result()[1].success
+    finally:
+        action.destroy()
+
+
 def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps_serving(ros_node, cell, data):
     import os
     import signal

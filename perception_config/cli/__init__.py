@@ -15,6 +15,7 @@ from . import (
     calibrate,
     cell_sim,
     episodes,
+    estimate,
     evaluate,
     fit_score,
     launch,
@@ -30,8 +31,8 @@ __all__ = ["agent_params", "build_parser", "main"]
 
 # The commands in the order of `perception-config --help`; each module adds its parser (and
 # imports what its job needs only when it runs).
-COMMANDS = (synth, bag, show, blocks, bench, calibrate, train, evaluate, study, launch, episodes, replay_check,
-            cell_sim, fit_score)
+COMMANDS = (synth, bag, show, blocks, bench, calibrate, train, evaluate, study, launch, estimate, episodes,
+            replay_check, cell_sim, fit_score)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -46,6 +46,7 @@ def play_episode(
     max_steps: int | None = None,
     require_hypothesis: bool = False,
     stop: Callable[[], bool] | None = None,
+    on_step: Callable[[str, dict[str, Any]], None] | None = None,
 ) -> Trajectory:
     """Play one episode of `env` with `agent` and return its trajectory.
 
@@ -54,7 +55,8 @@ def play_episode(
     (a request's own limit), without the truncation charge. `require_hypothesis`: raise
     ValueError when the generator gives no first hypothesis instead of letting the agent try.
     `stop` is asked before each action; True ends the episode there like `max_steps` (the
-    configurator's per-estimate deadline) and sets `Trajectory.stopped`.
+    configurator's per-estimate deadline, or a cancelled goal) and sets `Trajectory.stopped`.
+    `on_step(action_name, info)` is called after each action (the configurator's feedback).
     """
     env_ = getattr(env, "unwrapped", env)
     obs, info = env.reset(options=options)
@@ -104,6 +106,8 @@ def play_episode(
         step_scores.append(dict(info["scores"]))
         step_poses.append(info["pose"])
         step_picked.append(bool(info["picked"]) if pick_ran else None)
+        if on_step is not None:
+            on_step(names[-1], info)
         if max_steps is not None and len(act_l) >= max_steps:
             break
     index = (options or {}).get("episode", -1)

@@ -37,6 +37,7 @@ import sqlite3
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -67,11 +68,12 @@ from .auto_estimates import AutoEstimates
 from .camera_frames import stamp_text
 from .configurator_parameters import PARAMETERS
 from .debug_view import DebugView
+from .estimate_action import CANCELLED, EstimateAction
 from .guard import GuardedNode
 from .learning import NodeLearning, version_qos
 from .operator_node import make_hypothesis, spin
 from .parameters import declare
-from .request_fields import parse_estimate_id, parse_noise_lambda, parse_object_id, parse_stamp
+from .request_fields import parse_estimate_fields, parse_estimate_id, parse_object_id
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
 
@@ -170,6 +172,7 @@ class ConfiguratorNode(GuardedNode):
                             qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
         self.create_service(ReportPickOutcome, "report_pick_outcome", self._on_pick_outcome,
                             qos_profile=service_qos(), callback_group=MutuallyExclusiveCallbackGroup())
+        self.action = EstimateAction(self)  # the estimate_pose action, on the same queue
 
         auto_objects = [parse_object_id(o) for o in p["auto_objects"] if o]  # checked also without auto
         auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
@@ -182,10 +185,12 @@ class ConfiguratorNode(GuardedNode):
 
     # -- one estimate --------------------------------------------------------------------------
     def estimate(self, stamp_ns: int, object_id: str, max_operations: int = 0, noise_lambda: float = -1.0,
-                 seed: int = 0, arrived: float | None = None) -> EstimatePose.Response:
+                 seed: int = 0, arrived: float | None = None, cancelled: Callable[[], bool] | None = None,
+                 on_step: Callable[[str, dict], None] | None = None) -> EstimatePose.Response:
         """Run the agent on one object in one frame; the response (never raises). `arrived`: the
         request's arrival (time.monotonic(); default now): estimate_timeout counts from there,
-        the time it waited in the queue included."""
+        the time it waited in the queue included. `cancelled` is asked between operators (True:
+        stop there, the hypothesis so far answered); `on_step(action, info)` after each one."""
         response = EstimatePose.Response()
         arrived = time.monotonic() if arrived is None else arrived
         deadline = arrived + self.estimate_timeout
@@ -203,7 +208,8 @@ class ConfiguratorNode(GuardedNode):
                 if time.monotonic() >= deadline:
                     raise DeadlineReached(f"the deadline came while this request waited "
                                           f"{time.monotonic() - arrived:.3g} s in the queue")
-                oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed, deadline)
+                oks = self._run(response, stamp_ns, object_id, max_operations, noise_lambda, seed, deadline,
+                                cancelled, on_step)
             finally:
                 self._busy.release()
         except DeadlineReached as exc:
@@ -226,7 +232,8 @@ class ConfiguratorNode(GuardedNode):
         return response
 
     def _run(self, response: EstimatePose.Response, stamp_ns: int, object_id: str, max_operations: int,
-             noise_lambda: float, seed: int, deadline: float) -> list[bool]:
+             noise_lambda: float, seed: int, deadline: float, cancelled: Callable[[], bool] | None = None,
+             on_step: Callable[[str, dict], None] | None = None) -> list[bool]:
         """Fill the response; returns the ok flag of each operation."""
         lam = self.default_lambda if (math.isfinite(noise_lambda) and noise_lambda < 0) else float(noise_lambda)
         lam = check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
@@ -234,14 +241,14 @@ class ConfiguratorNode(GuardedNode):
         seed = int(seed) if seed else int(self._rng.integers(1, 2**31))
         episode = Episode(frame=None, model=model, ground_truth=None, noise_lambda=lam, seed=seed,
                           key=(0, 0, model.obj_id), stamp_ns=stamp_ns, has_depth=self.use_depth)
-        limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
-        limit = min(limit, self.max_ops_cap)
+        limit = self.operation_limit(max_operations)
         self.operators.deadline = deadline
         if self.learning is not None:  # between estimates: a promoted or pinned version starts serving here
             self.learning.sync(self._swap)
         try:
             traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
-                                require_hypothesis=True, stop=lambda: time.monotonic() >= deadline)
+                                require_hypothesis=True, on_step=on_step,
+                                stop=lambda: time.monotonic() >= deadline or (cancelled is not None and cancelled()))
         finally:
             self.operators.deadline = None
         frame_stamp = stamp_ns  # the frame the operators used (a request for "the latest" names none)
@@ -273,10 +280,18 @@ class ConfiguratorNode(GuardedNode):
         failed = [(n, r) for n, ok, r in zip(names, traj.oks, traj.reasons) if not ok and r]
         if not picked and failed:  # why the operators failed, e.g. a restarted node without the frame
             response.message += f"; {len(failed)} failed, the last: {failed[-1][0]}: {failed[-1][1]}"[:600]
-        if traj.stopped:
+        if traj.stopped and cancelled is not None and cancelled():
+            response.message = f"{CANCELLED} {len(names)} operations; not picked"
+        elif traj.stopped:
             response.message = (f"estimate_timeout ({self.estimate_timeout:g} s) reached after {len(names)} "
                                 "operations; not picked")
         return traj.oks
+
+    def operation_limit(self, max_operations: int) -> int:
+        """The operators an estimate may run: the request's (0 = the policy's max_ops), at most
+        the policy's max_ops and max_ops_cap."""
+        limit = self.env.max_ops if not max_operations else min(int(max_operations), self.env.max_ops)
+        return min(limit, self.max_ops_cap)
 
     def _publish(self, response: EstimatePose.Response, object_id: str, oks: list[bool]) -> None:
         if response.success:
@@ -366,6 +381,7 @@ class ConfiguratorNode(GuardedNode):
         return response
 
     def on_exit(self) -> None:
+        self.action.destroy()
         if self.learning is not None:
             self.learning.close()
         self.requests.close()
@@ -383,7 +399,7 @@ class ConfiguratorNode(GuardedNode):
     async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response
                            ) -> EstimatePose.Response:
         try:  # a bad request is answered at once, without waiting in the queue
-            parse_estimate_request(request)
+            parse_estimate_fields(request)
         except ValueError as exc:
             response.success, response.message = False, str(exc)
             return response
@@ -399,20 +415,10 @@ class ConfiguratorNode(GuardedNode):
             self.requests.done()
 
     def _estimate_request(self, request: EstimatePose.Request, arrived: float) -> EstimatePose.Response:
-        stamp_ns = parse_estimate_request(request)
+        stamp_ns = parse_estimate_fields(request)
         return self.estimate(stamp_ns, request.object_id, request.max_operations, request.noise_lambda, request.seed,
                              arrived)
 
-
-def parse_estimate_request(request: EstimatePose.Request) -> int:
-    """Check every field of an estimate request (request_fields.py); the frame's stamp in ns.
-    max_operations and seed are uint32 (any value is meaningful), noise_lambda is finite."""
-    stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
-    parse_object_id(request.object_id)
-    lam = parse_noise_lambda(request.noise_lambda)
-    if lam is not None:
-        check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
-    return stamp_ns
 
 
 def main(args: list[str] | None = None) -> None:

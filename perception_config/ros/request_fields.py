@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable
 
+from ..core.geometry import check_noise_lambda
+
 MAX_OBJECT_ID = 64  # characters
 MAX_METHOD = 64  # characters of one method name
 MAX_METHODS = 16  # methods in one request
@@ -109,3 +111,15 @@ def parse_scores(scores: Any, names: Any, what: str = "hypothesis") -> None:
     """ValueError when a hypothesis' parallel arrays scores / score_names differ in length."""
     if len(scores) != len(names):
         raise ValueError(f"{what} has {len(scores)} scores for {len(names)} score_names (parallel arrays)")
+
+
+def parse_estimate_fields(request: Any) -> int:
+    """Check every field of an estimate request or goal (EstimatePose.srv / .action); the
+    frame's stamp in ns. max_operations and seed are uint32 (any value is meaningful),
+    noise_lambda finite (negative: the configurator's) and within the lambda range."""
+    stamp_ns = parse_stamp(request.frame.stamp, "frame.stamp")
+    parse_object_id(request.object_id)
+    lam = parse_noise_lambda(request.noise_lambda)
+    if lam is not None:
+        check_noise_lambda(lam, "noise_lambda (negative = the configurator's)")
+    return stamp_ns
