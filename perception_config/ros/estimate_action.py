@@ -25,6 +25,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 
 from .request_fields import parse_estimate_fields
+from .request_queue import service_qos
 
 CANCELLED = "cancelled after"  # how the configurator's answer to a cancelled estimate begins
 
@@ -35,9 +36,13 @@ class EstimateAction:
 
     def __init__(self, node: Any, name: str = "estimate_pose") -> None:
         self.node = node
+        # keep-all, as the service (request_queue.service_qos): no goal, cancel or result request
+        # of a burst is overwritten before the node takes it
         self.server = ActionServer(node, EstimatePoseAction, name, execute_callback=self._execute,
                                    goal_callback=self._on_goal, cancel_callback=self._on_cancel,
-                                   callback_group=ReentrantCallbackGroup())
+                                   callback_group=ReentrantCallbackGroup(), goal_service_qos_profile=service_qos(),
+                                   result_service_qos_profile=service_qos(),
+                                   cancel_service_qos_profile=service_qos())
 
     def _on_goal(self, goal: Any) -> GoalResponse:
         """Admit the goal to the request queue, or reject it at once (the queue is full)."""
