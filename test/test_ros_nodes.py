@@ -517,9 +517,14 @@ def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_los
     """10x (scoring_node) and 5x (configurator_node) request_queue simultaneous calls from 4
     clients with rclpy's default QoS (each client's reader keeps 10 of the 40 answers it sees; 19
     of 80 were lost before busy answers were paced): each answered, the queued ones served, the
-    others refused at once as busy; then both serve."""
+    others refused at once as busy; /diagnostics reports the refusals as WARN with the queue's
+    figures; then both serve."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from perception_config_interfaces.srv import EstimatePose, ScoreHypothesis
 
+    statuses: list = []  # /diagnostics while the burst is refused
+    sub = ros_node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status), 100)
     obj = cell["frames"][stamp_ns(0)].objects[0]
     score = ScoreHypothesis.Request(hypothesis=hypothesis(stamp_ns(0), obj.obj_id, obj.gt))
     answers, seconds = burst(ros_node, ScoreHypothesis, "score_hypothesis", score, n=10 * REQUEST_QUEUE)
@@ -536,6 +541,20 @@ def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_los
     print(f"estimate_pose burst of {len(answers)}: {ok} served by {last_served:.3f} s, {busy} busy by "
           f"{busy_came:.3f} s")
     assert busy_came < last_served  # refused on arrival, not after the queue
+    # each node's health on /diagnostics, once a second: the refusals of the bursts as WARN
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not {"/scoring_node", "/configurator_node"} <= {
+            st.name for st in statuses if st.level == DiagnosticStatus.WARN}:
+        rclpy.spin_once(ros_node, timeout_sec=0.1)
+    ros_node.destroy_subscription(sub)
+    warn = {st.name: st for st in statuses if st.level == DiagnosticStatus.WARN}
+    assert {"/scoring_node", "/configurator_node"} <= set(warn), {st.name: st.message for st in statuses}
+    values = {kv.key: kv.value for kv in warn["/scoring_node"].values}
+    assert "refused busy" in warn["/scoring_node"].message and int(values["busy_refusals"]) >= 30, values
+    assert values["queue_limit"] == str(REQUEST_QUEUE) and int(values["queue_high_water"]) == REQUEST_QUEUE + 1
+    assert {"policy_version", "operator_failures", "deadlines_reached"} <= {
+        kv.key for kv in warn["/configurator_node"].values}
+    assert {st.name for st in statuses} >= {"/generation_node", "/refinement_node", "/pick_node"}
     # Both still serve, one request at a time.
     sco = client(ros_node, cell, ScoreHypothesis, "score_hypothesis", "scoring_node")
     assert call(ros_node, sco, score).success

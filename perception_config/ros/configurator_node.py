@@ -68,6 +68,7 @@ from .auto_estimates import AutoEstimates
 from .camera_frames import stamp_text
 from .configurator_parameters import PARAMETERS
 from .debug_view import DebugView
+from .diagnostics import Health, NodeDiagnostics
 from .estimate_action import CANCELLED, EstimateAction
 from .guard import GuardedNode
 from .learning import NodeLearning, version_qos
@@ -168,6 +169,10 @@ class ConfiguratorNode(GuardedNode):
             self.debug_view = DebugView(self, p["camera_qos"], int(self.get_parameter("debug_image_max_width").value),
                                         int(self.get_parameter("marker_max_triangles").value))
         self.requests = RequestQueue(self, p["request_queue"], self.get_name())
+        self.health = Health()
+        self.counts = {"operator_failures": 0, "deadlines_reached": 0, "cancelled": 0}
+        self.diagnostics = NodeDiagnostics(self, self.health, self.requests, self._diagnostic_figures,
+                                           warn_keys=("operator_failures", "deadlines_reached"))
         self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
                             qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
         self.create_service(ReportPickOutcome, "report_pick_outcome", self._on_pick_outcome,
@@ -215,14 +220,22 @@ class ConfiguratorNode(GuardedNode):
         except DeadlineReached as exc:
             response.success = False
             response.message = f"estimate_timeout ({self.estimate_timeout:g} s) reached: {exc}"
+            self.counts["deadlines_reached"] += 1
         except (ValueError, OperatorCallError) as exc:
             response.success = False
             response.message = str(exc)
             if isinstance(exc, OperatorCallError):
+                self.counts["operator_failures"] += 1
                 self.get_logger().warning(f"estimate of object {object_id} failed: {exc}")
         except Exception as exc:  # answer, log, keep serving
             self.get_logger().error(f"estimate_pose failed: {exc!r}")
             response.success, response.message = False, f"internal error: {exc!r}"
+            self.health.internal_error(response.message)
+        self.health.answered += 1
+        if not response.success and not response.message.startswith("internal error"):
+            self.health.failure(response.message)
+        if response.message.startswith(CANCELLED):
+            self.counts["cancelled"] += 1
         response.elapsed = time.perf_counter() - start
         self._publish(response, object_id, oks)
         if self.debug_view is not None and response.success:
@@ -286,6 +299,10 @@ class ConfiguratorNode(GuardedNode):
             response.message = (f"estimate_timeout ({self.estimate_timeout:g} s) reached after {len(names)} "
                                 "operations; not picked")
         return traj.oks
+
+    def _diagnostic_figures(self) -> dict:
+        """The configurator's own figures on /diagnostics (diagnostics.py)."""
+        return {"policy_version": self.policy_version or "", "agent": self.agent_name, **self.counts}
 
     def operation_limit(self, max_operations: int) -> int:
         """The operators an estimate may run: the request's (0 = the policy's max_ops), at most

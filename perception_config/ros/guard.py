@@ -29,6 +29,9 @@ THROTTLE = 1.0  # s between two error lines of one callback
 def _answer_error(node: Node, what: str, response: Any, exc: BaseException) -> Any:
     node.get_logger().error(f"{what} failed: {exc!r} (answered success=false; the node keeps serving)",
                             throttle_duration_sec=THROTTLE)
+    health = getattr(node, "health", None)  # diagnostics.Health, where the node keeps one
+    if health is not None:
+        health.internal_error(f"{what}: {exc!r}")
     try:
         response.success = False
         response.message = f"internal error: {exc!r}"[:500]

@@ -49,6 +49,7 @@ from ..launcher.ros_environment import configure_ros_environment
 from ..rl.operators import FrameCaches
 from .camera_frames import CAMERA_QOS, CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
+from .diagnostics import Health, NodeDiagnostics
 from .guard import GuardedNode
 from .parameters import INT_MAX, NodeParameter, declare
 from .request_fields import excerpt, parse_method, parse_object_id, parse_position, parse_scores, parse_stamp
@@ -109,6 +110,8 @@ class OperatorNode(GuardedNode):
         self._problems_said: set[str] = set()  # degradations logged (once each)
         self._service_group = ReentrantCallbackGroup()  # requests are taken at once; the queue orders them
         self.requests = RequestQueue(self, self.param("request_queue"), name)
+        self.health = Health()
+        self.diagnostics = NodeDiagnostics(self, self.health, self.requests)  # /diagnostics, 1 Hz
         self._wait_group = ReentrantCallbackGroup()  # the timer and clients a waiting service callback awaits
         self._arrivals: list[Future] = []  # woken by the next frame or ground truth
         self._arrival_count = 0  # frames and ground truths arrived (the handlers run on another thread)
@@ -175,10 +178,13 @@ class OperatorNode(GuardedNode):
         except ValueError as exc:
             response.success = False
             response.message = str(exc)
+            self.health.failure(f"{name}: {exc}")
         except Exception as exc:  # answer, log, keep serving
             self.get_logger().error(f"{name} failed: {exc!r}")
             response.success = False
             response.message = f"internal error: {exc!r}"
+            self.health.internal_error(f"{name}: {exc!r}")
+        self.health.answered += 1
         response.elapsed = time.perf_counter() - start
 
     def on_exit(self) -> None:

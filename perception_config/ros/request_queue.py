@@ -65,6 +65,7 @@ class RequestQueue:
         self.depth = check_request_queue(depth)
         self.held = 0  # requests admitted and not yet answered (waiting or being served)
         self.most_held = 0  # the high-water mark, for diagnostics
+        self.refused = 0  # requests answered busy since the start, for diagnostics
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
         self._wake = node.create_guard_condition(lambda: None, callback_group=ReentrantCallbackGroup())
         self._paced: deque[Future] = deque()  # busy answers waiting for their turn
@@ -77,6 +78,7 @@ class RequestQueue:
     def busy(self) -> str | None:
         """None when the request is admitted (and counted), else the busy message."""
         if self.held > self.depth:
+            self.refused += 1
             return f"busy: {self.held - 1} requests queued (request_queue={self.depth})"
         self.held += 1
         self.most_held = max(self.most_held, self.held)
