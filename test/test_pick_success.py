@@ -160,7 +160,8 @@ def test_fit_score_on_a_tiny_dataset(synthetic_dataset, tmp_path, capsys):
     from perception_config.cli import main
 
     out = tmp_path / "model"
-    code = main(["fit-score", "--dataset", str(synthetic_dataset), "--episodes", "40", "--epochs", "300",
+    # 24 episodes: 53 held-out rows, AUC 1.0 and Brier 0.00 (40 gave 91 rows, AUC 0.99, Brier 0.07)
+    code = main(["fit-score", "--dataset", str(synthetic_dataset), "--episodes", "24", "--epochs", "300",
                  "--hidden", "16", "--quiet", "--out", str(out)])
     assert code == 0
     printed = capsys.readouterr().out
@@ -172,10 +173,10 @@ def test_fit_score_on_a_tiny_dataset(synthetic_dataset, tmp_path, capsys):
     assert test["n"] > 0 and test["auc"] > 0.6, test  # better than chance on the held-out image
     assert 0 <= test["brier"] <= 0.25
     block = create("pick_success", model=str(out))
-    assert block.model.record["source"]["episodes"] == 40
+    assert block.model.record["source"]["episodes"] == 24
     # recalibration keeps the network and fits only Platt's (a, b)
     again = tmp_path / "recalibrated"
-    assert main(["fit-score", "--dataset", str(synthetic_dataset), "--episodes", "20", "--seed", "1",
+    assert main(["fit-score", "--dataset", str(synthetic_dataset), "--episodes", "16", "--seed", "1",
                  "--recalibrate", str(out), "--quiet", "--out", str(again)]) == 0
     assert "before recalibration" in capsys.readouterr().out
     re = create("pick_success", model=str(again)).model
@@ -206,10 +207,11 @@ def test_fit_score_from_an_episode_store_of_a_training_run(synthetic_dataset, tm
     from perception_config.learning.pick_success_data import load_step_rows
 
     run = tmp_path / "run"
-    assert main(["train", "--dataset", str(synthetic_dataset), "--agent", "random", "--episodes", "30",
+    # 20 episodes: 178 rows, held-out AUC 0.98 (30: 257 rows, AUC 0.99)
+    assert main(["train", "--dataset", str(synthetic_dataset), "--agent", "random", "--episodes", "20",
                  "--time-mode", "cost_table", "--cost-table", "blocks", "--workers", "1", "--out", str(run)]) == 0
     rows = load_step_rows(run / "episodes.sqlite")
-    assert len(rows) >= 30 and all(r["pose"]["R"].shape == (3, 3) for r in rows)
+    assert len(rows) >= 20 and all(r["pose"]["R"].shape == (3, 3) for r in rows)
     assert {r["episode_source"] for r in rows} == {"train"} and {r["step"] for r in rows} >= {0, 1}
     capsys.readouterr()
     out = tmp_path / "model"
