@@ -108,8 +108,9 @@ def test_train_and_evaluate_on_a_two_node_cluster(cluster, reference, tmp_path_f
         policy = _train(tmp_path_factory, tmp_path / "run", episodes=8, address=c.address)
     same_run(tmp_path / "run", reference)
     assert seen.parents == _raylets(c) and len(seen.parents) == 2  # workers of both nodes played
+    # best_static searches sequences of up to 2 actions (up to 3: about 2 s more for each evaluation)
     kw = dict(episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5,
-              progress=False, plots=False, best_static_episodes=2)
+              progress=False, plots=False, best_static_length=2, best_static_episodes=2)
     here = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev1", **kw)
     there = evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.4], tmp_path / "ev2", ray_address=c.address,
                      **kw)

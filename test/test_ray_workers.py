@@ -53,9 +53,11 @@ def _train(tmp_path_factory, out: Path, workers: int, agent: str = "pg", episode
 
 
 def _evaluate(tmp_path_factory, out: Path, policy: Path, workers: int) -> Path:
+    # best_static searches sequences of up to 2 actions (up to 3: about 2 s more for each evaluation; its
+    # tasks, one per chunk of episodes, and their order are the same)
     return evaluate(tiny_dataset(tmp_path_factory), [str(policy)], [0.3, 0.7], out, episodes_per_lambda=2,
                     pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table", max_ops=5, progress=False,
-                    plots=False, workers=workers, best_static_episodes=2)
+                    plots=False, workers=workers, best_static_length=2, best_static_episodes=2)
 
 
 def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_path_factory, tmp_path):
