@@ -67,6 +67,7 @@ class NodeProcess:
         self._log_file = open(self.log, "w")
         self.proc = subprocess.Popen(args, env=ros_test_env(), stdout=self._log_file, stderr=subprocess.STDOUT,
                                      start_new_session=own_group)
+        self._interrupted = False
         _STARTED.append(self)
 
     def output(self) -> str:
@@ -90,9 +91,15 @@ class NodeProcess:
             self.proc.wait(5)
         return code, time.monotonic() - start
 
+    def interrupt(self) -> None:
+        """SIGINT (Ctrl-C), once: a later stop() waits for the node without a second one."""
+        if self.proc.poll() is None and not self._interrupted:
+            self.proc.send_signal(signal.SIGINT)
+            self._interrupted = True
+
     def stop(self, timeout: float = 10.0) -> int:
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
+            self.interrupt()
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -100,6 +107,14 @@ class NodeProcess:
                 self.proc.wait(5)
         self._log_file.close()
         return self.proc.returncode
+
+
+def stop_all(nodes: dict[str, NodeProcess], timeout: float = 10.0) -> dict[str, int]:
+    """Stop nodes together: SIGINT to all, then each one's exit code (stop: SIGKILL after `timeout`),
+    so their shutdowns overlap instead of following one another."""
+    for node in nodes.values():
+        node.interrupt()
+    return {name: node.stop(timeout) for name, node in nodes.items()}
 
 
 def wait_for_service(node, client, timeout: float = 20.0, process: NodeProcess | None = None) -> None:

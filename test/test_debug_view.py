@@ -14,7 +14,7 @@ from perception_config.core.geometry import Pose, rotation_angle
 from perception_config.core.render import render_box
 from perception_config.vision.debug_overlay import draw_hypothesis, fit_width, info_lines
 from rl_helpers import PIPELINE, pipeline_file
-from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
+from ros_helpers import NodeProcess, call, publish_when_matched, stop_all, wait_for_service
 
 CAMERA_FRAME = "camera_color_optical_frame"  # what frame_to_msgs stamps the camera messages with
 
@@ -177,7 +177,7 @@ def test_the_configurator_shows_each_estimate_and_a_bag_of_the_view_decodes(ros_
             ros_node.destroy_subscription(s)
         for p in pubs:
             ros_node.destroy_publisher(p)
-        codes = {name: node.stop() for name, node in nodes.items()}
+        codes = stop_all(nodes)
     assert all(c == 0 for c in codes.values()), {n: nodes[n].output()[-2000:] for n in codes}
 
     # The image: the frame (scaled to 320 px) with the ground truth's outline, stamped as the frame.

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from learn_helpers import learner_log, make_data, make_recorded, record_like_the_configurator, stamp_ns
-from ros_helpers import NodeProcess, call, publish_when_matched, wait_for_service
+from ros_helpers import NodeProcess, call, publish_when_matched, stop_all, wait_for_service
 
 LINE = re.compile(r"^learner: candidate from (\d+) episodes: cost ([0-9.]+) vs serving ([0-9.]+) -> "
                   r"(promoted v\d{4}|discarded)$")
@@ -452,5 +452,5 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             assert kept == ["v0000", "v0001"]
         print(line)
     finally:
-        codes = {name: node.stop() for name, node in nodes.items()}
+        codes = stop_all(nodes)
     assert codes["configurator_node"] == 0, nodes["configurator_node"].output()
