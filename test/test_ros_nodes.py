@@ -622,7 +622,7 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
         for _ in range(10):  # the first estimates may hit the deadline while the operators are discovered
             res = call(ros_node, est, req, timeout=30)
-            if res.success or "estimate_timeout" not in res.message:
+            if res.operations or "estimate_timeout" not in res.message:
                 break
         assert res.success and list(res.operations) == ["icp_coarse", "icp_fine"], (res.message, res.operations)
         os.kill(refinement.pid, signal.SIGSTOP)
@@ -895,7 +895,10 @@ def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps
     client(ros_node, cell, RefineHypothesis, "refine_hypothesis", "refinement_node")
     req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4, max_operations=2)
     req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
-    res = call(ros_node, est, req, timeout=30)
+    for _ in range(3):  # the configurator's first call to the new node can lose its answer (rmw discovery)
+        res = call(ros_node, est, req, timeout=30)
+        if "did not answer" not in res.message:
+            break
     assert not res.picked and "refinement_node has received none since it started" in res.message, res.message
     assert restarted.alive()
 
