@@ -543,8 +543,9 @@ def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_los
     assert busy_came < last_served  # refused on arrival, not after the queue
     # each node's health on /diagnostics, once a second: the refusals of the bursts as WARN
     deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline and not {"/scoring_node", "/configurator_node"} <= {
-            st.name for st in statuses if st.level == DiagnosticStatus.WARN}:
+    while time.monotonic() < deadline and not ({"/scoring_node", "/configurator_node"} <= {
+            st.name for st in statuses if st.level == DiagnosticStatus.WARN} and {
+            "/generation_node", "/refinement_node", "/pick_node"} <= {st.name for st in statuses}):
         rclpy.spin_once(ros_node, timeout_sec=0.1)
     ros_node.destroy_subscription(sub)
     warn = {st.name: st for st in statuses if st.level == DiagnosticStatus.WARN}

@@ -21,6 +21,19 @@ class EstimateClient:
         self.client = node.create_client(EstimatePose, service)
         if not self.client.wait_for_service(timeout_sec=wait):
             raise RuntimeError(f"{service} did not appear within {wait:g} s: see the configurator's log")
+        self._warm_up(service, wait)
+
+    def _warm_up(self, service: str, wait: float) -> None:
+        """Seeing the service does not mean the service sees this client's answer reader yet: an
+        answer sent before that is lost (rmw_fastrtps). An empty request, refused at once, is
+        repeated until one answer comes back; then the estimates' answers arrive."""
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            future = self.client.call_async(EstimatePose.Request())
+            rclpy.spin_until_future_complete(self.node, future, timeout_sec=1.0)
+            if future.done():
+                return
+        raise RuntimeError(f"{service} answered none of its first requests within {wait:g} s")
 
     def call(self, stamp_ns: int, obj_id: int | str, noise_lambda: float, seed: int) -> dict[str, Any]:
         """One estimate: the answer's fields as plain Python plus `wall` (seconds from request to

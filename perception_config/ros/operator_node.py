@@ -22,6 +22,7 @@ from __future__ import annotations
 import inspect
 import math
 import signal
+import threading
 import time
 from collections import OrderedDict
 from typing import Any, Awaitable, Callable
@@ -384,9 +385,6 @@ def make_hypothesis(header: Header, object_id: str, pose: Pose | PoseMsg | None,
     return hyp
 
 
-def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
 
 def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
          executor_factory: Callable[[], Any] = SingleThreadedExecutor) -> None:
@@ -402,10 +400,13 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     configure_ros_environment()  # loopback defaults before rclpy starts
     clean_stale_fastdds_shm()  # segments of killed participants (launcher/fastdds_shm.py)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
-    # Also when started with SIGINT ignored (a background job of a script inherits that):
-    # launchers stop nodes with SIGINT.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    # SIGINT and SIGTERM set a flag the loop checks (every 0.2 s at most), rather than raising
+    # KeyboardInterrupt wherever the main thread happens to be: raised inside a __del__ it is
+    # "ignored" by Python and the stop was lost. Also when started with SIGINT ignored (a
+    # background job of a script inherits that): launchers stop nodes with SIGINT.
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda _signum, _frame: stop.set())
     node = None
     executor = None
     try:
@@ -416,7 +417,7 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
             raise SystemExit(2) from None
         executor = executor_factory()
         executor.add_node(node)
-        while rclpy.ok():
+        while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
