@@ -167,6 +167,7 @@ setup(
             "pick_node = perception_config.ros.pick_node:main",
             "configurator_node = perception_config.ros.configurator_node:main",
             "bag_replay_node = perception_config.ros.bag_replay_node:main",
+            "perception_cell = perception_config.ros.composed:main",
         ],
     },
 )

@@ -1,6 +1,19 @@
-"""The same episodes through ROS services and in-process, and the round trip of each operator call.
+"""The same episodes through ROS and in-process: the cell composed and as separate processes, and
+the round trip of each operator call.
 
+    .venv/bin/python benchmarks/bench_ros.py --replay-check 3 [--policy FILE|none] [--images 8]
     .venv/bin/python benchmarks/bench_ros.py [--dataset data/default] [--policy FILE] [--images 6] [--out FILE.json]
+
+`--replay-check ROUNDS`: `perception-config replay-check` ROUNDS times in each node layout,
+alternating separate processes and composed (one process, `launch --composed`) so that machine
+noise hits both: every episode's estimate through estimate_pose against the same episode
+in-process. Reported per layout: the median over rounds of the operator time and of the whole
+estimate's wall time, ROS over in-process (targets: composed <= 1.15x, separate <= 1.30x), the
+same ratio on the operators that change the hypothesis (generation and refinement: in-process
+also re-scores an unchanged hypothesis after a pick, which the nodes skip), and whether every
+episode was identical. Writes results/ros_layouts.json and .png.
+
+Without it:
 
 The four operator nodes run as separate processes (started with the launcher); this process
 publishes the dataset's test images (camera topics + ground truth) once, then runs every episode
@@ -38,6 +51,8 @@ import rclpy  # noqa: E402
 
 from perception_config.launcher.ros_environment import configure_ros_environment  # noqa: E402
 from perception_config.util.atomic_file import atomic_write  # noqa: E402
+
+DEFAULT_OUT = str(REPO / "benchmarks" / "results" / "ros.json")
 
 
 def newest_policy() -> Path | None:
@@ -82,6 +97,97 @@ def run(env, agent, episode, seed, lam) -> tuple[list[str], list[float], list[fl
     return traj.names, traj.operation_seconds, traj.block_seconds, traj.success
 
 
+def changed_hypothesis_ratio(episodes_jsonl: Path) -> float | None:
+    """ROS over in-process operator time on the generation and refinement operators of the
+    episodes whose operators agreed (picks excluded: module docstring)."""
+    ros = local = 0.0
+    for line in episodes_jsonl.read_text().splitlines():
+        row = json.loads(line)
+        r, loc = row["ros"], row["in_process"]
+        if r["operations"] != loc["operations"]:
+            continue
+        for name, a, b in zip(r["operations"], r["operation_seconds"], loc["operation_seconds"]):
+            if name != "pick":
+                ros, local = ros + a, local + b
+    return ros / local if local else None
+
+
+def replay_layouts(args) -> int:
+    from perception_config.ros.replay_check import replay_check
+
+    policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())
+    out = Path(args.out if args.out != DEFAULT_OUT else REPO / "benchmarks" / "results" / "ros_layouts.json")
+    work = out.with_suffix(".runs")
+    configure_ros_environment()
+    rclpy.init()
+    rounds: list[dict] = []
+    try:
+        for r in range(args.replay_check):
+            for composed in ((False, True) if r % 2 == 0 else (True, False)):
+                layout = "composed" if composed else "separate"
+                s = replay_check(args.dataset, work / f"{layout}_{r}", policy, images=args.images,
+                                 noise_lambda=args.lam, composed=composed)
+                row = {"round": r, "layout": layout, "episodes": s["episodes"],
+                       "identical_episodes": s["identical_episodes"], "operator_time_ratio": s["operator_time_ratio"],
+                       "wall_time_ratio": s["wall_time_ratio"],
+                       "changed_hypothesis_ratio": changed_hypothesis_ratio(work / f"{layout}_{r}" / "episodes.jsonl"),
+                       "load": os.getloadavg()[0]}
+                rounds.append(row)
+                print(f"round {r} {layout:9s}: operator time {row['operator_time_ratio']:.3f}x, wall "
+                      f"{row['wall_time_ratio']:.3f}x, generation+refinement {row['changed_hypothesis_ratio']:.3f}x, "
+                      f"{row['identical_episodes']}/{row['episodes']} identical", flush=True)
+    finally:
+        rclpy.try_shutdown()
+    targets = {"composed": 1.15, "separate": 1.30}
+    summary = {}
+    for layout, target in targets.items():
+        rows = [x for x in rounds if x["layout"] == layout]
+        summary[layout] = {k: float(np.median([x[k] for x in rows])) for k in (
+            "operator_time_ratio", "wall_time_ratio", "changed_hypothesis_ratio")}
+        summary[layout]["range_operator_time_ratio"] = [min(x["operator_time_ratio"] for x in rows),
+                                                        max(x["operator_time_ratio"] for x in rows)]
+        summary[layout]["every_episode_identical"] = all(x["identical_episodes"] == x["episodes"] for x in rows)
+        summary[layout]["target"] = target
+        summary[layout]["target_met"] = max(summary[layout]["operator_time_ratio"],
+                                            summary[layout]["wall_time_ratio"]) <= target
+    result = {"machine": platform.node(), "policy": str(policy) if policy else "fixed pipeline",
+              "images": args.images, "rounds": rounds, "summary": summary}
+    atomic_write(out, json.dumps(result, indent=2) + "\n")
+    _plot_layouts(out.with_suffix(".png"), rounds, targets)
+    for layout, v in summary.items():
+        print(f"{layout:9s}: median operator time {v['operator_time_ratio']:.3f}x, wall {v['wall_time_ratio']:.3f}x, "
+              f"generation+refinement {v['changed_hypothesis_ratio']:.3f}x (target <= {v['target']:.2f}: "
+              f"{'met' if v['target_met'] else 'missed'}); every episode identical: {v['every_episode_identical']}")
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+    return 0
+
+
+def _plot_layouts(path: Path, rounds: list[dict], targets: dict[str, float]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    keys = ("operator_time_ratio", "wall_time_ratio", "changed_hypothesis_ratio")
+    labels = ("operator time", "estimate wall time", "generation + refinement")
+    for i, layout in enumerate(targets):
+        rows = [x for x in rounds if x["layout"] == layout]
+        for j, key in enumerate(keys):
+            xs = [i * 4 + j] * len(rows)
+            ax.scatter(xs, [x[key] for x in rows], color=f"C{j}", label=labels[j] if i == 0 else None)
+        ax.hlines(targets[layout], i * 4 - 0.5, i * 4 + 2.5, colors="k", linestyles="--", lw=0.8)
+    ax.set_xticks([1, 5])
+    ax.set_xticklabels([f"{layout} (target {t:.2f}x)" for layout, t in targets.items()])
+    ax.set_ylabel("through ROS / in-process")
+    ax.axhline(1.0, color="gray", lw=0.5)
+    ax.legend(fontsize=8)
+    ax.set_title("the same episodes through the nodes and in-process, per round")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--dataset", default=str(REPO / "data" / "default"))
@@ -91,8 +197,12 @@ def main() -> int:
     p.add_argument("--lambda", dest="lam", type=float, default=0.5)
     p.add_argument("--separate-scoring", action="store_true",
                    help="every scoring a call to scoring_node (no fused scoring)")
-    p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "ros.json"))
+    p.add_argument("--out", default=DEFAULT_OUT)
+    p.add_argument("--replay-check", type=int, default=0, metavar="ROUNDS",
+                   help="compare the layouts: replay-check ROUNDS times composed and separate (module docstring)")
     args = p.parse_args()
+    if args.replay_check:
+        return replay_layouts(args)
 
     from perception_config.agents import load_agent, make_agent
     from perception_config.agents.policy_settings import policy_settings

@@ -1,8 +1,9 @@
 """The operator nodes and bag_replay_node start without torch: each in a fresh interpreter, its
 module is imported and the node built as its main() builds it (real rclpy: init, the node, its
-exit steps, destroy, shutdown), once with the default parameters and once with a models folder
-and the test pipeline as the ROS tests start them; then torch is not among the loaded modules.
-(The configurator runs the agents, which need torch.)"""
+start (configure and activate) and shutdown transitions, destroy, shutdown), once with the
+default parameters and once with a models folder and the test pipeline as the ROS tests start
+them; then torch is not among the loaded modules. (The configurator runs the agents, which need
+torch.)"""
 from __future__ import annotations
 
 import json
@@ -40,8 +41,9 @@ configure_ros_environment()
 for args in json.loads(sys.argv[3]):
     rclpy.init(args=["--ros-args", *args])
     node = getattr(module, sys.argv[2])()
-    if hasattr(node, "on_exit"):
-        node.on_exit()
+    if hasattr(node, "shutdown_now"):  # a managed node: configure and activate (autostart), then shut down
+        node.start()
+        node.shutdown_now()
     if hasattr(node, "stop"):
         node.stop()
     node.destroy_node()

@@ -7,6 +7,7 @@ import signal
 import sys
 import warnings
 
+from ..util.allocator import keep_freed_memory
 from ..util.stop_signals import StopRequested
 from . import (
     bag,
@@ -58,6 +59,7 @@ _python_showwarning = warnings.showwarning
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     warnings.showwarning = _show_data_warning
+    keep_freed_memory()  # the operators' arrays reuse freed memory (util/allocator.py)
     try:
         return int(args.func(args) or 0)
     except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:

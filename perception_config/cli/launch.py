@@ -11,12 +11,26 @@ def _cmd_launch(args: argparse.Namespace) -> int:
     from ..launcher.resolution import parse_nodes, resolve_nodes
     from ..launcher.supervisor import run
 
+    def say(text: str) -> None:
+        print(f"[launch] {text}", flush=True)
+
     specs = resolve_nodes(
         parse_nodes(args.nodes) if args.nodes else None, models=args.models, pipeline=args.pipeline,
         policy=args.policy, bag=args.bag, rate=args.rate, params_file=args.params_file,
-        say=lambda text: print(f"[launch] {text}", flush=True), remaps=_remaps(args.remap or []), warn=warn,
+        say=say, remaps=_remaps(args.remap or []), warn=warn,
     )
-    return run(specs, log_dir=args.log_dir)
+    bring_up = None
+    if not args.unmanaged:  # the managed nodes wait unconfigured; launch drives them to active
+        from ..ros.lifecycle_manager import MANAGED_EXECUTABLES, bring_up_launched
+
+        for spec in specs:
+            if Path(str(spec.executable)).name in MANAGED_EXECUTABLES:
+                spec.params["autostart"] = False
+
+        def bring_up(launcher) -> bool:
+            return bring_up_launched(launcher, say)
+
+    return run(specs, log_dir=args.log_dir, composed=args.composed, bring_up=bring_up)
 
 
 def _remaps(items: list[str]) -> dict[str, str]:
@@ -34,9 +48,12 @@ def _remaps(items: list[str]) -> dict[str, str]:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     la = sub.add_parser(
         "launch", help="start the ROS 2 nodes as processes, stream their logs, stop them on Ctrl-C",
-        description="Start the nodes as separate processes with the loopback ROS defaults; their output is "
-                    "printed as [node_name] lines. Ctrl-C or SIGTERM stops them all (SIGINT, then SIGKILL after "
-                    "10 s; exit 0 if all stopped cleanly). A node that dies stops the others (exit 1).",
+        description="Start the nodes as separate processes (or, --composed, in one) with the loopback ROS "
+                    "defaults; their output is printed as [node_name] lines. The operator nodes and the "
+                    "configurator are managed (lifecycle) nodes: launch configures them in order, then activates "
+                    "them, and stops everything naming the node (and its reason) when a transition fails. "
+                    "Ctrl-C or SIGTERM stops them all (SIGINT, then SIGKILL after 10 s; exit 0 if all stopped "
+                    "cleanly). A node that dies stops the others (exit 1).",
     )
     la.add_argument("--nodes", default=None, metavar="LIST",
                     help="comma-separated, from: generation, refinement, scoring, pick, configurator, bag_replay "
@@ -59,6 +76,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     la.add_argument("--remap", action="append", metavar="FROM:=TO",
                     help="topic remapping for the operator nodes and the configurator (repeatable), e.g. the "
                          "camera driver's topics: camera/color/image_raw:=/camera/camera/color/image_raw")
+    la.add_argument("--composed", action="store_true",
+                    help="run the operator nodes and the configurator in one process with one multi-threaded "
+                         "executor (the operator calls skip the middleware; docs/how-to/compose_the_cell.md); "
+                         "default: one process per node")
+    la.add_argument("--unmanaged", action="store_true",
+                    help="let each node configure and activate itself at start (autostart), without the ordered "
+                         "bring-up: quick tests")
     la.add_argument("--log-dir", type=Path, default=None, metavar="DIR",
                     help="also write each node's output to DIR/<node>.log")
     la.set_defaults(func=_cmd_launch)

@@ -37,6 +37,9 @@ from .ros_environment import configure_ros_environment
 
 # Nodes that may exit 0 on their own (bag_replay_node at the end of its bag).
 FINITE_EXECUTABLES = ("bag_replay_node",)
+# Nodes that `composed` runs in one process (ros/composed.py), and the name of that process.
+COMPOSABLE_EXECUTABLES = ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node")
+CELL = "perception_cell"
 STOP_TIMEOUT = 10.0
 REINSTALL_HINT = "run ./scripts/test.sh (or ./scripts/demo.sh) to set up and reinstall the package"
 
@@ -57,6 +60,8 @@ class NodeSpec:
     params_file: str | os.PathLike | None = None
     may_finish: bool | None = None  # exit 0 on its own is "finished", not "died" (default: bag_replay_node)
     remaps: dict[str, str] = field(default_factory=dict)  # topic remappings, `-r from:=to`
+    # the cell process of a composed launch: its nodes, {"executable", "args"} each (ros/composed.py)
+    composed: list[dict[str, object]] | None = None
 
     def __post_init__(self) -> None:
         if self.executable is None:
@@ -76,6 +81,10 @@ class NodeSpec:
         return args
 
     def command(self, executable: str | None = None) -> list[str]:
+        if self.composed is not None:  # the cell process: its nodes and their arguments (ros/composed.py)
+            import json
+
+            return [executable or str(self.executable), "--nodes", json.dumps(self.composed)]
         return [executable or str(self.executable), *self.arguments()]
 
 
@@ -176,14 +185,30 @@ class Launcher:
     child's process group, up to `stop_timeout` s, SIGKILL stragglers, print each exit status;
     returns True when every node exited 0. A second request_stop() during stop() kills at once.
     With `die_with_launcher` (Linux) the nodes get SIGTERM if the launcher itself is killed.
+
+    `composed`: the nodes of COMPOSABLE_EXECUTABLES run in one process, `perception_cell`
+    (ros/composed.py), each with the arguments it would get alone; the others (bag_replay_node)
+    stay separate. The inspection methods take node names as before: a composed node's lines
+    are the cell's lines that name it, its exit code the cell's.
     """
 
     def __init__(self, nodes: list[NodeSpec], log_dir: str | os.PathLike | None = None,
                  env: dict[str, str] | None = None, out: TextIO | None = None,
-                 stop_timeout: float = STOP_TIMEOUT, die_with_launcher: bool = True) -> None:
+                 stop_timeout: float = STOP_TIMEOUT, die_with_launcher: bool = True, composed: bool = False) -> None:
         names = [n.name for n in nodes]
         if len(set(names)) != len(names):
             raise ValueError(f"node names must be unique, got {names}")
+        self.requested = list(nodes)
+        self.composed_names: list[str] = []
+        if composed:
+            inside = [n for n in nodes if Path(str(n.executable)).name in COMPOSABLE_EXECUTABLES]
+            if CELL in names:
+                raise ValueError(f"a node may not be named {CELL} in a composed launch")
+            if inside:
+                self.composed_names = [n.name for n in inside]
+                cell = NodeSpec(CELL, executable=CELL, composed=[
+                    {"executable": Path(str(n.executable)).name, "args": n.arguments()} for n in inside])
+                nodes = [cell, *[n for n in nodes if n not in inside]]
         self.nodes = list(nodes)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.extra_env = dict(env or {})
@@ -261,6 +286,10 @@ class Launcher:
             self._kill_now = True
         self._stop_requested = True
 
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop_requested
+
     def wait(self, timeout: float | None = None) -> int | None:
         """Supervise until a node dies (-> 1), every node has finished (-> 0) or a stop is requested
         (-> 0 if every node exited 0, else 1). None when `timeout` s passed first."""
@@ -336,29 +365,38 @@ class Launcher:
             child.proc.send_signal(sig)
 
     # -- inspection (tests, demo) ---------------------------------------------------------
+    def _child(self, name: str) -> _Child:
+        return self._children[CELL if name in self.composed_names else name]
+
+    def _mine(self, name: str, line: str) -> bool:
+        """Whether a line of the node's process is the node's (a composed node's lines name it)."""
+        return name not in self.composed_names or f"[{name}]" in line
+
     def pid(self, name: str) -> int:
-        return self._children[name].proc.pid
+        return self._child(name).proc.pid
 
     def returncode(self, name: str) -> int | None:
-        return self._children[name].proc.poll()
+        return self._child(name).proc.poll()
 
     def running(self) -> list[str]:
-        return [n for n, c in self._children.items() if c.proc is not None and c.proc.poll() is None]
+        """The names of the nodes whose process runs (every composed node while the cell runs)."""
+        names = [n.name for n in self.requested]
+        return [n for n in names if (c := self._child(n)).proc is not None and c.proc.poll() is None]
 
     def output(self, name: str) -> list[str]:
         """The node's most recent output lines (without the prefix)."""
         with self._lines_changed:
-            return list(self._children[name].lines)
+            return [line for line in self._child(name).lines if self._mine(name, line)]
 
     def wait_for_line(self, name: str, text: str, timeout: float = 30.0) -> str:
         """The first line of `name` containing `text`; AssertionError with its output when the
         node exits first or `timeout` s pass."""
-        child = self._children[name]
+        child = self._child(name)
         deadline = time.monotonic() + timeout
         with self._lines_changed:
             while True:
                 for line in child.lines:
-                    if text in line:
+                    if text in line and self._mine(name, line):
                         return line
                 exited = child.proc.poll() is not None and not (child.reader and child.reader.is_alive())
                 remaining = deadline - time.monotonic()
@@ -376,13 +414,21 @@ class Launcher:
         self.stop()
 
 
-def run(specs: list[NodeSpec], log_dir: str | os.PathLike | None = None) -> int:
-    """Start `specs`, supervise until Ctrl-C/SIGTERM or a death; the command's exit code."""
-    launcher = Launcher(specs, log_dir=log_dir)
+def run(specs: list[NodeSpec], log_dir: str | os.PathLike | None = None, composed: bool = False,
+        bring_up: Callable[["Launcher"], bool] | None = None) -> int:
+    """Start `specs` (composed: launcher.composed), then `bring_up(launcher)` if given (drives the
+    managed nodes to active; False: they could not be, exit 1), supervise until Ctrl-C/SIGTERM or
+    a death; the command's exit code."""
+    launcher = Launcher(specs, log_dir=log_dir, composed=composed)
     handled = (signal.SIGINT, signal.SIGTERM)
     previous = {sig: signal.signal(sig, lambda _signum, _frame: launcher.request_stop()) for sig in handled}
     try:
         launcher.start()  # MissingExecutable (exit 2) before anything starts
+        if bring_up is not None and not bring_up(launcher):
+            if not launcher.stop_requested:
+                launcher.say("stopping all nodes")
+            launcher.stop()
+            return 1
         return launcher.wait()
     finally:
         launcher.stop()

@@ -96,6 +96,9 @@ def worker_env(recipe: EnvRecipe) -> tuple[Any, EnvSpec]:
         return _ENVS[key]
     import torch
 
+    from ..util.allocator import keep_freed_memory
+
+    keep_freed_memory()  # the operators' arrays reuse freed memory (util/allocator.py)
     torch.set_num_threads(1)
     if recipe.settings.time_mode == "cost_table":
         limit_open3d_threads(1)

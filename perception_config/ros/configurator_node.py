@@ -68,12 +68,11 @@ from .auto_estimates import AutoEstimates
 from .camera_frames import stamp_text
 from .configurator_parameters import PARAMETERS
 from .debug_view import DebugView
-from .diagnostics import Health, NodeDiagnostics
+from .diagnostics import NodeDiagnostics
 from .estimate_action import CANCELLED, EstimateAction
-from .guard import GuardedNode
 from .learning import NodeLearning, version_qos
+from .managed_node import ManagedNode
 from .operator_node import make_hypothesis, spin
-from .parameters import declare
 from .request_fields import parse_estimate_fields, parse_estimate_id, parse_object_id
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
@@ -81,18 +80,29 @@ from .ros_operators import DeadlineReached, OperatorCallError, RosOperators
 STORE_BUSY_TIMEOUT = 0.5  # s an estimate's answer may wait for another process's lock on the episode store
 
 
-class ConfiguratorNode(GuardedNode):
+class ConfiguratorNode(ManagedNode):
     """Serves `estimate_pose`: the agent plays one episode of the same environment as in
-    training, whose operators are service calls to the operator nodes (RosOperators)."""
+    training, whose operators are service calls to the operator nodes (RosOperators). A managed
+    node (managed_node.py): configure loads the policy, pipeline, models, stores and learner."""
 
-    def __init__(self) -> None:
-        super().__init__("configurator_node")
-        declare(self, PARAMETERS)
-        self.use_depth = bool(self.get_parameter("use_depth").value)
+    def __init__(self, **kwargs) -> None:
+        super().__init__("configurator_node", PARAMETERS, **kwargs)
+        self._busy = threading.Lock()
+        self.requests: RequestQueue | None = None
+        self.learning: NodeLearning | None = None
+        self.policy_version: str | None = None
+        self.agent_name = ""
+        self.counts = {"operator_failures": 0, "deadlines_reached": 0, "cancelled": 0}
+        self.diagnostics = NodeDiagnostics(self, self.health, self._diagnostic_figures,
+                                           warn_keys=("operator_failures", "deadlines_reached"))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def setup(self) -> None:
         p = {name: self.get_parameter(name).value for name in (
             "policy", "fixed_sequence", "pipeline", "models_dir", "max_ops", "noise_lambda", "operator_timeout",
             "fused_scoring", "auto", "auto_objects", "camera_qos", "max_ops_cap", "estimate_timeout",
             "request_queue")}
+        self.use_depth = bool(self.get_parameter("use_depth").value)
         self.max_ops_cap = p["max_ops_cap"]
         if isinstance(self.max_ops_cap, bool) or not isinstance(self.max_ops_cap, int) or self.max_ops_cap < 1:
             raise ValueError(f"max_ops_cap must be an integer >= 1, got {self.max_ops_cap!r}")
@@ -125,13 +135,11 @@ class ConfiguratorNode(GuardedNode):
             self.agent_name = "fixed pipeline " + " -> ".join(s for s in p["fixed_sequence"] if s)
             self.store_agent = "fixed:" + "+".join(s for s in p["fixed_sequence"] if s)  # as evaluation names it
         self._rng = np.random.default_rng()
-        self._busy = threading.Lock()
         self.policy_version = policy_version(policy) if policy else None
         self.pick_source = str(self.get_parameter("pick_source").value)
         if self.pick_source not in PICK_SOURCES:
             raise ValueError(f"pick_source must be one of {PICK_SOURCES}, got {self.pick_source!r}")
         store = str(self.get_parameter("episode_store").value or "")
-        self.learning: NodeLearning | None = None
         pinned = str(self.get_parameter("policy_version").value or "")
         if self.get_parameter("learn").value:
             learn_dir = str(self.get_parameter("learn_dir").value or "")
@@ -152,7 +160,6 @@ class ConfiguratorNode(GuardedNode):
         elif pinned or self.get_parameter("score_version").value:
             raise ValueError("policy_version or score_version is set but learn is false: versions exist only with "
                              "online learning")
-        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.version_pub = self.create_publisher(String, "perception/policy_version", version_qos()) \
             if self.learning is None else self.learning.pub
         if self.learning is None:
@@ -169,10 +176,6 @@ class ConfiguratorNode(GuardedNode):
             self.debug_view = DebugView(self, p["camera_qos"], int(self.get_parameter("debug_image_max_width").value),
                                         int(self.get_parameter("marker_max_triangles").value))
         self.requests = RequestQueue(self, p["request_queue"], self.get_name())
-        self.health = Health()
-        self.counts = {"operator_failures": 0, "deadlines_reached": 0, "cancelled": 0}
-        self.diagnostics = NodeDiagnostics(self, self.health, self.requests, self._diagnostic_figures,
-                                           warn_keys=("operator_failures", "deadlines_reached"))
         self.create_service(EstimatePose, "estimate_pose", self._on_estimate,
                             qos_profile=service_qos(), callback_group=ReentrantCallbackGroup())
         self.create_service(ReportPickOutcome, "report_pick_outcome", self._on_pick_outcome,
@@ -183,10 +186,9 @@ class ConfiguratorNode(GuardedNode):
         auto_every_frame = bool(self.get_parameter("auto_every_frame").value)
         self.auto = AutoEstimates(self, self.estimate, auto_objects, auto_every_frame, p["camera_qos"]) \
             if p["auto"] else None
-        self.get_logger().info(f"serving estimate_pose with the {self.agent_name}, max_ops "
-                               f"{min(self.env.max_ops, self.max_ops_cap)}, "
-                               f"estimate_timeout {self.estimate_timeout:g} s"
-                               + (", estimating every new frame" if p["auto"] else ""))
+        self.serving_line = (f"serving estimate_pose with the {self.agent_name}, max_ops "
+                             f"{min(self.env.max_ops, self.max_ops_cap)}, estimate_timeout {self.estimate_timeout:g} s"
+                             + (", estimating every new frame" if p["auto"] else ""))
 
     # -- one estimate --------------------------------------------------------------------------
     def estimate(self, stamp_ns: int, object_id: str, max_operations: int = 0, noise_lambda: float = -1.0,
@@ -397,21 +399,37 @@ class ConfiguratorNode(GuardedNode):
         response.success, response.message = True, f"estimate {eid}: picked={bool(request.picked)} recorded"
         return response
 
-    def on_exit(self) -> None:
-        self.action.destroy()
+    def teardown(self) -> None:
+        """Free what setup made (also after a setup that failed half-way)."""
+        self.serving = False
+        if getattr(self, "action", None) is not None:
+            self.action.destroy()
+            self.action = None
         if self.learning is not None:
             self.learning.close()
-        self.requests.close()
-        print(f"[configurator_node] operator calls: {self.operators.timing_summary()}", flush=True)
-        if self.debug_view is not None:
+            self.learning = None
+        if self.requests is not None:
+            self.requests.close()
+            self.requests = None
+        operators = getattr(self, "operators", None)
+        if operators is not None:
+            print(f"[{self.get_name()}] operator calls: {operators.timing_summary()}", flush=True)
+        if getattr(self, "debug_view", None) is not None:
             self.debug_view.close()
-            print(f"[configurator_node] {self.debug_view.timing()}", flush=True)
+            print(f"[{self.get_name()}] {self.debug_view.timing()}", flush=True)
+            self.debug_view = None
         if self._busy.acquire(timeout=2.0):  # not while an auto estimate is spinning the clients
-            self.operators.close()
-            if self.episode_writer is not None:
-                print(f"[configurator_node] episode store: {self.episode_writer.summary()}", flush=True)
-                self.episode_writer.close()
-            self._busy.release()
+            try:
+                if operators is not None:
+                    operators.close()
+                    self.operators = None
+                writer = getattr(self, "episode_writer", None)
+                if writer is not None:
+                    print(f"[{self.get_name()}] episode store: {writer.summary()}", flush=True)
+                    writer.close()
+                    self.episode_writer = None
+            finally:
+                self._busy.release()
 
     async def _on_estimate(self, request: EstimatePose.Request, response: EstimatePose.Response
                            ) -> EstimatePose.Response:
@@ -421,15 +439,19 @@ class ConfiguratorNode(GuardedNode):
             response.success, response.message = False, str(exc)
             return response
         arrived = time.monotonic()
-        busy = self.requests.busy()
+        requests = self.requests  # this configuration's queue, also if a shutdown comes meanwhile
+        if not self.serving or requests is None:
+            response.success, response.message = False, self.refusal("estimate_pose")
+            return response
+        busy = requests.busy()
         if busy is not None:
-            await self.requests.pace()
+            await requests.pace()
             response.success, response.message = False, busy
             return response
         try:
-            return await self.requests.run(self._estimate_request, request, arrived)
+            return await requests.run(self._estimate_request, request, arrived)
         finally:
-            self.requests.done()
+            requests.done()
 
     def _estimate_request(self, request: EstimatePose.Request, arrived: float) -> EstimatePose.Response:
         stamp_ns = parse_estimate_fields(request)

@@ -14,9 +14,12 @@ Runtime Monitor, Foxglove or `ros2 topic echo /diagnostics` show them):
 | `last_error` | the last failure answered (its message, shortened), "" = none |
 | the node's own | e.g. the configurator's `policy_version`, `operator_timeouts`, `deadlines_reached` |
 
-Level: ERROR when an internal error happened in the last period (since the previous status),
-WARN when requests were refused busy or failed in it (the configurator: an operator that did
-not answer, a deadline reached), OK otherwise; the message says why.
+| `state` | the lifecycle state: active, inactive, unconfigured (managed_node.py) |
+
+Level: ERROR when the last configure failed (the message gives the reason) or an internal error
+happened in the last period (since the previous status); WARN when the node is not active (it
+refuses requests) or requests were refused busy or failed in the period (the configurator: an
+operator that did not answer, a deadline reached); OK otherwise; the message says why.
 """
 from __future__ import annotations
 
@@ -51,24 +54,33 @@ class Health:
         self.failure(message)
 
 
-class NodeDiagnostics:
-    """Publishes the node's status every PERIOD s. `requests`: its RequestQueue; `extra()`: the
-    node's own figures (a dict); `warn_keys`: those among them that count events and make the
-    status WARN when they grew since the last one."""
+class _NoQueue:
+    held = depth = most_held = refused = 0
 
-    def __init__(self, node: Node, health: Health, requests: Any,
+
+class NodeDiagnostics:
+    """Publishes the node's status every PERIOD s. The node's `requests` (its RequestQueue, once
+    configured) gives the queue figures; `extra()`: the node's own figures (a dict); `warn_keys`:
+    those among them that count events and make the status WARN when they grew since the last one.
+    A managed node's `diagnostic_state()` gives the level while it does not serve."""
+
+    def __init__(self, node: Node, health: Health,
                  extra: Callable[[], dict[str, Any]] | None = None, warn_keys: tuple[str, ...] = ()) -> None:
-        self.node, self.health, self.requests = node, health, requests
+        self.node, self.health = node, health
         self.extra, self.warn_keys = extra, warn_keys
         self.pub = node.create_publisher(DiagnosticArray, TOPIC, 10)
         self.timer = node.create_timer(PERIOD, self.publish, callback_group=MutuallyExclusiveCallbackGroup())
 
     def status(self) -> DiagnosticStatus:
-        h, q = self.health, self.requests
-        extra = dict(self.extra()) if self.extra is not None else {}
+        h = self.health
+        q = getattr(self.node, "requests", None) or _NoQueue()
+        extra = dict(self.extra()) if self.extra is not None and getattr(self.node, "configured", True) else {}
+        not_serving = self.node.diagnostic_state() if hasattr(self.node, "diagnostic_state") else None
         failed0, internal0, refused0, warn0 = h._seen
         grew = [k for k in self.warn_keys if int(extra.get(k, 0)) > int(warn0.get(k, 0))]
-        if h.internal_errors > internal0:
+        if not_serving is not None:
+            level, message = not_serving
+        elif h.internal_errors > internal0:
             level, message = "ERROR", f"{h.internal_errors - internal0} internal error(s): {h.last_error}"
         elif q.refused > refused0 or h.failed > failed0 or grew:
             parts = []
@@ -83,7 +95,7 @@ class NodeDiagnostics:
         h._seen = (h.failed, h.internal_errors, q.refused, {k: extra.get(k, 0) for k in self.warn_keys})
         values = {"queue": q.held, "queue_limit": q.depth, "queue_high_water": q.most_held, "answered": h.answered,
                   "busy_refusals": q.refused, "internal_errors": h.internal_errors, "last_error": h.last_error,
-                  **extra}
+                  **({"state": self.node.state_label()} if hasattr(self.node, "state_label") else {}), **extra}
         return DiagnosticStatus(level=LEVELS[level], name=self.node.get_fully_qualified_name(), message=message,
                                 hardware_id="", values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
 

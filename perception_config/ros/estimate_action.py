@@ -4,9 +4,10 @@ The configurator serves it beside the `estimate_pose` service (which stays for s
 on the same request queue: one estimate at a time, in arrival order, `request_queue` waiting.
 
 - **Goal**: the service's request. A goal that cannot be queued (the queue is full) is rejected
-  at once; the action protocol carries no reason with a rejection, so a rejection always means
-  "busy: retry later" (the node logs the queue's state). A goal whose fields are invalid is
-  accepted and aborted at once, the reason in the result's message.
+  at once, as is a goal sent while the node is not active (managed_node.py); the action protocol
+  carries no reason with a rejection: the node logs it, and /diagnostics shows the queue and
+  state. A goal whose fields are invalid is accepted and aborted at once, the reason in the
+  result's message.
 - **Feedback** after every operator: the action taken, whether it succeeded, the scores of the
   hypothesis after it, the seconds since the goal was accepted, the operators done and left.
 - **Cancel** takes effect between operators: the operator in flight finishes, then the result
@@ -45,7 +46,12 @@ class EstimateAction:
                                    cancel_service_qos_profile=service_qos())
 
     def _on_goal(self, goal: Any) -> GoalResponse:
-        """Admit the goal to the request queue, or reject it at once (the queue is full)."""
+        """Admit the goal to the request queue, or reject it at once (the queue is full, or the
+        node is not active)."""
+        if not self.node.serving:
+            self.node.get_logger().warning(f"estimate_pose goal rejected: {self.node.refusal('estimate_pose')}",
+                                           throttle_duration_sec=1.0)
+            return GoalResponse.REJECT
         busy = self.node.requests.busy()
         if busy is not None:
             self.node.get_logger().warning(f"estimate_pose goal rejected: {busy}", throttle_duration_sec=1.0)
@@ -57,6 +63,7 @@ class EstimateAction:
 
     async def _execute(self, goal_handle: Any) -> Any:
         accepted = time.monotonic()
+        requests = self.node.requests  # admitted by _on_goal on this queue
         goal = goal_handle.request
         try:
             try:
@@ -75,7 +82,7 @@ class EstimateAction:
                     score_names=list(scores), elapsed=time.monotonic() - accepted, operators_done=done[0],
                     operators_left=max(0, limit - done[0])))
 
-            response = await self.node.requests.run(
+            response = await requests.run(
                 self.node.estimate, stamp_ns, goal.object_id, goal.max_operations, goal.noise_lambda, goal.seed,
                 accepted, lambda: goal_handle.is_cancel_requested, feedback)
             result = EstimatePoseAction.Result(
@@ -96,7 +103,7 @@ class EstimateAction:
                 goal_handle.abort()
             return EstimatePoseAction.Result(success=False, message=f"internal error: {exc!r}"[:500])
         finally:
-            self.node.requests.done()
+            requests.done()
 
     def destroy(self) -> None:
         self.server.destroy()

@@ -14,6 +14,8 @@ also with success=false when the best of them verified below the generator's thr
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from perception_config_interfaces.srv import GenerateHypothesis
 
@@ -35,12 +37,15 @@ PARAMETERS = OPERATOR_PARAMETERS + (
 class GenerationNode(OperatorNode):
     """Serves `generate_hypothesis`: the pipeline's generators on a cached camera frame."""
 
-    def __init__(self) -> None:
-        super().__init__("generation_node", PARAMETERS, ground_truth=True)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("generation_node", PARAMETERS, ground_truth=True, **kwargs)
         self._rng = np.random.default_rng()
+
+    def setup(self) -> None:
+        super().setup()
         self.serve(GenerateHypothesis, "generate_hypothesis", self._on_generate)
-        self.get_logger().info("serving generate_hypothesis "
-                               f"(default {self.param('default_method') or self.pipeline.generator.name})")
+        self.serving_line = ("serving generate_hypothesis "
+                             f"(default {self.param('default_method') or self.pipeline.generator.name})")
 
     def _on_generate(self, request: GenerateHypothesis.Request, response: GenerateHypothesis.Response) -> None:
         method = parse_method(request.method) or self.param("default_method") or self.pipeline.generator.name

@@ -48,11 +48,14 @@ from ..datasets.bop_models import ModelFolder
 from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
 from ..rl.operators import FrameCaches
+from ..util.allocator import keep_freed_memory
+from . import local_services
 from .camera_frames import CAMERA_QOS, CameraFrames, FrameNotReady, stamp_text
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
-from .diagnostics import Health, NodeDiagnostics
-from .guard import GuardedNode
-from .parameters import INT_MAX, NodeParameter, declare
+from .diagnostics import NodeDiagnostics
+from .local_services import LocalService
+from .managed_node import ManagedNode
+from .parameters import INT_MAX, NodeParameter
 from .request_fields import excerpt, parse_method, parse_object_id, parse_position, parse_scores, parse_stamp
 from .request_queue import MAX_REQUEST_QUEUE, RequestQueue, service_qos
 from .stamp_cache import StampCache
@@ -83,16 +86,28 @@ OPERATOR_PARAMETERS = (
 )
 
 
-class OperatorNode(GuardedNode):
+class OperatorNode(ManagedNode):
     """What every operator node shares: parameters, the models folder, the pipeline's blocks,
     the camera frame cache (and replayed ground truth) by stamp, awaiting a frame not yet
-    arrived, and answering every request (success=false with a message on bad input)."""
+    arrived, and answering every request (success=false with a message on bad input).
 
-    def __init__(self, name: str, parameters: tuple[NodeParameter, ...], *, ground_truth: bool = False) -> None:
-        """`parameters`: the node's, OPERATOR_PARAMETERS first."""
-        super().__init__(name)
-        declare(self, parameters)
+    A managed node (managed_node.py): configure (`setup`) loads the pipeline and every model of
+    the models folder and subscribes to the camera; activate serves."""
 
+    def __init__(self, name: str, parameters: tuple[NodeParameter, ...], *, ground_truth: bool = False,
+                 **kwargs: Any) -> None:
+        """`parameters`: the node's, OPERATOR_PARAMETERS first. The subclass calls `start()` last."""
+        super().__init__(name, parameters, **kwargs)
+        self._with_ground_truth = ground_truth
+        self.requests: RequestQueue | None = None
+        self.models: ModelFolder | None = None
+        self._models: dict[str, ObjectModel] = {}  # by object id, while configured
+        self._blocks: OrderedDict[tuple[str, float | None], Block] = OrderedDict()  # LRU, MAX_BLOCKS
+        self._problems_said: set[str] = set()  # degradations logged (once each)
+        self._handlers: dict[str, tuple[Any, Callable[..., Any]]] = {}  # service -> (type, callback)
+        self.diagnostics = NodeDiagnostics(self, self.health)  # /diagnostics, 1 Hz, from the start
+
+    def setup(self) -> None:
         self.pipeline = load_pipeline(self.param("pipeline") or None)
         self.score_versions = str(self.param("pick_success_versions"))
         if self.score_versions:
@@ -102,20 +117,19 @@ class OperatorNode(GuardedNode):
                                    "pick_success score: ignored")
         models_dir = self.param("models_dir")
         self.models = ModelFolder(models_dir) if models_dir else None
-        self._models: dict[str, ObjectModel] = {}  # by object id, for the node's lifetime
         if self.models is None:
             self.get_logger().warning("models_dir is not set: every request will be refused")
+        else:  # every model loaded and checked now, not at the first request
+            for obj_id in sorted(self.models.info):
+                self.model(str(obj_id))
         cache_size = int(self.param("cache_size"))
         self._block_caches = FrameCaches(cache_size)
-        self._blocks: OrderedDict[tuple[str, float | None], Block] = OrderedDict()  # LRU, MAX_BLOCKS
-        self._problems_said: set[str] = set()  # degradations logged (once each)
         self._service_group = ReentrantCallbackGroup()  # requests are taken at once; the queue orders them
-        self.requests = RequestQueue(self, self.param("request_queue"), name)
-        self.health = Health()
-        self.diagnostics = NodeDiagnostics(self, self.health, self.requests)  # /diagnostics, 1 Hz
+        self.requests = RequestQueue(self, self.param("request_queue"), self.get_name())
         self._wait_group = ReentrantCallbackGroup()  # the timer and clients a waiting service callback awaits
         self._arrivals: list[Future] = []  # woken by the next frame or ground truth
         self._arrival_count = 0  # frames and ground truths arrived (the handlers run on another thread)
+        self._arrival_signal = threading.Condition()  # notified at each arrival (answer_here waits on it)
         self._deadlines: list[tuple[float, Future]] = []  # woken (False) at their deadline
         # One timer for every deadline, running only while something waits (entities are not
         # created and destroyed per request).
@@ -125,37 +139,56 @@ class OperatorNode(GuardedNode):
         self.camera = CameraFrames(self, cache_size, self.param("camera_qos"), float(self.param("sync_tolerance")),
                                    topics, on_arrival=self._arrived, use_depth=bool(self.param("use_depth")))
         self.ground_truth: StampCache[dict[str, Any]] | None = None
-        if ground_truth:
+        if self._with_ground_truth:
             self.ground_truth = StampCache(cache_size)
             self.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10,
                                      callback_group=topics)
+
+    def teardown(self) -> None:
+        if self.requests is not None:
+            self.requests.close()
+        self.requests = None
+        self.models = None
+        self._models.clear()
+        self._blocks.clear()
+        for name in self._handlers:
+            local_services.unregister(self.resolve_service_name(name))
+        self._handlers.clear()
 
     def param(self, name: str) -> Any:
         return self.get_parameter(name).value
 
     # -- services ------------------------------------------------------------------------------
-    def serve(self, srv_type: Any, name: str, handler: Callable[[Any, Any], Awaitable[None] | None]) -> None:
+    def serve(self, srv_type: Any, name: str, handler: Callable[[Any, Any], Awaitable[None] | None],
+              local: bool = True) -> None:
         """A service whose handler fills the response or raises ValueError (a bad request, a
         failed operator); success, message and elapsed are set here, whatever happens. A handler
         that raises FrameNotReady runs again after the next frame arrives, until frame_timeout."""
 
         async def callback(request: Any, response: Any) -> Any:
-            busy = self.requests.busy()
+            requests = self.requests  # this configuration's queue, also if a shutdown comes meanwhile
+            if not self.serving or requests is None:
+                response.success, response.message = False, self.refusal(name)
+                return response
+            busy = requests.busy()
             if busy is not None:
-                await self.requests.pace()
+                await requests.pace()
                 response.success, response.message = False, busy
                 return response
             try:
-                await self._answer(name, handler, request, response)
+                await self._answer(name, handler, request, response, requests)
             finally:
-                self.requests.done()
+                requests.done()
             return response
 
         self.create_service(srv_type, name, callback, qos_profile=service_qos(),
                             callback_group=self._service_group)
+        self._handlers[name] = (srv_type, handler)
+        if local:  # a synchronous handler: other nodes of a composed process may call it directly
+            local_services.register(self.resolve_service_name(name), LocalService(self, name))
 
     async def _answer(self, name: str, handler: Callable[[Any, Any], Awaitable[None] | None], request: Any,
-                      response: Any) -> None:
+                      response: Any, requests: RequestQueue) -> None:
         """Run the handler on the worker (again after each arrival while its frame is not ready);
         fill success, message and elapsed (s, from the start of its turn) whatever happens."""
         start = time.perf_counter()
@@ -164,7 +197,7 @@ class OperatorNode(GuardedNode):
             while True:
                 arrivals = self._arrival_count
                 try:
-                    pending = await self.requests.run(handler, request, response)
+                    pending = await requests.run(handler, request, response)
                     if inspect.isawaitable(pending):
                         await pending
                     break
@@ -174,13 +207,62 @@ class OperatorNode(GuardedNode):
                         raise
                     if self._arrival_count == arrivals:  # else it came while the handler ran: try again
                         await self.wait_for(None, remaining)  # the next arrival, or the deadline
+            self._settle(name, response, start)
+        except Exception as exc:  # noqa: BLE001  (answered: _settle)
+            self._settle(name, response, start, exc)
+
+    def answer_here(self, name: str, request: Any, timeout: float) -> Any | None:
+        """The answer to a request from another node of this process (local_services.py): the
+        same checks, queue and answer as the service callback (`serve`), without the middleware;
+        the calling thread waits (at most `timeout` s: None) and waits for a frame not arrived yet
+        itself. The work runs on this node's worker, in turn with the requests from outside."""
+        srv_type, handler = self._handlers[name]
+        response = srv_type.Response()
+        requests = self.requests
+        if not self.serving or requests is None:
+            response.success, response.message = False, self.refusal(name)
+            return response
+        busy = requests.busy()
+        if busy is not None:
+            response.success, response.message = False, busy
+            return response
+        try:
+            start = time.perf_counter()
+            give_up = time.monotonic() + timeout
+            deadline = start + float(self.param("frame_timeout"))
+            try:
+                while True:
+                    arrivals = self._arrival_count
+                    try:
+                        requests.run_waiting(handler, (request, response), give_up - time.monotonic())
+                        break
+                    except FrameNotReady:
+                        remaining = deadline - time.perf_counter()
+                        if remaining <= 0:
+                            raise
+                        with self._arrival_signal:  # the next arrival, or the deadline
+                            if self._arrival_count == arrivals:
+                                self._arrival_signal.wait(min(remaining, max(0.0, give_up - time.monotonic())))
+                self._settle(name, response, start)
+            except TimeoutError:
+                return None
+            except Exception as exc:  # noqa: BLE001  (answered: _settle)
+                self._settle(name, response, start, exc)
+        finally:
+            requests.done()
+        return response
+
+    def _settle(self, name: str, response: Any, start: float, exc: Exception | None = None) -> None:
+        """Fill success, message and elapsed (s since `start`): ok, a refusal (ValueError: a bad
+        request, a failed operator) or an internal error (logged; the node keeps serving)."""
+        if exc is None:
             response.success = True
             response.message = response.message or "ok"
-        except ValueError as exc:
+        elif isinstance(exc, ValueError):
             response.success = False
             response.message = str(exc)
             self.health.failure(f"{name}: {exc}")
-        except Exception as exc:  # answer, log, keep serving
+        else:
             self.get_logger().error(f"{name} failed: {exc!r}")
             response.success = False
             response.message = f"internal error: {exc!r}"
@@ -188,12 +270,12 @@ class OperatorNode(GuardedNode):
         self.health.answered += 1
         response.elapsed = time.perf_counter() - start
 
-    def on_exit(self) -> None:
-        self.requests.close()
-
     def _arrived(self) -> None:
-        """A frame or ground truth arrived: wake the service callbacks waiting for one."""
-        self._arrival_count += 1
+        """A frame or ground truth arrived: wake the service callbacks (and in-process callers)
+        waiting for one."""
+        with self._arrival_signal:
+            self._arrival_count += 1
+            self._arrival_signal.notify_all()
         waiters, self._arrivals = self._arrivals, []
         for future in waiters:
             if not future.done():
@@ -388,17 +470,26 @@ def make_hypothesis(header: Header, object_id: str, pose: Pose | PoseMsg | None,
 
 def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
          executor_factory: Callable[[], Any] = SingleThreadedExecutor) -> None:
-    """main() of a node: init, spin an executor (single-threaded by default) until Ctrl-C or
-    SIGTERM, then destroy the node and shut down, in that order.
+    """main() of a node: run_nodes with this one node."""
+    run_nodes([node_factory], args, executor_factory)
+
+
+def run_nodes(node_factories: list[Callable[[], Node]], args: list[str] | None = None,
+              executor_factory: Callable[[], Any] = SingleThreadedExecutor) -> None:
+    """Init, make the nodes (a managed node then starts: autostart configures and activates it),
+    spin one executor (single-threaded by default) until Ctrl-C, SIGTERM or every node is
+    finalized (the lifecycle shutdown transition), then shut the nodes down (a managed node frees
+    what it configured), destroy them and shut rclpy down, in that order.
 
     Signals are Python's (rclpy's handler would shut the context down first, and a node
     destroyed after that leaves its DDS endpoints announced for the lease duration, about
     20 s: clients then see a service that no longer answers). The executor wakes every
     0.2 s so a signal is handled promptly. A node that cannot start (bad parameters, an
-    unreadable models folder) logs why and exits 2.
+    unreadable models folder with autostart) logs why and the process exits 2.
     """
     configure_ros_environment()  # loopback defaults before rclpy starts
     clean_stale_fastdds_shm()  # segments of killed participants (launcher/fastdds_shm.py)
+    keep_freed_memory()  # before the numeric work allocates (util/allocator.py)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     # SIGINT and SIGTERM set a flag the loop checks (every 0.2 s at most), rather than raising
     # KeyboardInterrupt wherever the main thread happens to be: raised inside a __del__ it is
@@ -407,25 +498,36 @@ def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda _signum, _frame: stop.set())
-    node = None
+    nodes: list[Node] = []
     executor = None
     try:
         try:
-            node = node_factory()
+            for factory in node_factories:
+                node = factory()
+                nodes.append(node)
+                if isinstance(node, ManagedNode):
+                    node.start()
         except (ValueError, OSError, ParameterException) as exc:  # the last: a value outside its range
             rclpy.logging.get_logger("perception_config").fatal(f"cannot start: {exc}")
             raise SystemExit(2) from None
         executor = executor_factory()
-        executor.add_node(node)
-        while rclpy.ok() and not stop.is_set():
+        for node in nodes:
+            executor.add_node(node)
+        while rclpy.ok() and not stop.is_set() and not all(getattr(n, "finalized", False) for n in nodes):
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if node is not None and hasattr(node, "on_exit"):
-            node.on_exit()
+        for node in reversed(nodes):
+            try:
+                if isinstance(node, ManagedNode):
+                    node.shutdown_now()
+                elif hasattr(node, "on_exit"):
+                    node.on_exit()
+            except Exception as exc:  # noqa: BLE001  (the others still stop)
+                node.get_logger().error(f"shutdown failed: {exc!r}")
         if executor is not None:
             executor.shutdown()
-        if node is not None:
+        for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()

@@ -12,6 +12,7 @@ Parameters: PARAMETERS below (those of every operator node and the robot's servi
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from perception_config_interfaces.srv import Pick
 from rclpy.task import Future
@@ -30,16 +31,19 @@ PARAMETERS = OPERATOR_PARAMETERS + (
 class PickNode(OperatorNode):
     """Serves `pick`: simulated from the replayed ground truth, or forwarded to the robot."""
 
-    def __init__(self) -> None:
-        super().__init__("pick_node", PARAMETERS, ground_truth=True)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("pick_node", PARAMETERS, ground_truth=True, **kwargs)
+
+    def setup(self) -> None:
+        super().setup()
         robot = self.param("robot_service")
         self._robot = self.create_client(Pick, robot, callback_group=self._wait_group) if robot else None
         picks = [a.name for a in self.pipeline.actions if a.kind == Kind.PICK]
         if not picks and self._robot is None:
             raise ValueError(f"pipeline {self.pipeline.source} has no pick action and no robot_service is set")
         self._pick_action = picks[0] if picks else ""
-        self.serve(Pick, "pick", self._on_pick)
-        self.get_logger().info(f"serving pick ({'robot service ' + robot if robot else self._pick_action})")
+        self.serve(Pick, "pick", self._on_pick, local=self._robot is None)  # forwarding awaits the robot
+        self.serving_line = f"serving pick ({'robot service ' + robot if robot else self._pick_action})"
 
     def _on_pick(self, request: Pick.Request, response: Pick.Response):
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)

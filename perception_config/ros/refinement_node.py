@@ -11,6 +11,8 @@ Parameters: PARAMETERS below, those of every operator node.
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from perception_config_interfaces.srv import RefineHypothesis
 
@@ -24,11 +26,14 @@ PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own
 class RefinementNode(OperatorNode):
     """Serves `refine_hypothesis`: the pipeline's refiners on a cached camera frame."""
 
-    def __init__(self) -> None:
-        super().__init__("refinement_node", PARAMETERS)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("refinement_node", PARAMETERS, **kwargs)
+
+    def setup(self) -> None:
+        super().setup()
         self.serve(RefineHypothesis, "refine_hypothesis", self._on_refine)
         actions = [a.name for a in self.pipeline.actions if a.kind == Kind.REFINEMENT]
-        self.get_logger().info(f"serving refine_hypothesis ({', '.join(actions)})")
+        self.serving_line = f"serving refine_hypothesis ({', '.join(actions)})"
 
     def _on_refine(self, request: RefineHypothesis.Request, response: RefineHypothesis.Response) -> None:
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)

@@ -130,10 +130,11 @@ def replay_spec(bag: Path, rate: float, rgb_only: bool, ground_truth_subscribers
 def replay_check(
     dataset: str | Path, out: str | Path, policy: str | Path | None = None, pipeline: str | Path | None = None,
     images: int = 8, noise_lambda: float = 0.5, seed: int = 0, rate: float = 1.0, quiet: bool = True,
-    image_keys: list[tuple[int, int]] | None = None,
+    image_keys: list[tuple[int, int]] | None = None, composed: bool = False,
 ) -> dict[str, Any]:
     """Run the check (see the module docstring); returns the summary written to results.json.
-    `image_keys` replaces the policy's test images (e.g. every image of a tiny dataset)."""
+    `image_keys` replaces the policy's test images (e.g. every image of a tiny dataset);
+    `composed`: the five service nodes in one process (ros/composed.py)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     policy = Path(policy).resolve() if policy else None
@@ -161,7 +162,7 @@ def replay_check(
     specs.append(replay_spec(bag, rate, rgb_only))
     log_dir = out / "logs"
     with open(out / "launch.log", "w") as launch_log:
-        launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
+        launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None, composed=composed)
         servers = {s.name for s in specs[:5]}
         with launcher:
             deadline = time.monotonic() + 60.0 + len(keys) / (RECORD_RATE_HZ * rate if rate > 0 else 1e9)
@@ -175,10 +176,10 @@ def replay_check(
             if set(launcher.running()) != servers:
                 raise RuntimeError(f"a node died during the check (see {log_dir}): still running {launcher.running()}")
     local = run_in_process(env, policy, plan)
-    return _summarise(out, plan, ros, local, policy, keys)
+    return _summarise(out, plan, ros, local, policy, keys, composed)
 
 
-def _summarise(out: Path, plan, ros, local, policy, keys) -> dict[str, Any]:
+def _summarise(out: Path, plan, ros, local, policy, keys, composed: bool = False) -> dict[str, Any]:
     n = len(plan)
     p_ros = sum(r["picked"] for r in ros) / n
     p_local = sum(r["picked"] for r in local) / n
@@ -190,6 +191,7 @@ def _summarise(out: Path, plan, ros, local, policy, keys) -> dict[str, Any]:
     tol = success_noise(p_local, n)
     summary = {
         "policy": str(policy) if policy else "fixed pipeline", "images": len(keys), "episodes": n,
+        "nodes": "composed (one process)" if composed else "separate processes",
         "answered": sum(r["success"] for r in ros),
         "success_ros": p_ros, "success_in_process": p_local, "success_tolerance": tol,
         "success_matches": abs(p_ros - p_local) <= tol,
@@ -243,7 +245,7 @@ def _plot(path: Path, ros, local, summary) -> None:
 def format_summary(s: dict[str, Any]) -> str:
     verdict = "matches" if s["success_matches"] else "DIFFERS from"
     return "\n".join([
-        f"replayed {s['images']} images, {s['episodes']} episodes, policy: {s['policy']}",
+        f"replayed {s['images']} images, {s['episodes']} episodes, policy: {s['policy']}, nodes: {s['nodes']}",
         f"success through ROS {s['success_ros']:.1%} {verdict} in-process {s['success_in_process']:.1%} "
         f"(tolerance {s['success_tolerance']:.1%}); {s['identical_episodes']} of {s['episodes']} episodes identical",
         f"operator time through ROS / in-process: {s['operator_time_ratio']:.3f}x "
@@ -258,7 +260,7 @@ def run_cli(args: Any) -> int:
     rclpy.init()
     try:
         s = replay_check(args.dataset, args.out, args.policy, args.pipeline, args.images, args.noise_lambda,
-                         rate=args.rate)
+                         rate=args.rate, composed=args.composed)
     finally:
         rclpy.try_shutdown()
     print(format_summary(s))

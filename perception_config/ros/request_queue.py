@@ -25,6 +25,7 @@ lost its own among them). The served answers are paced by the work itself.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import queue
 import threading
 from collections import deque
@@ -66,6 +67,7 @@ class RequestQueue:
         self.held = 0  # requests admitted and not yet answered (waiting or being served)
         self.most_held = 0  # the high-water mark, for diagnostics
         self.refused = 0  # requests answered busy since the start, for diagnostics
+        self._count = threading.Lock()  # busy()/done() come from the executor and from in-process callers
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
         self._wake = node.create_guard_condition(lambda: None, callback_group=ReentrantCallbackGroup())
         self._paced: deque[Future] = deque()  # busy answers waiting for their turn
@@ -77,15 +79,17 @@ class RequestQueue:
 
     def busy(self) -> str | None:
         """None when the request is admitted (and counted), else the busy message."""
-        if self.held > self.depth:
-            self.refused += 1
-            return f"busy: {self.held - 1} requests queued (request_queue={self.depth})"
-        self.held += 1
-        self.most_held = max(self.most_held, self.held)
-        return None
+        with self._count:
+            if self.held > self.depth:
+                self.refused += 1
+                return f"busy: {self.held - 1} requests queued (request_queue={self.depth})"
+            self.held += 1
+            self.most_held = max(self.most_held, self.held)
+            return None
 
     def done(self) -> None:
-        self.held -= 1
+        with self._count:
+            self.held -= 1
 
     async def pace(self) -> None:
         """Await this busy answer's turn: at most one busy answer per PACE seconds leaves the node
@@ -110,6 +114,14 @@ class RequestQueue:
         self._jobs.put((fn, args, future))
         return await future
 
+    def run_waiting(self, fn: Callable[..., Any], args: tuple, timeout: float) -> Any:
+        """fn(*args) on the worker thread, in turn, the calling thread waiting for it (another
+        node of the process: local_services.py); its result or what it raised; TimeoutError after
+        `timeout` s (the work still runs)."""
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        self._jobs.put((fn, args, future))
+        return future.result(timeout=max(0.0, timeout))
+
     def _work(self) -> None:
         while True:
             job = self._jobs.get()
@@ -120,6 +132,8 @@ class RequestQueue:
                 future.set_result(fn(*args))
             except Exception as exc:  # handed to the awaiting callback, which answers
                 future.set_exception(exc)
+            if isinstance(future, concurrent.futures.Future):  # a thread waits on it, not the executor
+                continue
             try:
                 self._wake.trigger()
             except Exception:  # the node is being destroyed

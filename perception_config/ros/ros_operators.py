@@ -28,6 +28,9 @@ An operator that fails (success=false: a refiner diverged, the frame has no dept
 `timeout` (plus LAST_LOOK) raises `OperatorCallError`: the episode cannot go on. With `deadline` set, no call
 waits past it (`DeadlineReached`).
 
+In a composed process (composed.py) a call to an operator node of the same process runs its
+service callback directly (local_services.py): no serialisation, no middleware.
+
 Calls block the calling thread, which spins the clients itself: they live on a private node
 with its own single-threaded executor, spun inline until the answer is there (cheaper than
 answers taken by another executor thread and handed over: benchmarks/results/ros.json). So calls
@@ -52,6 +55,7 @@ from ..blocks.base import BlockInput, BlockResult, Kind
 from ..blocks.pipeline import Pipeline
 from ..core.geometry import Pose
 from ..rl.operators import Episode, StepOutcome, draw_seed, refiner_stream
+from . import local_services
 from .conversions import msg_to_pose, pose_to_msg, stamp_to_nanoseconds
 
 SERVICES = {"generate": "generate_hypothesis", "refine": "refine_hypothesis", "score": "score_hypothesis",
@@ -88,6 +92,8 @@ class RosOperators:
         names = {**SERVICES, **(services or {})}
         types = {"generate": GenerateHypothesis, "refine": RefineHypothesis, "score": ScoreHypothesis, "pick": Pick}
         self.clients = {k: self.node.create_client(types[k], names[k]) for k in types}
+        # the services' full names, to find them among this process's nodes (local_services.py)
+        self._resolved = {k: self.node.resolve_service_name(names[k]) for k in types}
         self.episode: Episode | None = None
         self.pose: Pose | None = None
         self.pose_msg: PoseMsg | None = None  # self.pose as answered: passed on as it is, never converted again
@@ -114,6 +120,9 @@ class RosOperators:
             if remaining <= 0:
                 raise DeadlineReached(f"the deadline came before calling {client.srv_name}")
             timeout, cut = min(timeout, remaining), remaining < timeout
+        local = local_services.find(self._resolved[which])
+        if local is not None:  # a node of this (composed) process: its callback, without the middleware
+            return self._call_local(which, local, request, timeout, cut)
         # A node that has just started may not be discovered yet: wait for it, up to the call's
         # timeout the first time (discovery on a loaded machine takes seconds), 2 s once it has
         # been seen (then it is more likely gone than late).
@@ -141,6 +150,18 @@ class RosOperators:
         response = future.result()
         if response is None:
             raise OperatorCallError(f"{client.srv_name} gave no answer (shutting down?)")
+        self.round_trips.append((which, time.perf_counter() - start, float(response.elapsed)))
+        return response
+
+    def _call_local(self, which: str, local: local_services.LocalService, request: Any, timeout: float,
+                    cut: bool) -> Any:
+        start = time.perf_counter()
+        response = local.call(request, timeout)
+        if response is None:
+            if cut:
+                raise DeadlineReached(f"the deadline came while waiting {timeout:.3g} s for {self._resolved[which]}")
+            raise OperatorCallError(f"{self._resolved[which]} did not answer within {timeout:g} s "
+                                    f"(operator_timeout; served by {NODES[which]} in this process)")
         self.round_trips.append((which, time.perf_counter() - start, float(response.elapsed)))
         return response
 

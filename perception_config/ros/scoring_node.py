@@ -10,6 +10,8 @@ Parameters: PARAMETERS below, those of every operator node.
 """
 from __future__ import annotations
 
+from typing import Any
+
 from perception_config_interfaces.srv import ScoreHypothesis
 
 from ..blocks.base import Kind
@@ -22,10 +24,13 @@ PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own
 class ScoringNode(OperatorNode):
     """Serves `score_hypothesis`: the pipeline's scoring set on a cached camera frame."""
 
-    def __init__(self) -> None:
-        super().__init__("scoring_node", PARAMETERS)
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("scoring_node", PARAMETERS, **kwargs)
+
+    def setup(self) -> None:
+        super().setup()
         self.serve(ScoreHypothesis, "score_hypothesis", self._on_score)
-        self.get_logger().info(f"serving score_hypothesis ({', '.join(self.pipeline.score_names)})")
+        self.serving_line = f"serving score_hypothesis ({', '.join(self.pipeline.score_names)})"
 
     def _on_score(self, request: ScoreHypothesis.Request, response: ScoreHypothesis.Response) -> None:
         stamp_ns, object_id, pose = hypothesis_pose(request.hypothesis)

@@ -1,0 +1,213 @@
+"""Managed nodes and the composed cell, on real node processes: every lifecycle transition of an
+operator node (what it serves in each state, cleanup freeing its services, configure again,
+shutdown ending the process), a bad policy failing the configurator's configure with its
+reason (on /diagnostics and through `perception-config launch`), deactivate answering the
+queued estimates while refusing new ones, and a composed cell answering estimates through the
+in-process path."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ros_helpers import NodeProcess, call, wait_for_service
+
+pytestmark = pytest.mark.ros
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def parts_models(tmp_path_factory) -> Path:
+    from perception_config.datasets.parts import write_models
+
+    return write_models(tmp_path_factory.mktemp("parts") / "models")
+
+
+def _refine_request(object_id: str = "1"):
+    from perception_config_interfaces.srv import RefineHypothesis
+
+    request = RefineHypothesis.Request(method="icp_point")
+    request.hypothesis.object_id = object_id
+    request.hypothesis.pose.position.z = 0.5
+    request.hypothesis.pose.orientation.w = 1.0
+    return request
+
+
+def _until(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} within {timeout} s")
+        time.sleep(0.1)
+
+
+def test_every_transition_of_an_operator_node(ros_node, parts_models, tmp_path):
+    from perception_config_interfaces.srv import RefineHypothesis
+
+    from perception_config.ros.lifecycle_manager import LifecycleManager
+
+    node = NodeProcess("refinement_node", {"models_dir": parts_models, "autostart": "false", "frame_timeout": 0.2},
+                       log_dir=tmp_path)
+    manager = LifecycleManager(["refinement_node"])
+    client = ros_node.create_client(RefineHypothesis, "refine_hypothesis")
+    try:
+        _until(lambda: manager.state("refinement_node") == "unconfigured", 30, "unconfigured")
+        assert not client.wait_for_service(timeout_sec=1.0), "an unconfigured node offers its service"
+
+        assert manager.transition("refinement_node", "configure") == (True, "")
+        assert manager.state("refinement_node") == "inactive"
+        wait_for_service(ros_node, client, process=node)
+        answer = call(ros_node, client, _refine_request())
+        assert not answer.success and "refinement_node is inactive" in answer.message, answer.message
+
+        assert manager.transition("refinement_node", "activate") == (True, "")
+        answer = call(ros_node, client, _refine_request())  # served: no frame has arrived
+        assert not answer.success and "no camera frame" in answer.message, answer.message
+        answer = call(ros_node, client, _refine_request("999"))
+        assert "unknown object id '999'" in answer.message, answer.message
+
+        assert manager.transition("refinement_node", "deactivate") == (True, "")
+        answer = call(ros_node, client, _refine_request())
+        assert not answer.success and "is inactive" in answer.message, answer.message
+        level, message = manager.fresh_status("refinement_node")
+        assert (level, message) == (1, "inactive: not serving")  # WARN
+
+        assert manager.transition("refinement_node", "cleanup") == (True, "")
+        assert manager.state("refinement_node") == "unconfigured"
+        _until(lambda: not client.service_is_ready(), 10, "the service gone after cleanup")
+
+        assert manager.transition("refinement_node", "configure") == (True, "")  # again, from scratch
+        assert manager.transition("refinement_node", "activate") == (True, "")
+        wait_for_service(ros_node, client, process=node)
+        answer = call(ros_node, client, _refine_request())
+        assert "no camera frame" in answer.message, answer.message
+
+        assert manager.transition("refinement_node", "shutdown") == (True, "")
+        assert node.proc.wait(15) == 0, node.output()  # finalized: the process ends
+    finally:
+        manager.close()
+        ros_node.destroy_client(client)
+        node.stop()
+    text = node.output()
+    for line in ("unconfigured: waiting for a lifecycle manager", "configured", "serving refine_hypothesis",
+                 "inactive: new requests are refused", "cleaned up: unconfigured"):
+        assert line in text, text
+
+
+def test_a_bad_policy_fails_the_configurators_configure_with_its_reason(ros_node, parts_models, tmp_path):
+    from perception_config.ros.lifecycle_manager import LifecycleManager
+
+    bad = tmp_path / "policy.safetensors"
+    bad.write_bytes(b"not a policy")
+    node = NodeProcess("configurator_node", {"models_dir": parts_models, "policy": bad, "autostart": "false"},
+                       log_dir=tmp_path)
+    manager = LifecycleManager(["configurator_node"])
+    try:
+        _until(lambda: manager.state("configurator_node") == "unconfigured", 60, "unconfigured")
+        done, reason = manager.transition("configurator_node", "configure")
+        assert not done
+        assert f"policy file {bad} is corrupt or not a policy" in reason, reason
+        assert manager.state("configurator_node") == "unconfigured"
+        level, message = manager.fresh_status("configurator_node")
+        assert level == 2 and message.startswith("configure failed: policy file"), message  # ERROR, the reason
+        assert node.alive()  # a failed transition is not a crash: a fixed file may be configured next
+        assert not manager.transition("configurator_node", "activate")[0]  # nothing to activate
+    finally:
+        manager.close()
+        node.stop()
+    assert "configure failed: policy file" in node.output()
+
+
+class _Launch:
+    """`perception-config launch ...` as a process in its own group, its output collected."""
+
+    def __init__(self, args: list[str], cwd: Path) -> None:
+        env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        self.proc = subprocess.Popen([sys.executable, "-m", "perception_config.cli", "launch", *args], cwd=cwd,
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     start_new_session=True)
+        self.lines: list[str] = []
+        import threading
+
+        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
+                                        daemon=True)
+        self._reader.start()
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> None:
+        _until(lambda: any(text in line for line in list(self.lines)) or self.proc.poll() is not None, timeout,
+               f"a line {text!r}")
+        assert any(text in line for line in self.lines), self.output()
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+        try:
+            return self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            return self.proc.wait(10)
+        finally:
+            self._reader.join(5)
+
+
+def test_launch_names_the_node_that_fails_to_configure_and_stops_the_cell(parts_models, tmp_path):
+    bad = tmp_path / "policy.safetensors"
+    bad.write_bytes(b"not a policy")
+    launch = _Launch(["--models", str(parts_models), "--policy", str(bad), "--composed"], tmp_path)
+    try:
+        assert launch.proc.wait(120) == 1, launch.output()
+    finally:
+        launch.stop()
+    text = launch.output()
+    assert "[launch] pick_node: configured" in text, text  # the operator nodes first, in order
+    assert f"[launch] configurator_node failed to configure: policy file {bad} is corrupt" in text, text
+    assert "configurator_node: active" not in text and "generation_node: active" not in text, text
+
+
+def test_a_composed_cell_answers_and_deactivate_answers_the_queued_estimates(ros_node, parts_models, tmp_path):
+    """Three estimates queued (each waits frame_timeout for a frame that never comes), then the
+    configurator is deactivated: the three are answered as estimates, a fourth is refused."""
+    from perception_config_interfaces.srv import EstimatePose
+
+    from perception_config.ros.lifecycle_manager import LifecycleManager
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    frame_timeout: 0.5\n")
+    launch = _Launch(["--models", str(parts_models), "--policy", "none", "--composed",
+                      "--params-file", str(params)], tmp_path)
+    manager = LifecycleManager(["configurator_node"])
+    client = ros_node.create_client(EstimatePose, "estimate_pose")
+    try:
+        launch.wait_for("[launch] configurator_node: active", 120)
+        assert "[launch] started perception_cell" in launch.output()
+        wait_for_service(ros_node, client)
+        answer = call(ros_node, client, EstimatePose.Request(object_id="1"), timeout=30)
+        # the generator was asked (in-process) and waited frame_timeout for the frame's ground truth
+        assert not answer.success and "no first hypothesis: no ground truth" in answer.message, answer.message
+        futures = [client.call_async(EstimatePose.Request(object_id="1")) for _ in range(3)]
+        import rclpy
+
+        deadline = time.monotonic() + 0.3  # let the three be taken before deactivating
+        while time.monotonic() < deadline:
+            rclpy.spin_once(ros_node, timeout_sec=0.05)
+        assert manager.transition("configurator_node", "deactivate") == (True, "")
+        refused = call(ros_node, client, EstimatePose.Request(object_id="1"))
+        assert not refused.success and "configurator_node is inactive" in refused.message, refused.message
+        for future in futures:
+            rclpy.spin_until_future_complete(ros_node, future, timeout_sec=30)
+            assert future.done()
+            assert "no first hypothesis: no ground truth" in future.result().message, future.result().message
+    finally:
+        manager.close()
+        ros_node.destroy_client(client)
+        code = launch.stop()
+    assert code == 0, launch.output()
