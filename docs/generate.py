@@ -174,7 +174,8 @@ def node_parameters_reference() -> str:
            "Generated from the ParameterDescriptors the nodes declare "
            "(`perception_config.ros.parameter_docs.node_parameter_table()`): "
            "`ros2 param describe <node> <name>` prints the same at run time. "
-           "Read-only parameters are read once at start-up; the others may be changed with `ros2 param set`.",
+           "Read-only parameters are read once, when the node is configured (a managed node: at start-up with "
+           "`autostart`); the others may be changed with `ros2 param set`.",
            ""]
     for node, params in node_parameter_table().items():
         out.extend([f"## `{node}`", "", "| parameter | type | default | range | read-only | meaning |",

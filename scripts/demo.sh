@@ -13,8 +13,9 @@
 #      ranked candidates, ppf, global_registration, ICP; only the simulated pick looks at the ground truth)
 #      and evaluate it against best_static, the fixed ground-truth-free pipelines and the oracle;
 #   6. through ROS 2: record test images to MCAP, replay them with bag_replay_node through the
-#      operator nodes and the configurator running the trained policy (each its own process),
-#      estimate every object with estimate_pose and compare with the same episodes in-process.
+#      operator nodes and the configurator running the trained policy (each its own process, then
+#      all composed in one), estimate every object with estimate_pose and compare with the same
+#      episodes in-process.
 # Environment: DEMO_SCORE_EPISODES (episodes the score is fitted on, default 400), DEMO_EPISODES
 # (training episodes, default 1500), DEMO_EVAL_EPISODES (episodes per lambda, default 40),
 # DEMO_LAMBDAS (default 0.1,0.3,0.5,0.7,1.0), DEMO_SEARCH_EPISODES (train episodes per lambda the
@@ -75,9 +76,11 @@ perception-config evaluate --dataset "$DATA" --policy "$CELL_RUN/policy.safetens
   --best-static-episodes "${DEMO_SEARCH_EPISODES:-16}"
 
 t_ros=$(date +%s)
-say "6/6 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42})"
+say "6/6 ROS 2: replaying ${DEMO_REPLAY_IMAGES:-8} test images through the nodes (loopback, ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42}), as separate processes, then composed in one"
 perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay" \
   --images "${DEMO_REPLAY_IMAGES:-8}"
+perception-config replay-check --dataset "$DATA" --policy "$RUN/policy.safetensors" --out "$OUT/replay_composed" \
+  --images "${DEMO_REPLAY_IMAGES:-8}" --composed
 
 t_end=$(date +%s)
 table() { "$PY" -c 'import json, sys; from perception_config.learning.evaluation_export import format_table
@@ -100,4 +103,5 @@ echo "  $RUN/cost_model.json          the cost model the agent was trained and e
 echo "  $CELL_RUN/learning_curve.png  the cell agent's training curve"
 echo "  $OUT/cell/results.json             the cell pipeline: agent vs fixed ground-truth-free pipelines and oracle"
 echo "  $OUT/replay/replay_check.png       through ROS vs in-process: success and operator time"
+echo "  $OUT/replay_composed/replay_check.png  the same with the nodes composed in one process"
 echo "  $OUT/replay/replay.mcap            the recorded bag (perception-config launch --bag ... --policy ... replays it)"

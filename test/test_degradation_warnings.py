@@ -150,7 +150,7 @@ def test_launch_warns_once_before_starting_the_nodes(tmp_path, monkeypatch, caps
     assert specs[-1].name == "bag_replay_node"
 
     started = []
-    monkeypatch.setattr(supervisor, "run", lambda specs, log_dir=None: started.append(specs) or 0)
+    monkeypatch.setattr(supervisor, "run", lambda specs, log_dir=None, **_: started.append(specs) or 0)
     monkeypatch.chdir(tmp_path)
     assert cli.main(["launch", "--bag", str(bag), "--models", str(models), "--policy", "none"]) == 0
     out, err = capsys.readouterr()

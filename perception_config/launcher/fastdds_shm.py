@@ -12,7 +12,7 @@ named after the UDP-like port number, so they are reused by the next participant
 rather than accumulating, and Fast DDS repairs a port whose listener died when it opens it;
 removing one while another process opens it would break that process's discovery.
 
-Called once at the start of every node (operator_node.spin, bag_replay_node.main), before
+Called once at the start of every node (node_main.run_nodes, bag_replay_node.main), before
 rclpy.init. Cost: one directory listing and one open+flock per lock file (0.1-0.3 ms for
 184 files here). A lock file younger than `min_age_s` is left alone: its owner may be
 between creating it and locking it.

@@ -25,7 +25,7 @@ from typing import Any, Callable
 from rclpy.executors import MultiThreadedExecutor
 
 from . import local_services
-from .operator_node import run_nodes
+from .node_main import run_nodes
 
 # executable -> (module, class) of the nodes that can be composed
 COMPOSABLE = {

@@ -72,7 +72,8 @@ from .diagnostics import NodeDiagnostics
 from .estimate_action import CANCELLED, EstimateAction
 from .learning import NodeLearning, version_qos
 from .managed_node import ManagedNode
-from .operator_node import make_hypothesis, spin
+from .node_main import spin
+from .operator_node import make_hypothesis
 from .request_fields import parse_estimate_fields, parse_estimate_id, parse_object_id
 from .request_queue import RequestQueue, service_qos
 from .ros_operators import DeadlineReached, OperatorCallError, RosOperators

@@ -22,7 +22,8 @@ from perception_config_interfaces.srv import GenerateHypothesis
 from ..blocks.base import Kind
 from ..core.geometry import LAMBDA_MAX, check_noise_lambda
 from .conversions import stamp_to_nanoseconds
-from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, make_hypothesis, spin
+from .node_main import spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, make_hypothesis
 from .parameters import NodeParameter
 from .request_fields import parse_method, parse_noise_lambda, parse_object_id, parse_stamp
 

@@ -176,13 +176,11 @@ class ManagedNode(GuardedNode, LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.serving = True
         self.get_logger().info(self.serving_line or "serving")
-        self.publish_diagnostics()
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.serving = False
         self.get_logger().info("inactive: new requests are refused, queued ones answered")
-        self.publish_diagnostics()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -192,7 +190,6 @@ class ManagedNode(GuardedNode, LifecycleNode):
             return FAILURE
         self._free()
         self.get_logger().info("cleaned up: unconfigured")
-        self.publish_diagnostics()
         return SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -220,6 +217,20 @@ class ManagedNode(GuardedNode, LifecycleNode):
             if self.configured:
                 self._free()
         self.finalized = True
+
+    def destroy_node(self) -> None:
+        """rclpy's LifecycleNode does not destroy its state machine, which holds the node: the
+        process then exits with its DDS participant alive and Fast DDS leaves its shared-memory
+        segments in /dev/shm. Its services first, then the state machine, then the node."""
+        for name in ("_service_change_state", "_service_get_state", "_service_get_available_states",
+                     "_service_get_available_transitions", "_service_get_transition_graph"):
+            service = getattr(self, name, None)
+            if service is not None:
+                self.destroy_service(service)
+        machine = getattr(self, "_state_machine", None)
+        if machine is not None:
+            machine.destroy_when_not_in_use()
+        super().destroy_node()
 
     # -- hooks for the base's helpers --------------------------------------------------------------
     def requests_held(self) -> int:

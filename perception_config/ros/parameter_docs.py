@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from . import bag_replay_node, configurator_parameters, generation_node, pick_node, refinement_node, scoring_node
+from .managed_node import MANAGED_PARAMETERS
 
 
 def node_parameter_table() -> dict[str, list[dict[str, Any]]]:
@@ -13,11 +14,11 @@ def node_parameter_table() -> dict[str, list[dict[str, Any]]]:
     default (None: not set), description, range ("[low, high]", "inf" = no upper limit;
     "" = none) and read_only (read only at start-up)."""
     nodes = {
-        "generation_node": generation_node.PARAMETERS,
-        "refinement_node": refinement_node.PARAMETERS,
-        "scoring_node": scoring_node.PARAMETERS,
-        "pick_node": pick_node.PARAMETERS,
-        "configurator_node": configurator_parameters.PARAMETERS,
+        "generation_node": generation_node.PARAMETERS + MANAGED_PARAMETERS,
+        "refinement_node": refinement_node.PARAMETERS + MANAGED_PARAMETERS,
+        "scoring_node": scoring_node.PARAMETERS + MANAGED_PARAMETERS,
+        "pick_node": pick_node.PARAMETERS + MANAGED_PARAMETERS,
+        "configurator_node": configurator_parameters.PARAMETERS + MANAGED_PARAMETERS,
         "bag_replay_node": bag_replay_node.PARAMETERS,
     }
     return {node: [p.row() for p in parameters] for node, parameters in nodes.items()}

@@ -18,7 +18,8 @@ from perception_config_interfaces.srv import Pick
 from rclpy.task import Future
 
 from ..blocks.base import Kind
-from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose, spin
+from .node_main import spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose
 from .parameters import NodeParameter
 
 PARAMETERS = OPERATOR_PARAMETERS + (

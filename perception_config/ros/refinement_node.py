@@ -17,7 +17,8 @@ import numpy as np
 from perception_config_interfaces.srv import RefineHypothesis
 
 from ..blocks.base import Kind
-from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, hypothesis_pose, make_hypothesis, spin
+from .node_main import spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, answered_pose, hypothesis_pose, make_hypothesis
 from .request_fields import parse_method
 
 PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own

@@ -15,7 +15,8 @@ from typing import Any
 from perception_config_interfaces.srv import ScoreHypothesis
 
 from ..blocks.base import Kind
-from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose, make_hypothesis, spin
+from .node_main import spin
+from .operator_node import OPERATOR_PARAMETERS, OperatorNode, hypothesis_pose, make_hypothesis
 from .request_fields import parse_methods
 
 PARAMETERS = OPERATOR_PARAMETERS  # no parameters of its own
