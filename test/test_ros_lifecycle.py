@@ -175,7 +175,8 @@ def test_launch_names_the_node_that_fails_to_configure_and_stops_the_cell(parts_
 
 def test_a_composed_cell_answers_and_deactivate_answers_the_queued_estimates(ros_node, parts_models, tmp_path):
     """Three estimates queued (each waits frame_timeout for a frame that never comes), then the
-    configurator is deactivated: the three are answered as estimates, a fourth is refused."""
+    configurator is deactivated: the three are answered as estimates, a fourth is refused; then
+    cleaned up, configured and activated again, it serves."""
     from perception_config_interfaces.srv import EstimatePose
 
     from perception_config.ros.lifecycle_manager import LifecycleManager
@@ -206,6 +207,12 @@ def test_a_composed_cell_answers_and_deactivate_answers_the_queued_estimates(ros
             rclpy.spin_until_future_complete(ros_node, future, timeout_sec=30)
             assert future.done()
             assert "no first hypothesis: no ground truth" in future.result().message, future.result().message
+        # cleanup frees the configurator's clients, store and queue; configure makes them anew
+        assert manager.transition("configurator_node", "cleanup") == (True, "")
+        assert manager.transition("configurator_node", "configure") == (True, "")
+        assert manager.transition("configurator_node", "activate") == (True, "")
+        answer = call(ros_node, client, EstimatePose.Request(object_id="1"), timeout=30)
+        assert "no first hypothesis: no ground truth" in answer.message, answer.message
     finally:
         manager.close()
         ros_node.destroy_client(client)
