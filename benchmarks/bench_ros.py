@@ -11,7 +11,8 @@ in-process. Reported per layout: the median over rounds of the operator time and
 estimate's wall time, ROS over in-process (targets: composed <= 1.15x, separate <= 1.30x), the
 same ratio on the operators that change the hypothesis (generation and refinement: in-process
 also re-scores an unchanged hypothesis after a pick, which the nodes skip), and whether every
-episode was identical. Writes results/ros_layouts.json and .png.
+episode was identical. Writes results/ros_layouts.json and .png; each round's replay-check folder
+(bag, node logs, episodes) goes to outputs/bench_ros_layouts/.
 
 Without it:
 
@@ -117,7 +118,7 @@ def replay_layouts(args) -> int:
 
     policy = None if args.policy == "none" else (Path(args.policy) if args.policy else newest_policy())
     out = Path(args.out if args.out != DEFAULT_OUT else REPO / "benchmarks" / "results" / "ros_layouts.json")
-    work = out.with_suffix(".runs")
+    work = REPO / "outputs" / f"bench_{out.stem}"  # each round's bag, logs and episodes (not kept in git)
     configure_ros_environment()
     rclpy.init()
     rounds: list[dict] = []

@@ -117,6 +117,15 @@ def stop_all(nodes: dict[str, NodeProcess], timeout: float = 10.0) -> dict[str, 
     return {name: node.stop(timeout) for name, node in nodes.items()}
 
 
+def wait_until(cond, timeout: float, what: str) -> None:
+    """Poll `cond()` until true; AssertionError "<what> within <timeout> s" after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} within {timeout} s")
+        time.sleep(0.05)
+
+
 def wait_for_service(node, client, timeout: float = 20.0, process: NodeProcess | None = None) -> None:
     """Wait for a service; fail at once with the node's output when its process died."""
     deadline = time.monotonic() + timeout

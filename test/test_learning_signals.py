@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from learn_helpers import learner_log, make_data, make_recorded, record_like_the_configurator
-from ros_helpers import NodeProcess
+from ros_helpers import NodeProcess, wait_until
 
 STOP_WITHIN = 5.0  # s
 
@@ -42,14 +42,6 @@ def _one_more_estimate(store: Path) -> None:
         cols = [r[1] for r in db.execute("PRAGMA table_info(episodes)") if r[1] != "id"]
         db.execute(f"INSERT INTO episodes ({', '.join(cols)}) SELECT {', '.join(cols)} FROM episodes "
                    "ORDER BY id LIMIT 1")
-
-
-def _wait(cond, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} within {timeout} s")
-        time.sleep(0.05)
 
 
 def _intact(learn: Path, data, stored: int) -> None:
@@ -87,17 +79,17 @@ def test_sigterm_or_sigint_stops_a_learning_configurator_within_5_s(data, record
         nodes[case] = NodeProcess("configurator_node", {**common, "learn_dir": str(learn[case])}, tmp_path,
                                   own_group=True)
     try:
-        _wait(lambda: "learner process" in nodes["starting"].output(), 90.0, "starting: no learner process")
+        wait_until(lambda: "learner process" in nodes["starting"].output(), 90.0, "starting: no learner process")
         code, took = nodes["starting"].signal_group(signal.SIGTERM, STOP_WITHIN)  # the learner is importing
         assert code == 0 and took < STOP_WITHIN, (code, took, nodes["starting"].output())
         print(f"learning configurator, starting: SIGTERM -> exit {code} in {took:.2f} s")
         _intact(learn["starting"], data, stored["starting"])
         for case in ("idle", "mid-cycle", "mid-cycle, SIGINT to the node"):
-            _wait(lambda c=case: "learner: started" in learner_log(learn[c]), 90.0, f"{case}: no learner")
+            wait_until(lambda c=case: "learner: started" in learner_log(learn[c]), 90.0, f"{case}: no learner")
         for case in ("mid-cycle", "mid-cycle, SIGINT to the node"):
             _one_more_estimate(learn[case] / "episodes.sqlite")
         for case in ("mid-cycle", "mid-cycle, SIGINT to the node"):
-            _wait(lambda c=case: "learner: training a candidate" in learner_log(learn[c]), 30.0,
+            wait_until(lambda c=case: "learner: training a candidate" in learner_log(learn[c]), 30.0,
                   f"{case}: the learner did not start a cycle")
         time.sleep(1.0)  # into the training
         for case in ("idle", "mid-cycle", "mid-cycle, SIGINT to the node"):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_helpers import NodeProcess, call, wait_for_service
+from ros_helpers import NodeProcess, call, wait_for_service, wait_until
 
 pytestmark = pytest.mark.ros
 
@@ -39,14 +39,6 @@ def _refine_request(object_id: str = "1"):
     return request
 
 
-def _until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} within {timeout} s")
-        time.sleep(0.1)
-
-
 def test_every_transition_of_an_operator_node(ros_node, parts_models, tmp_path):
     from perception_config_interfaces.srv import RefineHypothesis
 
@@ -57,7 +49,7 @@ def test_every_transition_of_an_operator_node(ros_node, parts_models, tmp_path):
     manager = LifecycleManager(["refinement_node"])
     client = ros_node.create_client(RefineHypothesis, "refine_hypothesis")
     try:
-        _until(lambda: manager.state("refinement_node") == "unconfigured", 30, "unconfigured")
+        wait_until(lambda: manager.state("refinement_node") == "unconfigured", 30, "unconfigured")
         assert not client.wait_for_service(timeout_sec=1.0), "an unconfigured node offers its service"
 
         assert manager.transition("refinement_node", "configure") == (True, "")
@@ -80,7 +72,7 @@ def test_every_transition_of_an_operator_node(ros_node, parts_models, tmp_path):
 
         assert manager.transition("refinement_node", "cleanup") == (True, "")
         assert manager.state("refinement_node") == "unconfigured"
-        _until(lambda: not client.service_is_ready(), 10, "the service gone after cleanup")
+        wait_until(lambda: not client.service_is_ready(), 10, "the service gone after cleanup")
 
         assert manager.transition("refinement_node", "configure") == (True, "")  # again, from scratch
         assert manager.transition("refinement_node", "activate") == (True, "")
@@ -109,7 +101,7 @@ def test_a_bad_policy_fails_the_configurators_configure_with_its_reason(ros_node
                        log_dir=tmp_path)
     manager = LifecycleManager(["configurator_node"])
     try:
-        _until(lambda: manager.state("configurator_node") == "unconfigured", 60, "unconfigured")
+        wait_until(lambda: manager.state("configurator_node") == "unconfigured", 60, "unconfigured")
         done, reason = manager.transition("configurator_node", "configure")
         assert not done
         assert f"policy file {bad} is corrupt or not a policy" in reason, reason
@@ -140,7 +132,7 @@ class _Launch:
         self._reader.start()
 
     def wait_for(self, text: str, timeout: float = 60.0) -> None:
-        _until(lambda: any(text in line for line in list(self.lines)) or self.proc.poll() is not None, timeout,
+        wait_until(lambda: any(text in line for line in list(self.lines)) or self.proc.poll() is not None, timeout,
                f"a line {text!r}")
         assert any(text in line for line in self.lines), self.output()
 
