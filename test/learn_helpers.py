@@ -7,6 +7,11 @@ from pathlib import Path
 from rl_helpers import PIPELINE, pipeline_file
 
 BASE_SEC = 1_700_000_000
+# Each image of the tiny dataset is recorded as this many frames (stamps), each estimate with
+# other seeds: as a cell sees the same bin again. The learner holds out a share of the frames
+# (online/promotion_gate.py) and needs at least 5 check frames: 4 images alone would not do.
+REPEATS = 6
+RECORDED = 10_000  # the recorded frames' stamps start at stamp_ns(RECORDED): apart from those tests publish
 
 
 def stamp_ns(i: int) -> int:
@@ -23,8 +28,9 @@ def make_data(synthetic_dataset, tmp_path_factory) -> dict:
 
 
 def make_recorded(data, tmp_path_factory) -> Path:
-    """Every episode of the tiny dataset played by the engineer's sequence, stored as the
-    configurator stores an estimate (an episode in the store + its frame with ground truth)."""
+    """Every episode of the tiny dataset played by the engineer's sequence, REPEATS times (each
+    image recorded as REPEATS frames), stored as the configurator stores an estimate (an episode
+    in the store + its frame with ground truth)."""
     from perception_config.agents import make_agent
     from perception_config.online.policy_learner import FRAMES
     from perception_config.rl.episode_loop import acting_seed, play_episode
@@ -36,14 +42,18 @@ def make_recorded(data, tmp_path_factory) -> Path:
     agent = make_agent("fixed", env)
     writer = StoreWriter(out / STORE_NAME, print)
     keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
-    for j, ek in enumerate(env.source.episodes):
-        stamp, seed = stamp_ns(keys.index((ek.scene_id, ek.im_id))), 1000 + j
-        traj = play_episode(env, agent, {"episode": j, "lambda": 0.5, "episode_seed": seed}, acting_seed(seed))
-        assert store_episode(writer, traj, source="configurator", agent="fixed", policy_version="v0000",
-                             episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
-    for i, key in enumerate(keys):  # each image's frame once (the configurator saves a stamp once)
-        frame = env.source.frame(*key)
-        save_frame(out / FRAMES, stamp_ns(i), frame, {o.obj_id: o.gt for o in frame.objects})
+    n = len(env.source.episodes)
+    for r in range(REPEATS):
+        for j, ek in enumerate(env.source.episodes):
+            stamp, seed = stamp_ns(RECORDED + r * len(keys) + keys.index((ek.scene_id, ek.im_id))), 1000 + r * n + j
+            traj = play_episode(env, agent, {"episode": j, "lambda": 0.5, "episode_seed": seed}, acting_seed(seed))
+            assert store_episode(writer, traj, source="configurator", agent="fixed", policy_version="v0000",
+                                 episode_seed=seed, frame_stamp_ns=stamp, image_ids=False)
+    for r in range(REPEATS):  # each frame once (the configurator saves a stamp once)
+        for i, key in enumerate(keys):
+            frame = env.source.frame(*key)
+            save_frame(out / FRAMES, stamp_ns(RECORDED + r * len(keys) + i), frame,
+                       {o.obj_id: o.gt for o in frame.objects})
     writer.close()
     return out
 
@@ -62,7 +72,7 @@ def record_like_the_configurator(learn_dir: Path, data, recorded: Path, sequence
     path = save_agent(make_agent("fixed", env, sequence=sequence), learn_dir / "start.json",
                       {"env_settings": env_settings or env.settings.to_json(), "pipeline": str(data["pipeline"])})
     assert PolicyVersions(learn_dir / POLICIES).promote(path, {"start": "fixed"}) == "v0000"
-    return len(env.source.episodes)
+    return REPEATS * len(env.source.episodes)
 
 
 # -- versions ------------------------------------------------------------------------------------

@@ -69,7 +69,7 @@ def test_sigterm_or_sigint_stops_a_learning_configurator_within_5_s(data, record
     learner starts, while it is idle and while it trains; SIGINT to the node alone while it trains
     (what `perception-config launch` sends). Each exits 0 within 5 s, no learner left behind."""
     common = {"models_dir": data["root"] / "models", "pipeline": data["pipeline"], "publish_debug": "false",
-              "learn": "true", "learn_every": 1, "learn_train_episodes": 100000, "learn_check_episodes": 4}
+              "learn": "true", "learn_every": 1, "learn_train_episodes": 100000}
     cases = {"starting": signal.SIGTERM, "idle": signal.SIGTERM, "mid-cycle": signal.SIGTERM,
              "mid-cycle, SIGINT to the node": signal.SIGINT}
     learn, nodes, stored = {}, {}, {}

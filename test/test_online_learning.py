@@ -22,7 +22,8 @@ from learn_helpers import learner_log, make_data, make_recorded, record_like_the
 from ros_helpers import NodeProcess, call, publish_when_matched, stop_all, wait_for_service
 
 LINE = re.compile(r"^learner: candidate from (\d+) episodes: cost ([0-9.]+) vs serving ([0-9.]+) -> "
-                  r"(promoted v\d{4}|discarded)$")
+                  r"(promoted v\d{4}|discarded) \((.+): difference ([-+0-9.]+) s, 95% upper bound ([-+0-9.inf]+) s "
+                  r"over (\d+) held-out frames; successes (\d+) vs (\d+)\)$")
 
 
 @pytest.fixture(scope="module")
@@ -126,45 +127,59 @@ def test_a_frame_that_cannot_be_written_leaves_nothing_behind(tmp_path, data, mo
 
 
 # -- the learner's cycle -----------------------------------------------------------------------------
-def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data, recorded):
-    """Serving a sequence that never picks (every episode truncated): a pg trained on the stored
-    frames beats it by far more than the margin and is promoted. Serving the engineer's
-    icp_coarse, icp_fine, pick: a pg trained on a few episodes does worse and is discarded.
-    Cheap cycles: the test checks the cycle's mechanics, not how well a longer training learns.
-    The promotion trains 16 episodes (two updates; 48 gave a candidate closer to the margin) and
-    checks on every stored episode (its line must say so); the discard trains 8 (one update) and
-    checks on the newest 8, twice, for the same costs."""
-    from perception_config.agents import load_agent
+def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data, recorded, monkeypatch):
+    """Serving a sequence that never picks (every episode truncated), with a candidate that picks
+    (the engineer's sequence, standing in for a trained pg: this half checks the split and the
+    gate, not how well a short training learns): it trains on no check frame, beats the serving
+    version on the held-out frames at 95 % confidence and is promoted. Serving the engineer's
+    icp_coarse, icp_fine, pick: a pg trained on 8 episodes (one update) does not pass the gate and
+    is discarded, twice, for the same costs."""
+    from perception_config.agents import load_agent, make_agent
+    from perception_config.online import policy_learner
     from perception_config.online.policy_learner import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
+    from perception_config.online.promotion_gate import MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame
+
+    trained_on: list[int] = []
+
+    def picking_candidate(env, serving_file, episodes, n_episodes, seed, stop=None):
+        trained_on.extend(ep.stamp_ns for ep in episodes)
+        return make_agent("fixed", env, sequence=["icp_coarse", "icp_fine", "pick"])
 
     bad = tmp_path / "bad"
     # without the final-pick rule: with it, the last operation of "regenerate" forever is a pick
     never_picks = data["env"].settings.replace(final_pick=False).to_json()
     n = record_like_the_configurator(bad, data, recorded, ["regenerate"], never_picks)
     lines: list[str] = []
-    r = learn_once(bad, settings_for(data, never_picks, train_episodes=16), lines.append)
+    with monkeypatch.context() as m:
+        m.setattr(policy_learner, "train_candidate", picking_candidate)
+        r = learn_once(bad, settings_for(data, never_picks, check_episodes=30), lines.append)
     line = format_result(r)
     m = LINE.match(line)
     assert m, line
     assert r["outcome"] == "promoted" and m.group(4) == "promoted v0001", line
-    assert int(m.group(1)) == n and r["cost"] < 0.95 * r["serving_cost"]
+    gate = r["gate"]
+    assert int(m.group(1)) == gate["episodes"] >= MIN_CHECK_EPISODES and int(m.group(8)) >= MIN_CHECK_FRAMES
+    assert r["trained_on"] == len(trained_on) and r["trained_on"] + gate["episodes"] <= n
+    assert trained_on and not any(is_check_frame(s) for s in trained_on), "trained on a check frame"
+    assert gate["upper"] < 0 and gate["successes"] > gate["serving_successes"] == 0, line
     assert r["serving_cost"] > data["env"].settings.truncation_cost  # never picked: every episode truncated
     versions = PolicyVersions(bad / POLICIES)
     assert versions.current() == "v0001"
-    assert load_agent(versions.path("v0001"), data["env"]).kind == "pg"
+    assert load_agent(versions.path("v0001"), data["env"]).kind == "fixed"
     assert versions.list()[-1]["info"]["serving"] == "v0000"
+    assert versions.list()[-1]["info"]["gate"]["promote"] is True  # the decision's figures are kept
     assert not list((bad / CANDIDATES).glob("*"))
 
     good = tmp_path / "good"
     record_like_the_configurator(good, data, recorded, ["icp_coarse", "icp_fine", "pick"])
-    r = learn_once(good, settings_for(data, train_episodes=8, check_episodes=8))
-    assert r["outcome"] == "discarded" and r["cost"] >= 0.95 * r["serving_cost"], format_result(r)
+    r = learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
+    assert r["outcome"] == "discarded" and not r["gate"]["promote"], format_result(r)
     assert LINE.match(format_result(r)).group(4) == "discarded"
     assert [e["version"] for e in PolicyVersions(good / POLICIES).list()] == ["v0000"]
     assert not list((good / CANDIDATES).glob("*")), "a discarded candidate is deleted"
 
     # The same cycle again gives the same costs: the replay check is deterministic (cost table).
-    again = learn_once(good, settings_for(data, train_episodes=8, check_episodes=8))
+    again = learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
     assert (again["cost"], again["serving_cost"]) == (r["cost"], r["serving_cost"])
 
 
@@ -273,11 +288,13 @@ def test_learn_without_learn_dir_or_with_an_unknown_version_does_not_start(data,
 
 
 @pytest.mark.ros
-def test_the_configurator_learns_online_without_delaying_estimates(ros_node, data, tmp_path, request):
+def test_the_configurator_learns_online_without_delaying_estimates(ros_node, data, recorded, tmp_path, request):
     """learn:=true: every estimate is stored with its frame; report_pick_outcome refuses unknown
     and duplicated outcomes; perception/policy_version and the policy_version parameter roll back
     and forward (the trace and the store carry the version); estimate_pose's latency while the
     learner process trains stays within 1.5x + 0.15 s of its latency while the learner is idle."""
+    import shutil
+
     from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
     from perception_config_interfaces.srv import EstimatePose, ReportPickOutcome
     from rcl_interfaces.srv import SetParameters
@@ -293,6 +310,10 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
 
     env = data["env"]
     learn = tmp_path / "learn"
+    # Estimates stored before (24 frames): enough held-out check frames for the learner's gate.
+    shutil.copytree(recorded, learn)
+    with EpisodeStore(learn / "episodes.sqlite", readonly=True) as store:
+        stored_before = store.count()
     # Two kept versions, as after a promotion: v0000 the engineer's sequence, v0001 another one.
     versions = PolicyVersions(learn / POLICIES)
     extra = {"env_settings": env.settings.to_json(), "pipeline": str(data["pipeline"])}
@@ -302,7 +323,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
     nodes = {name: NodeProcess(name, common, tmp_path) for name in OPERATORS}
     nodes["configurator_node"] = NodeProcess("configurator_node", {
         **common, "operator_timeout": 5.0, "noise_lambda": 0.5, "learn": "true", "learn_dir": str(learn),
-        "learn_every": IDLE, "learn_train_episodes": 100000, "learn_check_episodes": 8, "publish_debug": "false"},
+        "learn_every": IDLE, "learn_train_episodes": 100000, "publish_debug": "false"},
         tmp_path, own_group=True)
     seen: list[str] = []
     traces: list = []
@@ -376,7 +397,8 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
         ids = [r.estimate_id for r in answers]
         assert all(ids) and len(set(ids)) == len(ids)
         with EpisodeStore(learn / "episodes.sqlite", readonly=True) as store:
-            rows = store.query("SELECT id, policy_version, frame_stamp_ns, obj_id FROM episodes ORDER BY id")
+            rows = store.query("SELECT id, policy_version, frame_stamp_ns, obj_id FROM episodes WHERE id > ? "
+                               "ORDER BY id", (stored_before,))
         assert [r[0] for r in rows] == ids and {r[1] for r in rows} == {"v0001"}
         _wait(lambda: all((learn / "frames" / f"{r[2]}.npz").exists() for r in rows), 10.0, "frames not saved")
 
@@ -433,7 +455,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
         # new estimate: the node logs the learner's line, and a promotion is served and published.
         nodes["configurator_node"] = NodeProcess("configurator_node", {
             **common, "operator_timeout": 5.0, "noise_lambda": 0.5, "learn": "true", "learn_dir": str(learn),
-            "learn_every": 1, "learn_train_episodes": 8, "learn_check_episodes": 8, "publish_debug": "false"},
+            "learn_every": 1, "learn_train_episodes": 8, "publish_debug": "false"},
             tmp_path)
         seen.clear()
         _wait(lambda: seen and seen[-1] == "v0001", 30.0, "the restarted node did not publish v0001", ros_node)

@@ -15,16 +15,22 @@ One learning cycle, every `every` new stored estimates (`learn_once`):
    agent's own update, the same code as `perception-config train`) continued from the serving
    version's weights, or a fresh pg when the serving version has none (the fixed pipeline); it
    plays `train_episodes` episodes on the stored frames with fresh episode seeds;
+   The replayable episodes are split by frame (online/promotion_gate.py: a stable share
+   `check_fraction` of the frames is held out); the candidate trains on the others only;
 3. the replay check: the serving version and the candidate (both greedy) play the newest
-   `check_episodes` stored episodes in-process, same operators, same frames, same lambda, the
-   stored episode seeds and acting seeds (episode_loop.acting_seed); time is the cost table
-   (env time_mode "cost_table"), so both are charged the same seconds for the same actions and
-   the comparison is deterministic, not a race against the machine's load. Cost = the env's:
-   charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
-4. promotion only if cost(candidate) < (1 - margin) x cost(serving): the file is kept as the next
-   version (util/versions.PolicyVersions); otherwise the candidate is deleted.
+   `check_episodes` stored episodes of the check frames in-process, same operators, same frames,
+   same lambda, the stored episode seeds and acting seeds (episode_loop.acting_seed); time is the
+   cost table (env time_mode "cost_table"), so both are charged the same seconds for the same
+   actions and the comparison is deterministic, not a race against the machine's load. Cost =
+   the env's: charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
+   a cycle with fewer than 15 check episodes on 5 check frames trains nothing and waits;
+4. the gate (promotion_gate.paired_gate): promoted only if the per-frame paired cost difference
+   is below zero at 95 % confidence, the mean cost below (1 - margin) x the serving one and the
+   successes not fewer: the file is kept as the next version (util/versions.PolicyVersions),
+   with the gate's figures; otherwise the candidate is deleted.
 Each cycle reports one line (`format_result`), the line the configurator logs:
-    learner: candidate from N episodes: cost X vs serving Y -> promoted vN | discarded
+    learner: candidate from N episodes: cost X vs serving Y -> promoted vN | discarded (the gate's
+    reason: difference D s, 95 % upper bound U s over F held-out frames; successes S vs T)
 A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line
 `learner: no candidate: <reason>; serving vN unchanged`; the worker keeps running.
 
@@ -63,6 +69,7 @@ from ..store.frames import frame_path, load_frame
 from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from .learner_link import LearnerEnd
+from .promotion_gate import CHECK_FRACTION, MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame, paired_gate
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
 
 __all__ = ["PolicyVersions", "LearnerSettings", "learn_once", "run_learner", "format_result"]
@@ -84,7 +91,8 @@ class LearnerSettings:
     margin: float = 0.05
     every: int = 20
     train_episodes: int = 200
-    check_episodes: int = 40
+    check_episodes: int = 60
+    check_fraction: float = CHECK_FRACTION
     seed: int = 0
     poll_seconds: float = 0.25
     extra: dict[str, Any] = field(default_factory=dict)  # recorded in each candidate's metadata
@@ -178,11 +186,25 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
     return learner
 
 
+def replay(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode]) -> tuple[list[float], list[bool]]:
+    """Cost (charged seconds + failed picks + truncation) and success of `agent` on each stored
+    episode, with its stored episode seed and the acting seed derived from it."""
+    trajectories = [play_episode(env, agent, {"episode": ep}, acting_seed(ep.seed)) for ep in episodes]
+    return [float(t.cost) for t in trajectories], [bool(t.success) for t in trajectories]
+
+
 def replay_cost(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode]) -> float:
-    """Mean cost (charged seconds + failed picks + truncation) of `agent` on the stored episodes,
-    each with its stored episode seed and the acting seed derived from it."""
-    costs = [play_episode(env, agent, {"episode": ep}, acting_seed(ep.seed)).cost for ep in episodes]
-    return float(np.mean(costs))
+    """Mean cost of `agent` on the stored episodes (`replay`)."""
+    return float(np.mean(replay(env, agent, episodes)[0]))
+
+
+def split_by_frame(episodes: list[Episode], settings: "LearnerSettings") -> tuple[list[Episode], list[Episode]]:
+    """(training, check) episodes: those of check frames (promotion_gate.is_check_frame) are
+    never trained on; the check keeps the newest `check_episodes` of them."""
+    check = [ep for ep in episodes if is_check_frame(ep.stamp_ns, settings.check_fraction, settings.seed)]
+    held = {ep.stamp_ns for ep in check}
+    train = [ep for ep in episodes if ep.stamp_ns not in held]
+    return train, check[-settings.check_episodes:]
 
 
 def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, extra: dict[str, Any]) -> Path:
@@ -213,18 +235,27 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         if len(episodes) < MIN_EPISODES:
             raise LearnError(f"{len(episodes)} of {looked} stored estimates can be replayed (a kept frame with the "
                              f"object's ground truth); at least {MIN_EPISODES} needed")
-        check = episodes[-settings.check_episodes:]
+        train_eps, check = split_by_frame(episodes, settings)
+        check_frames = len({ep.stamp_ns for ep in check})
+        if len(check) < MIN_CHECK_EPISODES or check_frames < MIN_CHECK_FRAMES:
+            raise LearnError(f"too few held-out checks: {len(check)} replayable estimates on {check_frames} check "
+                             f"frames (at least {MIN_CHECK_EPISODES} on {MIN_CHECK_FRAMES}); waiting for more")
+        if not train_eps:
+            raise LearnError("every replayable estimate is on a check frame: nothing to train on")
         started = time.perf_counter()
-        candidate = train_candidate(env, serving_file, episodes, settings.train_episodes, settings.seed + len(episodes),
-                                    stop)
+        candidate = train_candidate(env, serving_file, train_eps, settings.train_episodes,
+                                    settings.seed + len(episodes), stop)
         serving_agent = load_agent(serving_file, env)
-        serving_cost = replay_cost(env, serving_agent, check)
-        cost = replay_cost(env, candidate, check)
-        result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(episodes),
-                  "train_episodes": settings.train_episodes, "cost": cost, "serving_cost": serving_cost,
-                  "serving": serving, "margin": settings.margin, "seconds": time.perf_counter() - started}
+        serving_costs, serving_wins = replay(env, serving_agent, check)
+        costs, wins = replay(env, candidate, check)
+        gate = paired_gate(costs, serving_costs, wins, serving_wins, [ep.stamp_ns for ep in check],
+                           margin=settings.margin)
+        result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(train_eps),
+                  "train_episodes": settings.train_episodes, "cost": gate.cost, "serving_cost": gate.serving_cost,
+                  "serving": serving, "margin": settings.margin, "gate": gate.to_json(),
+                  "seconds": time.perf_counter() - started}
         path = _save_candidate(candidate, learn_dir, settings, {"learned_from": serving, "replay_check": result})
-        if cost < (1.0 - settings.margin) * serving_cost:
+        if gate.promote:
             result["version"] = versions.promote(path, result)
             result["outcome"] = "promoted"
         path.unlink(missing_ok=True)
@@ -239,8 +270,12 @@ def format_result(r: dict[str, Any]) -> str:
     if r["outcome"] == "failed":
         return f"learner: no candidate: {r['reason']}; serving {r.get('serving') or 'nothing'} unchanged"
     verdict = f"promoted {r['version']}" if r["outcome"] == "promoted" else "discarded"
+    g = r.get("gate") or {}
+    why = (f" ({g['reason']}: difference {g['difference']:+.3f} s, {g['confidence']:.0%} upper bound "
+           f"{g['upper']:+.3f} s over {g['frames']} held-out frames; successes {g['successes']} vs "
+           f"{g['serving_successes']})") if g else ""
     return (f"learner: candidate from {r['episodes']} episodes: cost {r['cost']:.3f} vs serving "
-            f"{r['serving_cost']:.3f} -> {verdict}")
+            f"{r['serving_cost']:.3f} -> {verdict}{why}")
 
 
 # -- the worker process ----------------------------------------------------------------------

@@ -87,14 +87,16 @@ PARAMETERS = (
     NodeParameter("learn_start", "policy", "(learn) version 0 when learn_dir has none: policy (the policy file, "
                   "else the fixed pipeline), fixed or untrained (a fresh pg policy)", read_only=True,
                   choices=LEARN_STARTS),
-    NodeParameter("learn_margin", 0.05, "(learn) a candidate is promoted only if its replayed mean cost is below "
-                  "(1 - margin) x the serving version's; below 1", limits=(0.0, 1.0), read_only=True),
+    NodeParameter("learn_margin", 0.05, "(learn) a candidate is promoted only if its mean cost on the held-out check "
+                  "frames is below (1 - margin) x the serving version's, besides lower at 95 % confidence with "
+                  "success not lower (online/promotion_gate.py); below 1", limits=(0.0, 1.0), read_only=True),
     NodeParameter("learn_every", 20, "(learn) new stored estimates between two candidates",
                   limits=(1, INT_MAX), read_only=True),
     NodeParameter("learn_train_episodes", 200, "(learn) a candidate's training episodes",
                   limits=(0, INT_MAX), read_only=True),
-    NodeParameter("learn_check_episodes", 40, "(learn) the newest stored episodes of a candidate's replay check",
-                  limits=(1, INT_MAX), read_only=True),
+    NodeParameter("learn_check_episodes", 60, "(learn) a candidate's replay check: at most the newest this many "
+                  "stored episodes of the held-out check frames (never trained on); at least 15 on 5 frames are "
+                  "needed", limits=(1, INT_MAX), read_only=True),
     NodeParameter("policy_version", "", "(learn) pin a kept version at run time (`ros2 param set ... "
                   "policy_version v0002`); \"\" = the newest promoted; an unknown version is refused with the kept "
                   "ones"),

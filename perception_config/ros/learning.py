@@ -151,8 +151,8 @@ class NodeLearning:
         self.process.start()
         self.link.started()
         self.log.info(f"learn: learner process {self.process.pid} started (a candidate every {every} stored "
-                      f"estimates, {train_episodes} training episodes, replay check on the newest {check_episodes}, "
-                      f"margin {margin:g}); state in {self.dir}")
+                      f"estimates, {train_episodes} training episodes, replay check on the newest {check_episodes} "
+                      f"of the held-out frames, margin {margin:g}); state in {self.dir}")
 
     # -- versions ----------------------------------------------------------------------------------
     def wanted(self) -> str:

@@ -1,0 +1,106 @@
+"""Held-out check frames and the statistical gate a policy candidate must pass to serve.
+
+The anchor is safe policy improvement (Thomas et al. 2015, high-confidence off-policy evaluation;
+Laroche et al. 2019, SPIBB): a new policy replaces the one serving only when a confidence bound
+says it is better, on data it was not trained on.
+
+**Split by frame.** A stored frame (its stamp) is a check frame with probability
+`fraction`, decided by a keyed hash of (seed, stamp): the split of a frame never changes as the
+store grows, so a candidate never trains on a frame that any later check uses. All the estimates
+of one frame (its objects) fall on the same side: they share the image.
+
+**The paired test.** Serving and candidate play the same check episodes (same frame, object,
+lambda, stored episode seed and acting seed; cost-table time, so the comparison is deterministic).
+The unit is the frame (the episodes of one frame are alike): per check frame, the mean of the
+candidate's cost minus the serving cost over its episodes; then the one-sided Student-t upper
+bound of the mean of those differences at `confidence` (95 %). The candidate is promoted only when
+
+- there are at least MIN_CHECK_FRAMES check frames and MIN_CHECK_EPISODES check episodes
+  (with fewer, a standard error from a handful of frames says little, and t's quantile is
+  large: 2.13 at 5 frames, 6.31 at 2);
+- the upper bound is below zero (its cost is lower at 95 % confidence);
+- its mean cost is below (1 - margin) x the serving one (a minimum effect worth a new version);
+- its successes on the check episodes are not fewer than the serving policy's.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+MIN_CHECK_FRAMES = 5
+MIN_CHECK_EPISODES = 15
+CONFIDENCE = 0.95
+CHECK_FRACTION = 0.3
+
+
+def is_check_frame(stamp_ns: int, fraction: float = CHECK_FRACTION, seed: int = 0) -> bool:
+    """Whether the frame with this stamp is held out for checks (stable for a stamp and seed)."""
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"check fraction must be in (0, 1), got {fraction!r}")
+    digest = hashlib.blake2b(f"{int(seed)}:{int(stamp_ns)}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "little") / 2.0**64 < fraction
+
+
+@dataclass
+class GateDecision:
+    """The gate's verdict on a candidate (module docstring); every figure it was decided on."""
+
+    promote: bool
+    reason: str
+    episodes: int
+    frames: int
+    cost: float  # the candidate's mean cost over the check episodes (s)
+    serving_cost: float
+    difference: float  # mean over frames of the per-frame mean cost difference, candidate - serving
+    upper: float  # its one-sided upper confidence bound
+    confidence: float
+    successes: int
+    serving_successes: int
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def paired_gate(costs: Sequence[float], serving_costs: Sequence[float], successes: Sequence[bool],
+                serving_successes: Sequence[bool], frames: Sequence[int], margin: float = 0.05,
+                confidence: float = CONFIDENCE) -> GateDecision:
+    """The decision on a candidate from its check episodes, paired with the serving policy's on
+    the same ones; `frames`: each episode's frame stamp (module docstring)."""
+    from scipy import stats
+
+    n = len(costs)
+    if not (len(serving_costs) == len(successes) == len(serving_successes) == len(frames) == n):
+        raise ValueError("paired_gate needs one cost, serving cost, success, serving success and frame per episode")
+    cost, serving = np.asarray(costs, float), np.asarray(serving_costs, float)
+    by_frame: dict[int, list[float]] = defaultdict(list)
+    for f, d in zip(frames, cost - serving):
+        by_frame[int(f)].append(float(d))
+    per_frame = np.array([np.mean(v) for v in by_frame.values()]) if by_frame else np.zeros(0)
+    k = len(per_frame)
+    difference = float(per_frame.mean()) if k else math.nan
+    if k >= 2:
+        se = float(per_frame.std(ddof=1)) / math.sqrt(k)
+        upper = difference + float(stats.t.ppf(confidence, k - 1)) * se
+    else:
+        upper = math.inf
+    wins, serving_wins = int(np.sum(successes)), int(np.sum(serving_successes))
+    mean_cost = float(cost.mean()) if n else math.nan
+    mean_serving = float(serving.mean()) if n else math.nan
+    if k < MIN_CHECK_FRAMES or n < MIN_CHECK_EPISODES:
+        promote, reason = False, (f"too few checks: {n} episodes on {k} held-out frames (at least "
+                                  f"{MIN_CHECK_EPISODES} on {MIN_CHECK_FRAMES})")
+    elif not upper < 0.0:
+        promote, reason = False, f"not lower at {confidence:.0%} confidence"
+    elif not mean_cost < (1.0 - margin) * mean_serving:
+        promote, reason = False, f"lower by less than the margin {margin:g}"
+    elif wins < serving_wins:
+        promote, reason = False, f"fewer successes ({wins} vs {serving_wins})"
+    else:
+        promote, reason = True, f"lower at {confidence:.0%} confidence, success not lower"
+    return GateDecision(promote, reason, n, k, mean_cost, mean_serving, difference, upper, confidence, wins,
+                        serving_wins)
