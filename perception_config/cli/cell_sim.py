@@ -49,7 +49,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     cs.add_argument("--learn-every", type=int, default=None, metavar="K",
                     help="new estimates between two candidate trainings (the configurator's learn_every)")
     cs.add_argument("--learn-margin", type=float, default=None, metavar="M",
-                    help="a candidate is promoted if its replay-check cost is lower by this fraction (learn_margin)")
+                    help="a candidate is promoted only if, besides passing the 95 %% paired test on held-out "
+                         "frames, its replay-check cost is lower by this fraction (learn_margin)")
     cs.add_argument("--lambda", dest="noise_lambda", type=float, default=0.5,
                     help="noise level of the simulated initial hypotheses (0.5)")
     cs.add_argument("--seed", type=int, default=0, help="the estimates' seeds")
