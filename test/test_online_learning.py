@@ -476,3 +476,33 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
     finally:
         codes = stop_all(nodes)
     assert codes["configurator_node"] == 0, nodes["configurator_node"].output()
+
+
+def test_the_node_logs_every_learner_line_whatever_their_order(ros_node, capfd):
+    """A cycle without a candidate (a warning) and then one with a candidate (info): both lines
+    reach the log. One call site logging at two severities made rclpy raise ("Logger severity
+    cannot be changed between calls") and the candidate's line was lost."""
+    from perception_config.ros.learning import NodeLearning
+
+    failed = {"outcome": "failed", "serving": "v0000", "reason": "LearnError: too few held-out checks"}
+    gate = {"reason": "lower at 95% confidence, success not lower", "difference": -1.0, "confidence": 0.95,
+            "upper": -0.5, "frames": 5, "successes": 20, "serving_successes": 15}
+    promoted = {"outcome": "promoted", "episodes": 20, "cost": 1.0, "serving_cost": 2.0, "version": "v0001",
+                "gate": gate}
+
+    class Results:  # what the learner sent over its link (learner_link.py)
+        def __init__(self, *payloads):
+            self.payloads = list(payloads)
+
+        def results(self):
+            while self.payloads:
+                yield "result", self.payloads.pop(0)
+
+    learning = NodeLearning.__new__(NodeLearning)  # the drain alone: no learner process
+    learning.log = ros_node.get_logger()
+    for order in ((failed, promoted), (promoted, failed)):
+        learning.link = Results(*order)
+        learning.drain()
+    err = capfd.readouterr().err
+    assert err.count("learner: no candidate: LearnError: too few held-out checks") == 2, err
+    assert err.count("learner: candidate from 20 episodes: cost 1.000 vs serving 2.000 -> promoted v0001") == 2, err

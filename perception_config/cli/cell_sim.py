@@ -30,6 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     cs.add_argument("--models", type=Path, default=None,
                     help="BOP models folder with --bag (default: data/default/models); --dataset brings its own")
     cs.add_argument("--images", type=int, default=None, help="with --dataset: record only the first N test images")
+    cs.add_argument("--all-images", action="store_true",
+                    help="with --dataset: every image of the dataset, not only the reference policy's test images "
+                         "(the learner holds out about 30 %% of the frames for its checks and needs 5 of them)")
     cs.add_argument("--start", default="fixed", metavar="fixed|untrained|POLICY",
                     help="what serves first: the fixed sequence, an untrained pg policy (learning only) or a policy "
                          "file (default fixed)")

@@ -5,7 +5,9 @@ and verdict are perception_config/bench/cell_sim.py).
         --reference runs/demo-pg/policy.safetensors --estimates 300 --out outputs/cell
 
 1. The bag: `--bag` as given, or `--dataset`'s test images of the reference policy (its split
-   seed and test fraction) recorded to `<out>/cell.mcap` (replay-check's recording).
+   seed and test fraction; `--all-images`: every image) recorded to `<out>/cell.mcap`
+   (replay-check's recording). The learner holds out about 30 % of the frames for its checks and
+   needs 5 of them (online/promotion_gate.py); a bag of fewer is warned about.
 2. The reference: the reference policy through the same nodes for `--reference-rounds` rounds
    (a round: every object of every frame of the bag once; 1 by default), no learning, into
    `<out>/reference.csv` (or a previous run's with `--reference-from`). Through the nodes rather
@@ -75,6 +77,7 @@ from ..launcher.resolution import default_models
 from ..launcher.ros_environment import configure_ros_environment
 from ..launcher.supervisor import Launcher
 from ..learning.evaluation import episode_seed
+from ..online.promotion_gate import MIN_CHECK_FRAMES, is_check_frame
 from ..online.score_learner import SCORES
 from ..rl.episodes import split_image_keys
 from ..store.episode_store import STORE_NAME, policy_version
@@ -246,7 +249,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
              images: int | None = None, window: int = DEFAULT_WINDOW, tolerance: float = DEFAULT_TOLERANCE,
              reference_from: str | Path | None = None, reference_rounds: int = 1,
              fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True,
-             stop: StopSignals | None = None) -> dict[str, Any]:
+             stop: StopSignals | None = None, all_images: bool = False) -> dict[str, Any]:
     """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
     out = Path(out).resolve()
     if (bag is None) == (dataset is None):
@@ -279,11 +282,18 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
 
     if dataset is not None:
         ds = BopDataset(Path(dataset), split="test")
-        keys = sorted(split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)[1])
+        keys = sorted(ds.image_keys()) if all_images else \
+            sorted(split_image_keys(ds.image_keys(), settings.test_fraction, settings.split_seed)[1])
         keys = keys[: images] if images else keys
         bag_path = out / "cell.mcap"
-        record_images(ds, keys, bag_path, quiet=not progress)
+        stamps, _ = record_images(ds, keys, bag_path, quiet=not progress)
         models_dir = Path(ds.models_dir)
+        held_out = sum(is_check_frame(stamp) for stamp in stamps.values())
+        if learn and held_out < MIN_CHECK_FRAMES:
+            print(f"cell-sim: warning: of the bag's {len(stamps)} frames (their stamps repeat every pass) {held_out} "
+                  f"are the learner's held-out check frames, and a candidate needs {MIN_CHECK_FRAMES}: nothing "
+                  "will be promoted. Replay more images (--all-images, or a larger dataset).", file=sys.stderr,
+                  flush=True)
     else:
         bag_path = Path(bag).resolve()
         models_dir = Path(models).resolve() if models else default_models(Path.cwd(), print)
@@ -391,6 +401,7 @@ def run_cli(args: Any) -> int:
                          start=args.start, estimates=args.estimates, learn=args.learn, learn_every=args.learn_every,
                          learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed,
                          rate=args.rate, images=args.images, window=args.window, reference_from=args.reference_from,
+                         all_images=args.all_images,
                          reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
                          fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
                          else None)

@@ -225,7 +225,12 @@ class NodeLearning:
             if kind == "result":
                 line = format_score_result(payload) if payload.get("what") == "pick_success" else \
                     format_result(payload)
-                (self.log.warning if payload["outcome"] == "failed" else self.log.info)(line)
+                # two call sites: rclpy refuses one call site logging at two severities
+                # ("Logger severity cannot be changed between calls"), and the line was lost
+                if payload["outcome"] == "failed":
+                    self.log.warning(line)
+                else:
+                    self.log.info(line)
 
     # -- frames ------------------------------------------------------------------------------------
     def _on_ground_truth(self, msg: Any) -> None:
