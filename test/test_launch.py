@@ -10,8 +10,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
@@ -21,7 +19,7 @@ from perception_config import cli
 from perception_config.launcher import resolution as launch
 from perception_config.launcher.resolution import resolve_nodes
 from perception_config.launcher.supervisor import Launcher, NodeSpec, param_value
-from ros_helpers import call, wait_for_service
+from ros_helpers import LaunchCli, call, wait_for_service
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -154,44 +152,6 @@ def test_missing_console_script_exits_2_before_starting_anything(tmp_path, monke
     assert "[launch] started" not in captured.out  # generation_node was not started either
 
 
-# -- the CLI as a process ----------------------------------------------------------------------
-class _Cli:
-    """`python -m perception_config.cli launch ...` (this checkout's code) with its output collected."""
-
-    def __init__(self, args: list[str], cwd: Path) -> None:
-        env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        # Its own process group, like a shell job: killpg below is a terminal's Ctrl-C.
-        self.proc = subprocess.Popen([sys.executable, "-m", "perception_config.cli", "launch", *args], cwd=cwd, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     start_new_session=True)
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
-                                        daemon=True)
-        self._reader.start()
-
-    def wait_for(self, pattern: str, timeout: float = 30.0) -> re.Match:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for line in list(self.lines):
-                if m := re.search(pattern, line):
-                    return m
-            if self.proc.poll() is not None and not self._reader.is_alive():
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"no line matching {pattern!r}:\n{self.output()}")
-
-    def finish(self, timeout: float = 30.0) -> int:
-        try:
-            code = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"the launcher did not exit within {timeout} s:\n{self.output()}") from None
-        self._reader.join(5)
-        return code
-
-    def output(self) -> str:
-        return "".join(self.lines)
-
-
 def _gone(pid: int) -> bool:
     """Exited (a zombie counts: in a container nobody may reap an orphan)."""
     try:
@@ -200,7 +160,7 @@ def _gone(pid: int) -> bool:
         return True
 
 
-def _cleanup(launcher: "_Cli", pid: int | None) -> None:
+def _cleanup(launcher: "LaunchCli", pid: int | None) -> None:
     """After a failed assertion: Ctrl-C the launcher, then kill it and its node."""
     if launcher.proc.poll() is None:
         os.killpg(launcher.proc.pid, signal.SIGINT)
@@ -216,7 +176,7 @@ def _cleanup(launcher: "_Cli", pid: int | None) -> None:
 def _serving_generation_node(parts_models: Path, cwd: Path, *options: str):
     """`launch --nodes generation` as a process, once its node serves: (launcher, node pid).
     Whatever happens in the block, both are gone after it."""
-    launcher = _Cli(["--nodes", "generation", "--models", str(parts_models), *options], cwd)
+    launcher = LaunchCli(["--nodes", "generation", "--models", str(parts_models), *options], cwd)
     pid = None
     try:
         pid = int(launcher.wait_for(r"^\[launch\] started generation_node \(pid (\d+)\)").group(1))
@@ -460,7 +420,7 @@ def test_launch_bag_replays_a_short_bag_once_the_nodes_listen(ros_node, syntheti
     assert write_frames(frames, bag, 10.0) == 3
     pipeline = tmp_path / "pipeline.yaml"
     pipeline.write_text(PIPELINE)
-    launcher = _Cli(["--bag", str(bag), "--models", str(synthetic_dataset / "models"), "--pipeline", str(pipeline),
+    launcher = LaunchCli(["--bag", str(bag), "--models", str(synthetic_dataset / "models"), "--pipeline", str(pipeline),
                      "--policy", "none"], tmp_path)
     try:
         launcher.wait_for(r"^\[launch\] bag_replay_node finished \(exit code 0\)", timeout=120)

@@ -6,20 +6,16 @@ queued estimates while refusing new ones, and a composed cell answering estimate
 in-process path."""
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
+import re
 import time
 from pathlib import Path
 
 import pytest
 
-from ros_helpers import NodeProcess, call, wait_for_service, wait_until
+from ros_helpers import LaunchCli, NodeProcess, call, wait_for_service, wait_until
 
 pytestmark = pytest.mark.ros
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -116,45 +112,10 @@ def test_a_bad_policy_fails_the_configurators_configure_with_its_reason(ros_node
     assert "configure failed: policy file" in node.output()
 
 
-class _Launch:
-    """`perception-config launch ...` as a process in its own group, its output collected."""
-
-    def __init__(self, args: list[str], cwd: Path) -> None:
-        env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        self.proc = subprocess.Popen([sys.executable, "-m", "perception_config.cli", "launch", *args], cwd=cwd,
-                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     start_new_session=True)
-        self.lines: list[str] = []
-        import threading
-
-        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
-                                        daemon=True)
-        self._reader.start()
-
-    def wait_for(self, text: str, timeout: float = 60.0) -> None:
-        wait_until(lambda: any(text in line for line in list(self.lines)) or self.proc.poll() is not None, timeout,
-               f"a line {text!r}")
-        assert any(text in line for line in self.lines), self.output()
-
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGINT)
-        try:
-            return self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            return self.proc.wait(10)
-        finally:
-            self._reader.join(5)
-
-
 def test_launch_names_the_node_that_fails_to_configure_and_stops_the_cell(parts_models, tmp_path):
     bad = tmp_path / "policy.safetensors"
     bad.write_bytes(b"not a policy")
-    launch = _Launch(["--models", str(parts_models), "--policy", str(bad), "--composed"], tmp_path)
+    launch = LaunchCli(["--models", str(parts_models), "--policy", str(bad), "--composed"], tmp_path)
     try:
         assert launch.proc.wait(120) == 1, launch.output()
     finally:
@@ -175,12 +136,12 @@ def test_a_composed_cell_answers_and_deactivate_answers_the_queued_estimates(ros
 
     params = tmp_path / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    frame_timeout: 0.5\n")
-    launch = _Launch(["--models", str(parts_models), "--policy", "none", "--composed",
+    launch = LaunchCli(["--models", str(parts_models), "--policy", "none", "--composed",
                       "--params-file", str(params)], tmp_path)
     manager = LifecycleManager(["configurator_node"])
     client = ros_node.create_client(EstimatePose, "estimate_pose")
     try:
-        launch.wait_for("[launch] configurator_node: active", 120)
+        launch.wait_for(re.escape("[launch] configurator_node: active"), 120)
         assert "[launch] started perception_cell" in launch.output()
         wait_for_service(ros_node, client)
         answer = call(ros_node, client, EstimatePose.Request(object_id="1"), timeout=30)

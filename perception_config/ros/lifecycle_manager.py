@@ -41,12 +41,15 @@ class LifecycleManager:
         self.change = {n: self.node.create_client(ChangeState, f"/{n}/change_state") for n in nodes}
         self.get = {n: self.node.create_client(GetState, f"/{n}/get_state") for n in nodes}
         self.status: dict[str, tuple[int, str]] = {}  # "/node" -> (level, message), the latest
+        self._status_ns: dict[str, int] = {}  # "/node" -> the stamp (ns) of that status
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, QoSProfile(depth=100))
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         for status in msg.status:
             self.status[status.name] = (int.from_bytes(status.level, "little") if isinstance(status.level, bytes)
                                         else int(status.level), status.message)
+            self._status_ns[status.name] = stamp_ns
 
     def _call(self, client, request, timeout: float):
         if not client.wait_for_service(timeout_sec=timeout):
@@ -69,12 +72,13 @@ class LifecycleManager:
             raise ValueError(f"unknown transition {transition!r}; one of {', '.join(TRANSITIONS)}")
         request = ChangeState.Request()
         request.transition.label = transition
+        sent_ns = self.node.get_clock().now().nanoseconds
         response = self._call(self.change[name], request, timeout)
         if response is None:
             return False, f"its {transition} did not answer within {timeout:g} s"
         if response.success:
             return True, ""
-        return False, self._reason(name, transition)
+        return False, self._reason(name, transition, sent_ns)
 
     def fresh_status(self, name: str, timeout: float = 2.5) -> tuple[int, str] | None:
         """The node's next /diagnostics status (level, message) within `timeout` s, else None."""
@@ -85,17 +89,18 @@ class LifecycleManager:
             self.executor.spin_once(timeout_sec=0.1)
         return self.status.get(key)
 
-    def _reason(self, name: str, transition: str) -> str:
-        """The node's own words for a failed transition: its diagnostics status (published when it
-        failed), waited for up to 2 s."""
+    def _reason(self, name: str, transition: str, since_ns: int) -> str:
+        """The node's own words for a failed transition: its diagnostics status stamped since the
+        request (published when it failed, possibly before its answer came), waited for up to 2 s."""
         deadline = time.monotonic() + 2.0
         key = f"/{name}"
-        self.status.pop(key, None)
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.1)
-            level, message = self.status.get(key, (0, ""))
-            if message and f"{transition} failed" in message:
+        while True:
+            _, message = self.status.get(key, (0, ""))
+            if self._status_ns.get(key, 0) >= since_ns and f"{transition} failed" in message:
                 return message.split(f"{transition} failed: ", 1)[-1]
+            if time.monotonic() >= deadline:
+                break
+            self.executor.spin_once(timeout_sec=0.1)
         state = self.state(name) or "not answering"
         return f"{transition} refused (state {state}; see the node's log)"
 

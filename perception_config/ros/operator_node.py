@@ -87,7 +87,8 @@ class OperatorNode(ManagedNode):
 
     def __init__(self, name: str, parameters: tuple[NodeParameter, ...], *, ground_truth: bool = False,
                  **kwargs: Any) -> None:
-        """`parameters`: the node's, OPERATOR_PARAMETERS first. The subclass calls `start()` last."""
+        """`parameters`: the node's, OPERATOR_PARAMETERS first. Nothing is loaded here: `start()`
+        (called by node_main.run_nodes once the node is built) configures it, or a manager does."""
         super().__init__(name, parameters, **kwargs)
         self._with_ground_truth = ground_truth
         self.requests: RequestQueue | None = None
