@@ -33,7 +33,8 @@ def _row(i: int, success: int, time_s: float, version: str = "fixed", wall: floa
     return {"index": i, "round": 0, "wall_time": 1000.0 + i if wall is None else wall, "frame_stamp_ns": 1,
             "obj_id": 1, "seed": i + 1, "answered": 1, "success": success, "time_s": time_s, "operator_s": time_s,
             "estimate_wall_s": time_s, "first_pick_success": success, "operations": 3, "policy_version": version,
-            "estimate_id": 0, "trace": 1, "message": "picked" if success else "no successful pick"}
+            "estimate_id": 0, "trace": 1, "message": "picked" if success else "no successful pick",
+            "reported_success": success}
 
 
 # --------------------------------------------------------------------------- learner lines
@@ -302,3 +303,70 @@ def test_bad_arguments_are_refused_before_anything_starts(tmp_path_factory, tmp_
     with pytest.raises(ValueError, match="--estimates must be >= 1"):
         cell_sim(out, policy, **{**kw, "estimates": 0})
     assert not out.exists()
+
+
+CELL_PIPELINE = """\
+generator: {block: resting_pose}
+actions:
+  - {name: icp_fine, block: icp_point_to_plane,
+     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
+  - {name: next_candidate, block: next_candidate}
+  - {name: pick, block: simulated_pick}
+scoring: [psi_d, icp_fitness]
+"""
+
+
+@pytest.mark.ros
+def test_a_cell_without_ground_truth_hears_the_pick_outcomes_from_its_robot(ros_node, tmp_path_factory, tmp_path):
+    """--labels robot: no ground truth reaches the nodes (none published, none in the kept frames);
+    the simulated robot answers every pick through the pick node's robot service and reports each
+    estimate's outcome with report_pick_outcome; the store labels the estimates "robot"; after the
+    run the hidden judge evaluates the served version with the ground truth."""
+    from perception_config.agents import make_agent, save_agent
+    from perception_config.rl.env import PerceptionConfigEnv
+    from perception_config.ros.cell_sim_run import cell_sim
+    from perception_config.store.episode_store import EpisodeStore
+    from perception_config.store.frames import load_frame
+    from rl_helpers import pipeline_file
+
+    root = tiny_dataset(tmp_path_factory)
+    pipe = pipeline_file(tmp_path_factory, CELL_PIPELINE, "cell_sim_cell.yaml")
+    env = PerceptionConfigEnv(root, pipe, time_mode="cost_table", min_visib_fract=0.3)
+    sequence = ["icp_fine", "pick", "next_candidate"]
+    reference = save_agent(make_agent("fixed", env, sequence=sequence), tmp_path / "cell_fixed.json",
+                           {"env_settings": env.settings.to_json(), "pipeline": str(pipe)})
+    with EstimateLog(tmp_path / "reference.csv") as ref:
+        for i in range(4):
+            ref.append(_row(i, 1, 0.5))
+    with pytest.raises(ValueError, match="needs --dataset"):
+        cell_sim(tmp_path / "x", reference, bag=tmp_path / "x.mcap", labels="robot")
+    out = tmp_path / "out"
+    s = cell_sim(out, reference, dataset=root, all_images=True, images=2, start="fixed", fixed_sequence=sequence,
+                 estimates=6, learn=True, learn_every=1000, window=3, reference_from=tmp_path / "reference.csv",
+                 rate=2.0, progress=False, labels="robot", hidden_seeds=1)
+    print(format_summary(s))
+    rows = read_estimates(out / "estimates.csv")
+    assert len(rows) == 6 and s["labels"] == "robot" and not s["interrupted"]
+    # resting_pose refuses some objects of the tiny dataset (no first hypothesis): answered, unserved
+    assert all(r["answered"] or "no first hypothesis" in r["message"] for r in rows), [r["message"] for r in rows]
+    assert [r["success"] for r in rows] == [r["reported_success"] for r in rows]  # an honest robot
+    frames = sorted((out / "learn" / "frames").glob("*.npz"))
+    assert frames and all(load_frame(f)[1] == {} for f in frames)  # no ground truth reached the configurator
+    with EpisodeStore(out / "learn" / "episodes.sqlite", readonly=True) as store:
+        labels = dict(store.query("SELECT id, label FROM episodes"))
+        sources = {r[0] for r in store.query("SELECT pick_source FROM steps WHERE picked IS NOT NULL")}
+        reports = dict(store.query("SELECT episode_id, picked FROM pick_outcomes WHERE source = 'robot'"))
+        picked_steps = store.query("SELECT episode_id, picked FROM steps WHERE picked IS NOT NULL ORDER BY step")
+    assert set(labels.values()) <= {"robot", "none"} and sources == {"robot"}
+    # one report per estimate whose robot tried a pick, on its last pick, with the outcome the robot gave
+    assert set(reports) == {eid for eid, _ in picked_steps} and len(reports) >= sum(r["success"] for r in rows)
+    assert reports and all(reports[r["estimate_id"]] == r["reported_success"] for r in rows
+                           if r["estimate_id"] in reports)
+    assert all(labels[eid] == "robot" for eid in reports)
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.rl.episodes import EpisodeSource
+
+    keys = sorted(BopDataset(root, split="test").image_keys())[:2]
+    hidden = s["hidden_versions"]["v0000"]
+    assert hidden["episodes"] == len(EpisodeSource(root, keys))
+    assert s["hidden_success_start"] == hidden["success"] == s["hidden_success_end"] and s["worse_promotions"] == 0

@@ -48,7 +48,9 @@ ESTIMATE_COLUMNS = (
     "estimate_id",  # the configurator's episode store id (0: none given)
     "trace",  # 1: the operator trace (ok flags) was received; 0: time and first pick from the answer alone
     "message",
+    "reported_success",  # 1: the pick outcome as the robot reported it (== success unless the robot lies)
 )
+OPTIONAL_COLUMNS = ("reported_success",)  # absent from files written before it: taken as `success`
 LEARNER_LINE = re.compile(
     r"learner: candidate from (?P<episodes>\d+) episodes: cost (?P<cost>\S+) vs serving (?P<serving>\S+)"
     r" -> (?:(?P<promoted>promoted) (?P<version>[^\s,;]+)|(?P<discarded>discarded))")
@@ -137,7 +139,7 @@ def rows_to_csv(rows: Sequence[dict[str, Any]]) -> str:
 
 
 INT_COLUMNS = ("index", "round", "frame_stamp_ns", "obj_id", "seed", "answered", "success", "first_pick_success",
-               "operations", "estimate_id", "trace")
+               "operations", "estimate_id", "trace", "reported_success")
 FLOAT_COLUMNS = ("wall_time", "time_s", "operator_s", "estimate_wall_s")
 
 
@@ -147,14 +149,15 @@ def read_estimates(path: str | os.PathLike) -> list[dict[str, Any]]:
     path = Path(path)
     with open(path, newline="", encoding="utf-8") as f:
         reader = csv.DictReader(f)
-        missing = [c for c in ESTIMATE_COLUMNS if c not in (reader.fieldnames or [])]
+        missing = [c for c in ESTIMATE_COLUMNS if c not in (reader.fieldnames or []) and c not in OPTIONAL_COLUMNS]
         if missing:
             raise ValueError(f"{path} is not an estimates CSV of cell-sim: it lacks the columns {missing}")
         rows = []
         for n, raw in enumerate(reader, start=2):
             try:
                 row: dict[str, Any] = dict(raw)
-                row.update({c: int(raw[c]) for c in INT_COLUMNS})
+                row["reported_success"] = raw.get("reported_success") or raw["success"]
+                row.update({c: int(row[c]) for c in INT_COLUMNS})
                 row.update({c: float(raw[c]) for c in FLOAT_COLUMNS})
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{path} line {n}: {exc}") from None
@@ -396,6 +399,15 @@ def format_summary(s: dict[str, Any]) -> str:
     if s.get("learner_failures"):
         lines.append(f"learner: {len(s['learner_failures'])} cycles without a candidate, the last: "
                      f"{s['learner_failures'][-1].split('learner: ', 1)[-1]}")
+    if s.get("labels") == "robot":
+        lines.append(f"labels: the robot's picks only (reports: {s.get('robot_reports')}); reported success "
+                     f"{s['reported_success']:.1%}, true {s['success']:.1%}" if s.get("reported_success") is not None
+                     else "labels: the robot's picks only")
+    if s.get("hidden_success_start") is not None:
+        lines.append(f"hidden evaluation (ground truth, the same episodes for every version): first served success "
+                     f"{s['hidden_success_start']:.1%}, cost {s['hidden_cost_start']:.3f} s; last "
+                     f"{s['hidden_success_end']:.1%}, cost {s['hidden_cost_end']:.3f} s; "
+                     f"{s['worse_promotions']} of {len(s.get('promotion_checks', []))} promotions truly worse")
     if s["unanswered"]:
         lines.append(f"{s['unanswered']} estimates not answered (counted as failures; see the message column)")
     if s["without_trace"]:

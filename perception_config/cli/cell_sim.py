@@ -59,5 +59,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     cs.add_argument("--seed", type=int, default=0, help="the estimates' seeds")
     cs.add_argument("--rate", type=float, default=1.0, help="replay rate, x the recorded timing (1.0)")
     cs.add_argument("--window", type=int, default=200, help="estimates in the rolling window (200)")
+    cs.add_argument("--labels", choices=("ground_truth", "robot"), default="ground_truth",
+                    help="what the cell's learner sees: ground_truth (replayed to the nodes and kept with the frames, "
+                         "the default) or robot (a cell without ground truth: only this process knows it; its "
+                         "simulated robot answers each pick and reports it with report_pick_outcome; needs --dataset "
+                         "and a generator without ground truth, the cell pipeline)")
+    cs.add_argument("--robot-reports", choices=("truth", "flipped", "all-failed", "all-success"), default="truth",
+                    help="with --labels robot: a robot program that reports the truth (default), flips outcomes at "
+                         "random (--flip-share), reports every pick failed, or every pick successful")
+    cs.add_argument("--flip-share", type=float, default=0.3, help="share of outcomes flipped by --robot-reports "
+                                                                   "flipped (0.3)")
+    cs.add_argument("--hidden-seeds", type=int, default=1, metavar="N",
+                    help="after the run, every kept version plays every object of the bag's images N times with the "
+                         "hidden ground truth (summary: hidden_success_start/end, worse_promotions); 0: skip (1)")
     cs.add_argument("--quiet", action="store_true", help="no progress bar")
     cs.set_defaults(func=_cmd_cell_sim)

@@ -7,10 +7,12 @@ started with multiprocessing "spawn", niced, torch and Open3D on one thread) so 
 delays `estimate_pose`: it only reads the store and the frames and writes policy files.
 
 One learning cycle, every `every` new stored estimates (`learn_once`):
-1. the replayable episodes: stored configurator estimates whose frame file is kept and carries
-   the estimated object's ground truth (the simulated initialisation and the simulated pick
-   need it; a robot cell without ground truth records its estimates and pick outcomes, but
-   they cannot be replayed: no candidate is trained on them and the policy stays as it is);
+1. the replayable episodes: stored configurator estimates whose frame file is kept and that can
+   be judged: the frame carries the estimated object's ground truth (replayed ground truth, the
+   stronger label: the simulated pick judges), or the robot's own pick outcomes of that object in
+   that frame agree and include a picked pose (online/pick_labels.py: a replayed pick succeeds
+   near a pose the robot picked; a cell without ground truth learns from its robot's picks).
+   Such an episode needs a generator that needs no ground truth (the cell pipeline);
 2. a candidate: REINFORCE (agents/policy_gradient.py, trained with training.play_round and the
    agent's own update, the same code as `perception-config train`) continued from the serving
    version's weights, or a fresh pg when the serving version has none (the fixed pipeline); it
@@ -57,6 +59,7 @@ import numpy as np
 
 from ..agents import Agent, EnvSpec, make_agent
 from ..agents.policy_io import load_agent, policy_info, save_agent
+from ..blocks.base import GROUND_TRUTH
 from ..blocks.pick_success import follow_score_versions
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bop_models import ModelFolder
@@ -69,6 +72,7 @@ from ..store.frames import frame_path, load_frame
 from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from .learner_link import LearnerEnd
+from .pick_labels import PickLabels, robot_labels
 from .promotion_gate import CHECK_FRACTION, MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame, paired_gate
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
 
@@ -113,10 +117,18 @@ class LearnError(RuntimeError):
 
 # -- the stored episodes ---------------------------------------------------------------------
 def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None = None,
-                        log: Callable[[str], None] = lambda s: None) -> tuple[list[Episode], int]:
-    """The stored configurator estimates that can be replayed in-process (frame kept, with the
-    object's ground truth), newest last, at most `limit` (the newest); and how many estimates
-    were looked at."""
+                        log: Callable[[str], None] = lambda s: None, robot_labels_ok: bool = True,
+                        score: bool = False, stats: dict[str, int] | None = None) -> tuple[list[Episode], int]:
+    """The stored configurator estimates that can be replayed in-process, newest last, at most
+    `limit` (the newest); and how many estimates were looked at. An estimate is replayable when
+    its frame is kept and either holds the object's ground truth (the stronger label: the
+    simulated pick judges) or, `robot_labels_ok` (a generator that needs no ground truth), the
+    robot's pick outcomes of that object in that frame agree (online/pick_labels.py) and include
+    a picked pose, or any outcome when the pipeline has the learned pick-success score (`score`).
+    `stats` (when given) counts them: ground_truth, robot, conflicting, unlabelled."""
+    stats = stats if stats is not None else {}
+    for k in ("ground_truth", "robot", "conflicting", "unlabelled"):
+        stats.setdefault(k, 0)
     try:
         with EpisodeStore(confined(learn_dir / STORE_NAME, learn_dir, "episode store"), readonly=True,
                           busy_timeout=2.0) as store:
@@ -124,9 +136,11 @@ def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None 
                 "SELECT id, frame_stamp_ns, obj_id, noise_lambda, episode_seed FROM episodes "
                 "WHERE source = 'configurator' AND frame_stamp_ns IS NOT NULL AND episode_seed IS NOT NULL "
                 "AND obj_id IS NOT NULL ORDER BY id DESC")
+            labels = robot_labels(store) if robot_labels_ok else {}
     except (sqlite3.Error, OSError, EpisodeStoreError, ValueError) as exc:  # ValueError: a link out of learn_dir
         raise LearnError(f"episode store {learn_dir / STORE_NAME} cannot be read: {exc}") from None
     frames: dict[int, Any] = {}
+    judged: dict[tuple[int, int], PickLabels | None] = {}
     out: list[Episode] = []
     for eid, stamp, obj_id, lam, seed in rows:
         if limit is not None and len(out) >= limit:
@@ -140,15 +154,35 @@ def replayable_episodes(learn_dir: Path, models: ModelFolder, limit: int | None 
                 except ValueError as exc:
                     log(f"learner: skipped {exc}")
         loaded = frames[stamp]
-        if loaded is None or int(obj_id) not in loaded[1]:
-            continue  # no frame kept, or no ground truth for this object: not replayable
+        if loaded is None:
+            continue  # no frame kept: not replayable
         frame, gt = loaded
         model = models.model(str(obj_id))
-        out.append(Episode(frame=frame, model=model, ground_truth=gt[int(obj_id)],
+        truth, robot = gt.get(int(obj_id)), None
+        if truth is None:
+            key = (int(stamp), int(obj_id))
+            if key not in judged:
+                judged[key] = _usable_labels(labels.get(key), model, score, stats)
+            robot = judged[key]
+            if robot is None:
+                continue
+        stats["ground_truth" if truth is not None else "robot"] += 1
+        out.append(Episode(frame=frame, model=model, ground_truth=truth, labels=robot,
                            noise_lambda=float(lam if lam is not None else 0.5), seed=int(seed),
                            key=(0, int(eid), int(obj_id)), stamp_ns=int(stamp)))
     out.reverse()
     return out, len(rows)
+
+
+def _usable_labels(labels: PickLabels | None, model: Any, score: bool, stats: dict[str, int]) -> PickLabels | None:
+    """The robot labels of one object in one frame when they can judge a replay (module docstring)."""
+    if labels is None or not (labels.picked or (score and labels.failed)):
+        stats["unlabelled"] += 1
+        return None
+    if labels.conflict(model) is not None:
+        stats["conflicting"] += 1
+        return None
+    return labels
 
 
 # -- candidate and replay check ------------------------------------------------------------------
@@ -231,10 +265,14 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         serving_file = versions.path(serving)
         env = env or settings.env(learn_dir)
         models = models or ModelFolder(settings.models_dir)
-        episodes, looked = replayable_episodes(learn_dir, models, log=log)
+        stats: dict[str, int] = {}
+        episodes, looked = replayable_episodes(
+            learn_dir, models, log=log, robot_labels_ok=GROUND_TRUTH not in env.pipeline.generator.inputs,
+            score=pick_success_block(env.pipeline) is not None, stats=stats)
         if len(episodes) < MIN_EPISODES:
             raise LearnError(f"{len(episodes)} of {looked} stored estimates can be replayed (a kept frame with the "
-                             f"object's ground truth); at least {MIN_EPISODES} needed")
+                             f"object's ground truth, or agreeing robot pick outcomes: {_label_text(stats)}); "
+                             f"at least {MIN_EPISODES} needed")
         train_eps, check = split_by_frame(episodes, settings)
         check_frames = len({ep.stamp_ns for ep in check})
         if len(check) < MIN_CHECK_EPISODES or check_frames < MIN_CHECK_FRAMES:
@@ -250,7 +288,7 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         costs, wins = replay(env, candidate, check)
         gate = paired_gate(costs, serving_costs, wins, serving_wins, [ep.stamp_ns for ep in check],
                            margin=settings.margin)
-        result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(train_eps),
+        result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(train_eps), "labels": stats,
                   "train_episodes": settings.train_episodes, "cost": gate.cost, "serving_cost": gate.serving_cost,
                   "serving": serving, "margin": settings.margin, "gate": gate.to_json(),
                   "seconds": time.perf_counter() - started}
@@ -265,6 +303,11 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         return {"outcome": "failed", "serving": serving, "reason": f"{type(exc).__name__}: {exc}"[:500]}
 
 
+def _label_text(stats: dict[str, int]) -> str:
+    return (f"{stats.get('ground_truth', 0)} by ground truth, {stats.get('robot', 0)} by the robot's picks, "
+            f"{stats.get('conflicting', 0)} objects in frames with conflicting robot outcomes left out")
+
+
 def format_result(r: dict[str, Any]) -> str:
     """The learner's one line per cycle (the configurator logs it; the cell simulation parses it)."""
     if r["outcome"] == "failed":
@@ -274,8 +317,9 @@ def format_result(r: dict[str, Any]) -> str:
     why = (f" ({g['reason']}: difference {g['difference']:+.3f} s, {g['confidence']:.0%} upper bound "
            f"{g['upper']:+.3f} s over {g['frames']} held-out frames; successes {g['successes']} vs "
            f"{g['serving_successes']})") if g else ""
+    labels = f"; replayed {_label_text(r['labels'])}" if r.get("labels") else ""
     return (f"learner: candidate from {r['episodes']} episodes: cost {r['cost']:.3f} vs serving "
-            f"{r['serving_cost']:.3f} -> {verdict}{why}")
+            f"{r['serving_cost']:.3f} -> {verdict}{why}{labels}")
 
 
 # -- the worker process ----------------------------------------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -28,6 +29,8 @@ from ..core.scene import Frame
 class Episode:
     """One (frame, object) episode. `ground_truth` is None in a robot cell.
 
+    `labels`: without ground truth, what judges a pick instead (online/pick_labels.PickLabels:
+    the robot's own outcomes in this frame; an object with `judge(pose, model, scores)`).
     In-process the frame is here; through ROS the images stay in the operator nodes, `frame` is
     None and `stamp_ns` names the camera frame (0 = the latest). `has_depth`: whether the
     camera gives depth when the frame is not here (None = unknown; the frame's own wins).
@@ -41,6 +44,7 @@ class Episode:
     key: tuple[int, int, int] = (0, 0, 0)  # scene_id, im_id, obj_id
     stamp_ns: int = 0
     has_depth: bool | None = None
+    labels: Any = None
 
     @property
     def depth_known_absent(self) -> bool:
@@ -271,9 +275,23 @@ class InProcessOperators:
             assert self.episode is not None
             block = self._generator(self.episode.noise_lambda) if block.name == self.pipeline.generator.name else block
             return self._outcome(action, self._generate(block))
+        assert self.episode is not None
+        if block.kind == Kind.PICK and self.episode.ground_truth is None and self.episode.labels is not None:
+            return self._outcome(action, self._labelled_pick())
         rng = np.random.default_rng(draw_seed(self.refiner_rng)) if block.kind == Kind.REFINEMENT else None
         result = block(self._input(self.pose, rng))
         return self._outcome(action, result)
+
+    def _labelled_pick(self) -> BlockResult:
+        """A pick judged by the episode's labels (no ground truth: the robot's outcomes)."""
+        ep = self.episode
+        assert ep is not None
+        if self.pose is None:
+            return BlockResult.fail("no hypothesis to pick")
+        started = time.perf_counter()
+        picked, figures = ep.labels.judge(self.pose, ep.model, self.scores)
+        return BlockResult(ok=True, picked=bool(picked), scores=figures, info={"criterion": "robot labels"},
+                           elapsed=time.perf_counter() - started)
 
     def snapshot(self) -> Any:
         return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state,

@@ -40,18 +40,13 @@ import json
 import math
 import os
 import signal
+import sqlite3
 import sys
-import time
-from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import rclpy
-from perception_config_interfaces.msg import ObjectPoses, OperatorTrace
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
-from tqdm import tqdm
 
 from ..agents.fixed import DEFAULT_SEQUENCE
 from ..agents.policy_settings import is_policy_file, policy_settings
@@ -59,158 +54,38 @@ from ..bench.cell_sim import (
     DEFAULT_TOLERANCE,
     DEFAULT_WINDOW,
     EstimateLog,
-    charged_time,
-    first_pick_success,
     format_summary,
     learner_events,
     plot_cell_sim,
     read_estimates,
     reference_figures,
-    rolling_mean,
     summarise,
 )
-from ..blocks.base import Kind
+from ..bench.hidden_eval import evaluate_versions, hidden_summary
+from ..blocks.base import GROUND_TRUTH, Kind
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bag import bag_info
 from ..datasets.bop import BopDataset
+from ..datasets.bop_models import ModelFolder
 from ..launcher.resolution import default_models
 from ..launcher.ros_environment import configure_ros_environment
 from ..launcher.supervisor import Launcher
-from ..learning.evaluation import episode_seed
+from ..online.pick_labels import label_counts
 from ..online.promotion_gate import MIN_CHECK_FRAMES, is_check_frame
 from ..online.score_learner import SCORES
 from ..rl.episodes import split_image_keys
 from ..store.episode_store import STORE_NAME, policy_version
 from ..util.atomic_file import atomic_write
-from ..util.stop_signals import Interrupted, StopRequested, StopSignals, signal_name
+from ..util.stop_signals import StopRequested, StopSignals, signal_name
+from ..util.versions import PolicyVersions
+from .cell_sim_drive import CellNode, drive
+from .cell_sim_robot import FRAME_INFO, ROBOT_SERVICE, SimulatedRobot
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
 
 STARTS = ("fixed", "untrained")
-TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
+LABELS = ("ground_truth", "robot")  # what the cell's learner may see: replayed ground truth, or the robot's picks
 SERVICE_NODES = ("generation_node", "refinement_node", "scoring_node", "pick_node", "configurator_node")
-
-
-class CellNode:
-    """This process's view of the cell: the replayed frames' ground truth, the operator traces
-    and the serving policy version, received while an estimate is awaited (EstimateClient spins
-    the same node)."""
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        self.fresh: list[tuple[int, list[str]]] = []  # frames arrived since the cell last got ready
-        self.traces: deque[OperatorTrace] = deque(maxlen=64)
-        self.version: str | None = None
-        node.create_subscription(ObjectPoses, "perception/ground_truth", self._on_ground_truth, 10)
-        self._trace_sub = node.create_subscription(OperatorTrace, "perception/trace",
-                                                   lambda msg: self.traces.append(msg), 64)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_subscription(String, "perception/policy_version", self._on_version, latched)
-
-    def _on_ground_truth(self, msg: ObjectPoses) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        self.fresh.append((stamp, list(msg.object_ids)))
-
-    def _on_version(self, msg: String) -> None:
-        self.version = msg.data or None
-
-    def next_frame(self, done: set[int], timeout: float, alive: Callable[[], None]) -> tuple[int, list[str]]:
-        """The first frame arriving from now on that is not in `done`; RuntimeError after
-        `timeout` s without one; `alive()` raises when a node died."""
-        self.fresh.clear()
-        deadline = time.monotonic() + timeout
-        while True:
-            for stamp, ids in self.fresh:
-                if stamp not in done:
-                    return stamp, ids
-            self.fresh.clear()
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"no new frame's ground truth on perception/ground_truth within {timeout:g} s")
-            alive()
-            rclpy.spin_once(self.node, timeout_sec=0.1)
-
-    def wait_for_trace_publisher(self, timeout: float, alive: Callable[[], None]) -> None:
-        """Wait until the configurator's trace publisher is matched with this subscription: a trace
-        published before discovery completes is lost (volatile QoS), and its estimate's row with it."""
-        deadline = time.monotonic() + timeout
-        while self._trace_sub.get_publisher_count() < 1:
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"perception/trace: no publisher matched within {timeout:g} s")
-            alive()
-            rclpy.spin_once(self.node, timeout_sec=0.05)
-
-    def trace_for(self, stamp_ns: int, object_id: str, timeout: float = TRACE_WAIT_S) -> OperatorTrace | None:
-        """The trace of the estimate just answered (its frame stamp and object), waiting briefly."""
-        deadline = time.monotonic() + timeout
-        while True:
-            while self.traces:
-                t = self.traces.popleft()
-                if (t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec == stamp_ns
-                        and t.object_id == object_id):
-                    return t
-            if time.monotonic() > deadline:
-                return None
-            rclpy.spin_once(self.node, timeout_sec=0.05)
-
-
-def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates: int | None, rounds: int | None,
-          frames_per_round: int, noise_lambda: float, seed: int, pick_actions: list[str], failed_pick_cost: float,
-          start_version: str, frame_timeout: float, alive: Callable[[], None], desc: str, window: int = DEFAULT_WINDOW,
-          progress: bool = True, stop: StopSignals | None = None) -> bool:
-    """Estimate frame after frame (see the module docstring) until `estimates` are done or
-    `rounds` rounds are complete; rows go to `log`. False when stopped by a stop signal (`stop`:
-    SIGINT, SIGTERM, SIGHUP abandon the estimate in flight; without it, Ctrl-C)."""
-    interruptible = stop.interruptible if stop is not None else contextlib.nullcontext
-    done: set[int] = set()
-    round_no = index = 0
-    succ: list[float] = []
-    times: list[float] = []
-    bar = tqdm(total=estimates, desc=desc, unit="estimate", disable=not progress)
-    try:
-        while (estimates is None or index < estimates) and (rounds is None or round_no < rounds):
-            with interruptible():
-                stamp, ids = cell.next_frame(done, frame_timeout, alive)
-            done.add(stamp)
-            counts = {i: ids.count(i) for i in ids}
-            for obj in dict.fromkeys(ids):
-                if counts[obj] != 1 or (estimates is not None and index >= estimates):
-                    continue
-                ep_seed = max(1, episode_seed(seed, index))
-                with interruptible():  # the row is written outside: a signal never cuts a line short
-                    answer = client.call(stamp, obj, noise_lambda, ep_seed)
-                    trace = cell.trace_for(stamp, obj) if answer["success"] else None
-                oks = list(trace.ok) if trace is not None else None
-                version = (getattr(trace, "policy_version", "") if trace is not None else "") or cell.version \
-                    or start_version
-                row = {
-                    "index": index, "round": round_no, "wall_time": time.time(), "frame_stamp_ns": stamp,
-                    "obj_id": int(obj), "seed": ep_seed, "answered": int(answer["success"]),
-                    "success": int(answer["picked"]),
-                    "time_s": charged_time(answer["operations"], answer["operation_seconds"], oks, answer["picked"],
-                                           pick_actions, failed_pick_cost),
-                    "operator_s": float(sum(answer["operation_seconds"])), "estimate_wall_s": answer["wall"],
-                    "first_pick_success": int(first_pick_success(answer["operations"], oks, answer["picked"],
-                                                                 pick_actions)),
-                    "operations": len(answer["operations"]), "policy_version": version,
-                    "estimate_id": answer["estimate_id"], "trace": int(trace is not None),
-                    "message": answer["message"],
-                }
-                log.append(row)
-                succ.append(row["success"])
-                times.append(row["time_s"])
-                index += 1
-                bar.update(1)
-                bar.set_postfix(success=f"{rolling_mean(succ, window)[-1]:.2f}",
-                                time=f"{rolling_mean(times, window)[-1]:.2f}s", version=version[:12])
-            if len(done) >= frames_per_round:
-                done.clear()
-                round_no += 1
-        return True
-    except (KeyboardInterrupt, Interrupted):
-        return False
-    finally:
-        bar.close()
 
 
 def _alive(launcher: Launcher, log_dir: Path) -> Callable[[], None]:
@@ -222,19 +97,25 @@ def _alive(launcher: Launcher, log_dir: Path) -> Callable[[], None]:
 
 
 def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: bool = True,
-              **drive_args: Any) -> tuple[bool, list[str]]:
-    """Start `specs`, drive the cell, stop them; (completed, the configurator's log lines)."""
+              hidden: dict[tuple[int, int], list[str]] | None = None,
+              robot: Callable[[Any], SimulatedRobot] | None = None, **drive_args: Any) -> tuple[bool, list[str]]:
+    """Start `specs`, drive the cell, stop them; (completed, the configurator's log lines).
+    `hidden` and `robot` (a factory on this process's node): a cell without ground truth."""
     log_dir = out / "logs" / name
     with open(out / f"launch-{name}.log", "w") as launch_log:
         launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
         with launcher:
             node = rclpy.create_node(f"cell_sim_{name}_{os.getpid()}")
             try:
-                cell = CellNode(node)
+                cell = CellNode(node, hidden)
+                the_robot = robot(node) if robot is not None else None
                 launcher.wait_for_line("configurator_node", "serving", timeout=120.0)
                 cell.wait_for_trace_publisher(30.0, _alive(launcher, log_dir))
                 client = EstimateClient(node)
-                completed = drive(cell, client, log, alive=_alive(launcher, log_dir), **drive_args)
+                completed = drive(cell, client, log, alive=_alive(launcher, log_dir), robot=the_robot, **drive_args)
+                if the_robot is not None and the_robot.refused_reports:
+                    print(f"cell-sim: {len(the_robot.refused_reports)} pick reports refused, the first: "
+                          f"{the_robot.refused_reports[0]}", file=sys.stderr, flush=True)
             finally:
                 node.destroy_node()
     lines = (log_dir / "configurator_node.log").read_text(errors="replace").splitlines() \
@@ -249,11 +130,21 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
              images: int | None = None, window: int = DEFAULT_WINDOW, tolerance: float = DEFAULT_TOLERANCE,
              reference_from: str | Path | None = None, reference_rounds: int = 1,
              fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True,
-             stop: StopSignals | None = None, all_images: bool = False) -> dict[str, Any]:
+             stop: StopSignals | None = None, all_images: bool = False, labels: str = "ground_truth",
+             robot_reports: str = "truth", flip_share: float = 0.3, hidden_seeds: int = 1) -> dict[str, Any]:
     """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
     out = Path(out).resolve()
     if (bag is None) == (dataset is None):
         raise ValueError("give exactly one of --bag and --dataset")
+    if labels not in LABELS:
+        raise ValueError(f"--labels must be one of {LABELS}, got {labels!r}")
+    if labels == "robot" and dataset is None:
+        raise ValueError("--labels robot needs --dataset: the simulated robot reads the ground truth from it "
+                         "(a bag's ground truth would be replayed to the nodes)")
+    if robot_reports != "truth" and labels != "robot":
+        raise ValueError("--robot-reports other than truth needs --labels robot")
+    if hidden_seeds < 0:
+        raise ValueError(f"--hidden-seeds must be >= 0, got {hidden_seeds}")
     if estimates < 1:
         raise ValueError(f"--estimates must be >= 1, got {estimates}")
     if not 1 <= window:
@@ -274,6 +165,9 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     settings = policy_settings([p for p in (reference, start_policy) if p is not None])
     pipeline = load_pipeline(settings.pipeline)
     pick_actions = [a.name for a in pipeline.actions if a.block.kind == Kind.PICK]
+    if labels == "robot" and GROUND_TRUTH in pipeline.generator.inputs:
+        raise ValueError(f"--labels robot: the pipeline's generator {pipeline.generator.name} needs the ground truth, "
+                         "which the nodes do not see there; use a policy of the cell pipeline (--pipeline cell)")
     sequence = list(fixed_sequence or DEFAULT_SEQUENCE)
     unknown = [a for a in sequence if a not in pipeline.action_names]
     if unknown:
@@ -288,6 +182,8 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
         bag_path = out / "cell.mcap"
         stamps, _ = record_images(ds, keys, bag_path, quiet=not progress)
         models_dir = Path(ds.models_dir)
+        hidden_truth = {stamp: {int(o): pose for o, pose in ds.gt(*key)} for key, stamp in stamps.items()}
+        hidden_ids = {key: [str(o) for o, _ in ds.gt(*key)] for key in stamps}
         held_out = sum(is_check_frame(stamp) for stamp in stamps.values())
         if learn and held_out < MIN_CHECK_FRAMES:
             print(f"cell-sim: warning: of the bag's {len(stamps)} frames (their stamps repeat every pass) {held_out} "
@@ -340,6 +236,13 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     # The cell.
     conf: dict[str, Any] = {**base, "policy": str(start_policy or ""), "fixed_sequence": sequence}
     operators: dict[str, Any] = {}
+    robot = None
+    if labels == "robot":  # the nodes never see the ground truth; the simulated robot answers the picks
+        conf["pick_source"] = "robot"
+
+        def robot(node: Any) -> SimulatedRobot:
+            return SimulatedRobot(node, hidden_truth, ModelFolder(models_dir), pipeline.action(pick_actions[0]).block,
+                                  reports=robot_reports, flip_share=flip_share, seed=seed + 17)
     if learn:
         operators["pick_success_versions"] = str(out / "learn" / SCORES)  # the learned score, when the pipeline has it
         conf.update({"learn": True, "learn_dir": str(out / "learn"),
@@ -351,18 +254,37 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     else:
         conf["episode_store"] = str(out / STORE_NAME)
     specs = service_specs(models_dir, settings.pipeline, frames, rgb_only, conf, operators)
-    specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
+    if labels == "robot":
+        next(s for s in specs if s.name == "pick_node").params["robot_service"] = ROBOT_SERVICE
+        cameras = [t["topic"].lstrip("/") for t in info["topics"] if "ground_truth" not in t["topic"]]
+        specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True, topics=cameras,
+                                 wait_for=[f"{t}:4" for t in cameras if t.startswith("camera/")]
+                                 + [f"{FRAME_INFO}:1"]))
+    else:
+        specs.append(replay_spec(bag_path, rate, rgb_only, 3, loop=True))
     start_version = policy_version(start_policy) if start_policy else \
         "fixed:" + "+".join(sequence) if start == "fixed" else start  # as the episode store names the agent
     with EstimateLog(out / "estimates.csv") as log:
         completed, lines = run_phase(specs, out, "cell", log, quiet=quiet, estimates=estimates, rounds=None,
-                                     seed=seed, start_version=start_version, desc="cell", **drive_common)
+                                     seed=seed, start_version=start_version, desc="cell",
+                                     hidden=hidden_ids if labels == "robot" else None, robot=robot, **drive_common)
     events = learner_events(lines)
     summary = summarise(log.rows, ref, events, window, tolerance, requested=estimates)
     summary["learner_failures"] = [line.strip() for line in lines if "learner: no candidate:" in line]
     summary.update({"start": start if start_policy is None else str(start_policy), "learn": learn,
                     "bag": str(bag_path), "frames": frames, "noise_lambda": noise_lambda, "interrupted": not completed,
-                    "learner_lines": [e.line for e in events]})
+                    "learner_lines": [e.line for e in events], "labels": labels, "robot_reports": robot_reports,
+                    "flip_share": flip_share if robot_reports == "flipped" else None,
+                    "reported_success": float(np.mean([r["reported_success"] for r in log.rows]))
+                    if log.rows else None})
+    if learn:
+        with contextlib.suppress(OSError, ValueError, sqlite3.Error):
+            summary["stored_labels"] = label_counts(out / "learn" / STORE_NAME)
+    if learn and dataset is not None and hidden_seeds > 0 and (out / "learn" / "policies").is_dir():
+        figures = evaluate_versions(out / "learn" / "policies", dataset, keys, settings.pipeline, settings.env,
+                                    noise_lambda, hidden_seeds, progress)
+        served = summary["versions"] + [PolicyVersions(out / "learn" / "policies").current()]
+        summary.update(hidden_summary(figures, [v for v in served if v]))
     marks = [(p["first_estimate"], p["version"]) for p in summary["promotions"] if p["first_estimate"] is not None]
     start_name = _policy_name(start_policy) if start_policy else \
         f"fixed {' -> '.join(sequence)}" if start == "fixed" else start
@@ -401,7 +323,8 @@ def run_cli(args: Any) -> int:
                          start=args.start, estimates=args.estimates, learn=args.learn, learn_every=args.learn_every,
                          learn_margin=args.learn_margin, noise_lambda=args.noise_lambda, seed=args.seed,
                          rate=args.rate, images=args.images, window=args.window, reference_from=args.reference_from,
-                         all_images=args.all_images,
+                         all_images=args.all_images, labels=args.labels, robot_reports=args.robot_reports,
+                         flip_share=args.flip_share, hidden_seeds=args.hidden_seeds,
                          reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
                          fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
                          else None)

@@ -271,9 +271,11 @@ class ConfiguratorNode(ManagedNode):
         if self.operators.stamp is not None:
             frame_stamp = int(self.operators.stamp.sec) * 1_000_000_000 + int(self.operators.stamp.nanosec)
         if self.episode_writer is not None:
+            has_truth = self.learning is not None and self.learning.has_ground_truth(frame_stamp, model.obj_id)
             eid = store_episode(self.episode_writer, traj, source="configurator", agent=self.store_agent,
                                 policy_version=self.policy_version, episode_seed=seed, frame_stamp_ns=frame_stamp,
-                                pick_source=self.pick_source, image_ids=False)
+                                pick_source=self.pick_source, image_ids=False,
+                                label="ground_truth" if has_truth else None)
             response.estimate_id = int(eid or 0)
         if self.learning is not None:
             try:

@@ -240,6 +240,16 @@ class NodeLearning:
             return
         self.ground_truth.put(stamp, dict(zip(msg.object_ids, msg.poses)))
 
+    def has_ground_truth(self, stamp_ns: int, obj_id: int) -> bool:
+        """Whether the object's ground truth came for this frame (perception/ground_truth)."""
+        for object_id in self.ground_truth.get(stamp_ns) or {}:
+            try:
+                if int(object_id) == int(obj_id):
+                    return True
+            except ValueError:
+                continue
+        return False
+
     def capture(self, stamp_ns: int) -> None:
         """Queue the estimate's frame for saving (once per stamp); never blocks."""
         if stamp_ns in self._saved:

@@ -48,6 +48,7 @@ class EpisodeRecord:
     cost: float
     stopped: bool
     steps: list[StepRecord] = field(default_factory=list)
+    label: str | None = None  # what judged its picks (episode_store.LABEL_KINDS); `pick_label` derives it
     created: float = field(default_factory=time.time)
 
 
@@ -78,7 +79,17 @@ def record_from_trajectory(traj: Trajectory, *, source: str, agent: str | None, 
         noise_lambda=float(lam) if lam is not None else None, generator=steps[0].action or None,
         episode_seed=_int_or_none(episode_seed), success=bool(traj.success),
         first_pick_success=bool(traj.first_pick_success), time_s=float(traj.time), cost=float(traj.cost),
-        stopped=bool(traj.stopped), steps=steps)
+        stopped=bool(traj.stopped), steps=steps, label=pick_label(steps, pick_source))
+
+
+def pick_label(steps: list[StepRecord], pick_source: str) -> str:
+    """The episode's label kind from its picks: "ground_truth" when the pick simulation (which
+    judges against the ground truth) answered one, "robot" when a robot did, "none" without a
+    pick outcome. A caller that knows more (the configurator, which holds the frame's ground
+    truth) overrides it."""
+    if not any(s.picked is not None for s in steps):
+        return "none"
+    return "robot" if pick_source == "robot" else "ground_truth"
 
 
 def _int_or_none(x: Any) -> int | None:

@@ -50,6 +50,9 @@ STORE_NAME = "episodes.sqlite"  # the file's name in a run folder
 BUSY_TIMEOUT_S = 5.0
 SQLITE_MAGIC = b"SQLite format 3\x00"
 PICK_SOURCES = ("simulated", "robot")
+# An episode's label: "ground_truth" (its frame's ground truth judged the picks: a simulation, a
+# dataset replayed), "robot" (the robot's own pick outcomes: a cell), "none" (no pick has an outcome).
+LABEL_KINDS = ("ground_truth", "robot", "none")
 
 EPISODE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("id", "INTEGER PRIMARY KEY"), ("source", "TEXT NOT NULL"), ("created", "REAL NOT NULL"),
@@ -57,6 +60,7 @@ EPISODE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("im_id", "INTEGER"), ("obj_id", "INTEGER"), ("frame_stamp_ns", "INTEGER"), ("noise_lambda", "REAL"),
     ("generator", "TEXT"), ("episode_seed", "INTEGER"), ("success", "INTEGER"), ("first_pick_success", "INTEGER"),
     ("time_s", "REAL"), ("cost", "REAL"), ("steps", "INTEGER"), ("stopped", "INTEGER"),
+    ("label", "TEXT"),  # what judges its picks: LABEL_KINDS (added to schema 1; older files gain it on open)
 )
 STEP_COLUMNS: tuple[tuple[str, str], ...] = (
     ("episode_id", "INTEGER NOT NULL REFERENCES episodes(id)"), ("step", "INTEGER NOT NULL"), ("action", "TEXT"),
@@ -152,12 +156,27 @@ class EpisodeStore:
                 raise EpisodeStoreError(f"episode store {self.path} (schema {version}) lacks tables {missing}: "
                                         "is it corrupt?")
         if not readonly:
+            self._add_missing_columns()
             mode = self._db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             self.journal_mode = str(mode).lower()
             self._db.execute(f"PRAGMA synchronous = {synchronous}")
         else:
             self.journal_mode = str(self._db.execute("PRAGMA journal_mode").fetchone()[0]).lower()
         self.schema_version = SCHEMA_VERSION if not exists else int(version)
+
+    def _add_missing_columns(self) -> None:
+        """Columns added to schema 1 after a file was made (e.g. `label`), added to that file: old
+        readers ignore them, new ones find them (NULL in the old rows)."""
+        for table, columns in TABLES.items():
+            have = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})")}
+            for name, sql_type in columns:
+                if name not in have:
+                    self._db.execute(f"ALTER TABLE {table} ADD COLUMN {name} {sql_type}")
+
+    def has_column(self, table: str, name: str) -> bool:
+        """Whether `table` has the column (a read-only store made before the column was added may not)."""
+        with self._lock:
+            return any(r[1] == name for r in self._db.execute(f"PRAGMA table_info({table})"))
 
     def _create(self) -> None:
         self._db.execute("BEGIN IMMEDIATE")
@@ -200,8 +219,9 @@ class EpisodeStore:
     def record_pick_outcome(self, episode_id: int, step: int, picked: bool, source: str) -> None:
         """Store a pick's result reported after the episode (a robot that tried the pick). The
         step's `picked`/`pick_source` become the report; the former values are kept in
-        `pick_outcomes`. Refused (EpisodeStoreError, nothing changed): an unknown episode or step,
-        a step that already has a reported outcome, an unknown source."""
+        `pick_outcomes`; an episode labelled "none" becomes labelled "robot" by a robot's report.
+        Refused (EpisodeStoreError, nothing changed): an unknown episode or step, a step that
+        already has a reported outcome, an unknown source."""
         if source not in PICK_SOURCES:
             raise EpisodeStoreError(f"pick outcome source must be one of {PICK_SOURCES}, got {source!r}")
         with self._lock:
@@ -222,6 +242,9 @@ class EpisodeStore:
                                  (int(episode_id), int(step), int(bool(picked)), source, time.time(), row[0], row[1]))
                 self._db.execute("UPDATE steps SET picked = ?, pick_source = ? WHERE episode_id = ? AND step = ?",
                                  (int(bool(picked)), source, int(episode_id), int(step)))
+                if source == "robot":
+                    self._db.execute("UPDATE episodes SET label = 'robot' WHERE id = ? AND "
+                                     "(label IS NULL OR label = 'none')", (int(episode_id),))
                 self._db.execute("COMMIT")
             except BaseException:
                 self._rollback()
@@ -382,11 +405,13 @@ class StoreWriter:
             self.store = None
 
 
-def store_episode(writer: StoreWriter, traj: Trajectory, *, image_ids: bool = True, **context: Any) -> int | None:
+def store_episode(writer: StoreWriter, traj: Trajectory, *, image_ids: bool = True, label: str | None = None,
+                  **context: Any) -> int | None:
     """Append a played episode through `writer` (context: record_from_trajectory's keywords);
     never raises: whatever goes wrong is one line of the writer's log. `image_ids=False`: the
     episode's scene and image ids are placeholders (the configurator knows the frame by its
-    stamp only) and are stored as NULL."""
+    stamp only) and are stored as NULL. `label`: its label kind when the caller knows better
+    than its picks tell (episode_record.pick_label)."""
     try:
         record = record_from_trajectory(traj, **context)
     except Exception as exc:  # noqa: BLE001  (the caller must go on; the episode is reported lost)
@@ -395,6 +420,8 @@ def store_episode(writer: StoreWriter, traj: Trajectory, *, image_ids: bool = Tr
         return None
     if not image_ids:
         record.scene_id = record.im_id = None
+    if label is not None:
+        record.label = label
     return writer.append(record)
 
 
