@@ -72,3 +72,20 @@ def test_fewer_successes_or_a_gain_below_the_margin_is_not_promoted():
     assert not d.promote and d.upper < 0 and "margin" in d.reason, d
     with pytest.raises(ValueError, match="one cost"):
         paired_gate(cost, serving[:-1], wins, wins, frames)
+
+
+def test_the_per_frame_bound_is_students_t_over_the_frames_means():
+    """The bound both gates use (the policy's upper bound on the cost difference, the score's lower
+    bound on the Brier gain): episodes averaged per frame first, then one-sided Student-t."""
+    from scipy import stats
+
+    from perception_config.online.promotion_gate import per_frame_bound
+
+    values = [1.0, 3.0, 2.0, 4.0, 6.0, 5.0, 5.0]
+    frames = ["a", "a", "b", "b", "c", "d", "d"]  # frame means 2, 3, 6, 5
+    means = np.array([2.0, 3.0, 6.0, 5.0])
+    half = stats.t.ppf(0.95, 3) * means.std(ddof=1) / 2.0
+    mean, upper, k = per_frame_bound(values, frames)
+    assert (mean, k) == (4.0, 4) and upper == pytest.approx(4.0 + half)
+    assert per_frame_bound(values, frames, side="lower")[1] == pytest.approx(4.0 - half)
+    assert per_frame_bound([1.0, 2.0], ["a", "a"], side="lower") == (1.5, -np.inf, 1)

@@ -66,28 +66,35 @@ class GateDecision:
         return dict(self.__dict__)
 
 
+def per_frame_bound(values: Sequence[float], frames: Sequence[object], confidence: float = CONFIDENCE,
+                    side: str = "upper") -> tuple[float, float, int]:
+    """(mean, one-sided bound at `confidence`, frames) of per-episode `values` averaged per frame
+    first (the frame is the unit: the episodes of one frame are alike): Student-t over the frames'
+    means; the bound is +-inf with fewer than 2 frames."""
+    from scipy import stats
+
+    by_frame: dict[object, list[float]] = defaultdict(list)
+    for f, v in zip(frames, values):
+        by_frame[f].append(float(v))
+    per_frame = np.array([np.mean(v) for v in by_frame.values()]) if by_frame else np.zeros(0)
+    k = len(per_frame)
+    mean = float(per_frame.mean()) if k else math.nan
+    if k < 2:
+        return mean, (math.inf if side == "upper" else -math.inf), k
+    half = float(stats.t.ppf(confidence, k - 1)) * float(per_frame.std(ddof=1)) / math.sqrt(k)
+    return mean, (mean + half if side == "upper" else mean - half), k
+
+
 def paired_gate(costs: Sequence[float], serving_costs: Sequence[float], successes: Sequence[bool],
                 serving_successes: Sequence[bool], frames: Sequence[int], margin: float = 0.05,
                 confidence: float = CONFIDENCE) -> GateDecision:
     """The decision on a candidate from its check episodes, paired with the serving policy's on
     the same ones; `frames`: each episode's frame stamp (module docstring)."""
-    from scipy import stats
-
     n = len(costs)
     if not (len(serving_costs) == len(successes) == len(serving_successes) == len(frames) == n):
         raise ValueError("paired_gate needs one cost, serving cost, success, serving success and frame per episode")
     cost, serving = np.asarray(costs, float), np.asarray(serving_costs, float)
-    by_frame: dict[int, list[float]] = defaultdict(list)
-    for f, d in zip(frames, cost - serving):
-        by_frame[int(f)].append(float(d))
-    per_frame = np.array([np.mean(v) for v in by_frame.values()]) if by_frame else np.zeros(0)
-    k = len(per_frame)
-    difference = float(per_frame.mean()) if k else math.nan
-    if k >= 2:
-        se = float(per_frame.std(ddof=1)) / math.sqrt(k)
-        upper = difference + float(stats.t.ppf(confidence, k - 1)) * se
-    else:
-        upper = math.inf
+    difference, upper, k = per_frame_bound(cost - serving, [int(f) for f in frames], confidence, "upper")
     wins, serving_wins = int(np.sum(successes)), int(np.sum(serving_successes))
     mean_cost = float(cost.mean()) if n else math.nan
     mean_serving = float(serving.mean()) if n else math.nan

@@ -16,11 +16,12 @@ One cycle (`refit_score_once`):
    anew on the cell's rows alone;
 3. the check: the Brier score (mean squared error of the probability) of the serving model and
    of each candidate on the held-out frames; the best candidate is promoted only if its Brier is
-   below (1 - margin) x the serving one's AND the gain holds across the held-out frames (the
-   per-frame gains' mean is at least `MIN_T` standard errors above zero, frames being the
-   independent unit: hypotheses of one frame are alike), else discarded. Without the second
-   test a handful of held-out frames promote noise (measured: a "better" Brier on 2 frames that
-   was worse on images the cell never saw).
+   below (1 - margin) x the serving one's AND the gain holds across the held-out frames: the
+   policy's gate (online/promotion_gate.per_frame_bound), one-sided Student-t over the frames'
+   mean gains (frames are the independent unit: hypotheses of one frame are alike), its lower
+   bound at 95 % above zero; else discarded. Without the second test a handful of held-out
+   frames promote noise (measured: a "better" Brier on 2 frames that was worse on images the
+   cell never saw).
 Versions live in `<learn_dir>/pick_success/` (util/versions.PolicyVersions, the same index as
 the policies): version 0 is the pipeline's model, written at the configurator's start
 (`initial_score_version`). The operator nodes follow the folder (their parameter
@@ -48,11 +49,11 @@ from ..store.episode_store import STORE_NAME, EpisodeStoreError
 from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from ..vision.pick_success_model import MODEL_FILE, PickSuccessModelError
+from .promotion_gate import CONFIDENCE, per_frame_bound
 
 SCORES = "pick_success"  # the versions folder in learn_dir
 MIN_FRAMES = 10  # labelled frames a cycle needs at least (fit, calibration and held-out ones)
 MIN_HELD_OUT_FRAMES = 3  # held-out frames the gain is tested over
-MIN_T = 2.0  # the per-frame gains' mean in standard errors, for a promotion
 REFIT_ROWS = 400  # labelled hypotheses from which a model fitted anew is a candidate too
 SPLIT_SEED = 0
 
@@ -142,14 +143,15 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
         scored = [((m.predict(table.X[held_out]) - y) ** 2, kind, m) for kind, m in candidates]
         err, kind, best = min(scored, key=lambda s: float(np.mean(s[0])))
         brier = float(np.mean(err))
-        t = frame_gain_t(serving_err - err, held_frames)
+        gain, lower, _ = per_frame_bound(serving_err - err, held_frames, CONFIDENCE, "lower")
         held = score_metrics(best.predict(table.X[held_out]), y)
         result: dict[str, Any] = {
             "outcome": "discarded", "what": "pick_success", "candidate": kind, "rows": len(table), "frames": frames,
             "held_out": int(held_out.sum()), "held_out_frames": len(set(held_frames)), "brier": brier,
-            "serving_brier": serving_brier, "gain_t": t, "auc": held["auc"], "serving": serving, "margin": margin,
+            "serving_brier": serving_brier, "gain": gain, "gain_lower": lower, "confidence": CONFIDENCE,
+            "auc": held["auc"], "serving": serving, "margin": margin,
             "seconds": time.perf_counter() - started}
-        if brier < (1.0 - margin) * serving_brier and t >= MIN_T:
+        if brier < (1.0 - margin) * serving_brier and lower > 0.0:
             folder = confined(learn_dir / "candidates", learn_dir, "candidates folder")
             folder.mkdir(parents=True, exist_ok=True)
             best.record["learned_from"] = serving
@@ -165,27 +167,15 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
                 "reason": f"{type(exc).__name__}: {exc}"[:500]}
 
 
-def frame_gain_t(gain: np.ndarray, frames: list[Any]) -> float:
-    """The mean of the per-frame mean gains over its standard error (inf when every frame gains
-    the same, > 0; 0 when there is no gain)."""
-    per_frame: dict[Any, list[float]] = {}
-    for g, f in zip(gain, frames):
-        per_frame.setdefault(f, []).append(float(g))
-    d = np.array([np.mean(v) for v in per_frame.values()])
-    if len(d) < 2 or d.mean() <= 0:
-        return 0.0
-    se = d.std(ddof=1) / np.sqrt(len(d))
-    return float(d.mean() / se) if se > 0 else float("inf")
-
-
 def format_score_result(r: dict[str, Any]) -> str:
     """The learner's line for a score cycle (the configurator logs it)."""
     if r["outcome"] == "failed":
         return f"learner: no pick_success candidate: {r['reason']}; serving {r.get('serving') or 'nothing'} unchanged"
     verdict = f"promoted {r['version']}" if r["outcome"] == "promoted" else "discarded"
     return (f"learner: pick_success candidate ({r['candidate']}) from {r['rows']} hypotheses of {r['frames']} frames: "
-            f"held-out Brier {r['brier']:.4f} vs serving {r['serving_brier']:.4f} (gain {r['gain_t']:.1f} standard "
-            f"errors over {r['held_out_frames']} frames) -> {verdict}")
+            f"held-out Brier {r['brier']:.4f} vs serving {r['serving_brier']:.4f} (gain {r['gain']:+.4f}, "
+            f"{r['confidence']:.0%} lower bound {r['gain_lower']:+.4f} over {r['held_out_frames']} frames) "
+            f"-> {verdict}")
 
 
 __all__ = ["SCORES", "score_versions", "initial_score_version", "refit_score_once", "format_score_result",
