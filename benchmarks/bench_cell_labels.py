@@ -60,6 +60,7 @@ def main() -> int:
     p.add_argument("--poisoned", nargs="*", default=["flipped", "all-failed", "all-success"])
     p.add_argument("--parallel", type=int, default=2, help="runs at a time (the figures are cost-table: load-free)")
     p.add_argument("--hidden-seeds", type=int, default=1)
+    p.add_argument("--domain", type=int, default=60, help="ROS_DOMAIN_ID of the first run (the next ones count up)")
     p.add_argument("--work", type=Path, default=REPO / "outputs" / "bench_cell_labels")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "cell_labels.json")
     args = p.parse_args()
@@ -82,8 +83,10 @@ def main() -> int:
             job = pending.pop(0)
             out = args.work / run_name(*job)
             log = open(args.work / f"{run_name(*job)}.log", "w")
+            # a ROS domain per run: two cells on one domain would answer each other's requests
+            domain = {"ROS_DOMAIN_ID": str(args.domain + jobs.index(job))}
             proc = subprocess.Popen(command(args, out, *job, None if job == first else reference_csv),
-                                    stdout=log, stderr=subprocess.STDOUT, env=env, cwd=REPO)
+                                    stdout=log, stderr=subprocess.STDOUT, env={**env, **domain}, cwd=REPO)
             running.append((job, proc, time.time()))
             print(f"started {run_name(*job)}", flush=True)
             continue

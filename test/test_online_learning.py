@@ -23,7 +23,8 @@ from ros_helpers import NodeProcess, call, publish_when_matched, stop_all, wait_
 
 LINE = re.compile(r"^learner: candidate from (\d+) episodes: cost ([0-9.]+) vs serving ([0-9.]+) -> "
                   r"(promoted v\d{4}|discarded) \((.+): difference ([-+0-9.]+) s, 95% upper bound ([-+0-9.inf]+) s "
-                  r"over (\d+) held-out frames; successes (\d+) vs (\d+)\)$")
+                  r"over (\d+) held-out frames; successes (\d+) vs (\d+)\); replayed (\d+) by ground truth, (\d+) by "
+                  r"the robot's picks, (\d+) objects in frames with conflicting robot outcomes left out$")
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +137,14 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     is discarded, twice, for the same costs."""
     from perception_config.agents import load_agent, make_agent
     from perception_config.online import policy_learner
-    from perception_config.online.policy_learner import CANDIDATES, POLICIES, PolicyVersions, format_result, learn_once
+    from perception_config.online.policy_learner import (
+        CANDIDATES,
+        LEARNER_FILE,
+        POLICIES,
+        PolicyVersions,
+        format_result,
+        learn_once,
+    )
     from perception_config.online.promotion_gate import MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame
 
     trained_on: list[int] = []
@@ -168,7 +176,8 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     assert load_agent(versions.path("v0001"), data["env"]).kind == "fixed"
     assert versions.list()[-1]["info"]["serving"] == "v0000"
     assert versions.list()[-1]["info"]["gate"]["promote"] is True  # the decision's figures are kept
-    assert not list((bad / CANDIDATES).glob("*"))
+    assert [p.name for p in (bad / CANDIDATES).glob("*")] == [LEARNER_FILE]  # the candidate file is gone
+    assert (int(m.group(11)), int(m.group(12)), int(m.group(13))) == (r["labels"]["ground_truth"], 0, 0)
 
     good = tmp_path / "good"
     record_like_the_configurator(good, data, recorded, ["icp_coarse", "icp_fine", "pick"])
@@ -176,11 +185,16 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     assert r["outcome"] == "discarded" and not r["gate"]["promote"], format_result(r)
     assert LINE.match(format_result(r)).group(4) == "discarded"
     assert [e["version"] for e in PolicyVersions(good / POLICIES).list()] == ["v0000"]
-    assert not list((good / CANDIDATES).glob("*")), "a discarded candidate is deleted"
+    kept = good / CANDIDATES / LEARNER_FILE
+    assert [p.name for p in (good / CANDIDATES).glob("*")] == [LEARNER_FILE], "a discarded candidate is deleted"
+    assert r["trained_total"] == 8  # the learner's own weights are kept for the next cycle
 
-    # The same cycle again gives the same costs: the replay check is deterministic (cost table).
+    # The same cycle again from the same start gives the same costs: the replay check is deterministic (cost table).
+    kept.rename(tmp_path / "kept.safetensors")
     again = learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
     assert (again["cost"], again["serving_cost"]) == (r["cost"], r["serving_cost"])
+    # While the same version serves, the next cycle continues the learner's weights instead of starting again.
+    assert learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))["trained_total"] == 16
 
 
 def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data, recorded):

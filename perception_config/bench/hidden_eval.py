@@ -5,7 +5,9 @@
 ground truth: after the run, each version kept in `<learn_dir>/policies/` plays the same fixed
 episodes (every object of the bag's images with visib_fract >= 0.3, `seeds` episode seeds each,
 the run's lambda), in-process, greedy, with the ground-truth simulated pick and cost-table time
-(the same seconds for the same actions, whatever the machine's load). A version's figures:
+(the same seconds for the same actions, whatever the machine's load); the blocks keep their time
+bounds, as in the cell, and a generator's result is reused for the same call, so every version
+meets the same hypotheses. A version's figures:
 success share, first-pick share, mean cost (charged seconds + failed picks + truncation: what
 the reward and the learner's gate optimise) and mean time. A promoted version is **worse** than
 the one it replaced (the version serving when it was trained) when its mean cost is higher or
@@ -25,6 +27,7 @@ from ..learning.evaluation import episode_seed
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episode_loop import acting_seed, play_episode
 from ..rl.episodes import EpisodeSource
+from ..rl.operators import InProcessOperators
 from ..rl.settings import EnvSettings
 from ..util.versions import PolicyVersions
 
@@ -38,7 +41,11 @@ def evaluate_versions(policies: str | Path, dataset: str | Path, keys: Sequence[
     from tqdm import tqdm
 
     versions = PolicyVersions(policies)
-    env = PerceptionConfigEnv(None, load_pipeline(pipeline), env_settings.replace(time_mode="cost_table"))
+    pipe = load_pipeline(pipeline)
+    # bounded as in the cell (an unbounded global registration takes 7 s a call); a generator's
+    # result is reused for the same call, so every version meets the same hypotheses
+    env = PerceptionConfigEnv(None, pipe, env_settings.replace(time_mode="cost_table"),
+                              operators=InProcessOperators(pipe, time_bounded=True))
     source = EpisodeSource(dataset, list(keys))
     episodes = [source.load(i, noise_lambda, max(1, episode_seed(HIDDEN_SEED + s, i)))
                 for s in range(int(seeds)) for i in range(len(source))]

@@ -14,16 +14,25 @@ One learning cycle, every `every` new stored estimates (`learn_once`):
    near a pose the robot picked; a cell without ground truth learns from its robot's picks).
    Such an episode needs a generator that needs no ground truth (the cell pipeline);
 2. a candidate: REINFORCE (agents/policy_gradient.py, trained with training.play_round and the
-   agent's own update, the same code as `perception-config train`) continued from the serving
+   agent's own update, the same code as `perception-config train`) continued from the learner's
+   own weights of the previous cycle while the same version serves (`candidates/learner.safetensors`:
+   a candidate that lost keeps learning instead of starting again), else from the serving
    version's weights, or a fresh pg when the serving version has none (the fixed pipeline); it
-   plays `train_episodes` episodes on the stored frames with fresh episode seeds;
+   plays `train_episodes` episodes on the stored frames: with fresh episode seeds (new initial
+   hypotheses) when the generators are cheap draws (simulated_init), with the stored seeds when
+   a generator searches the frame (resting_pose, ppf, global_registration: their results are
+   reused for a repeated call, operators.GeneratorMemo, so a cycle pays each search once, not
+   once per training episode);
    The replayable episodes are split by frame (online/promotion_gate.py: a stable share
    `check_fraction` of the frames is held out); the candidate trains on the others only;
 3. the replay check: the serving version and the candidate (both greedy) play the newest
    `check_episodes` stored episodes of the check frames in-process, same operators, same frames,
    same lambda, the stored episode seeds and acting seeds (episode_loop.acting_seed); time is the
    cost table (env time_mode "cost_table"), so both are charged the same seconds for the same
-   actions and the comparison is deterministic, not a race against the machine's load. Cost =
+   actions and the comparison is not a race against the machine's load. The blocks keep their
+   own time bounds (`max_seconds`, as in the cell: an unbounded global registration took 7 s
+   a call against its 1 s), and a generator's result is reused for the same call, so the serving
+   version and the candidate meet the same hypotheses. Cost =
    the env's: charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
    a cycle with fewer than 15 check episodes on 5 check frames trains nothing and waits;
 4. the gate (promotion_gate.paired_gate): promoted only if the per-frame paired cost difference
@@ -65,7 +74,7 @@ from ..blocks.pipeline import load_pipeline
 from ..datasets.bop_models import ModelFolder
 from ..rl.env import PerceptionConfigEnv
 from ..rl.episode_loop import acting_seed, play_episode
-from ..rl.operators import Episode
+from ..rl.operators import Episode, GeneratorMemo, InProcessOperators
 from ..rl.settings import EnvSettings
 from ..store.episode_store import STORE_NAME, EpisodeStore, EpisodeStoreError
 from ..store.frames import frame_path, load_frame
@@ -82,6 +91,7 @@ POLICIES = "policies"
 FRAMES = "frames"
 LEARNER_LOG = "learner.log"
 CANDIDATES = "candidates"
+LEARNER_FILE = "learner.safetensors"  # the learner's weights, continued cycle after cycle while one version serves
 MIN_EPISODES = 2  # replayable episodes a candidate needs at least
 
 
@@ -102,13 +112,14 @@ class LearnerSettings:
     extra: dict[str, Any] = field(default_factory=dict)  # recorded in each candidate's metadata
 
     def env(self, learn_dir: str | Path | None = None) -> PerceptionConfigEnv:
-        """The serving environment in cost-table time; its pick_success score follows the score
-        versions of `learn_dir` (online/score_learner.py)."""
+        """The serving environment in cost-table time, its blocks bounded by their own time limits
+        as in the cell (module docstring); its pick_success score follows the score versions of
+        `learn_dir` (online/score_learner.py)."""
         settings = EnvSettings.from_json(self.env_settings, "learner settings").replace(time_mode="cost_table")
         pipeline = load_pipeline(self.pipeline)
         if learn_dir is not None:
             follow_score_versions(pipeline, Path(learn_dir) / SCORES)
-        return PerceptionConfigEnv(None, pipeline, settings)
+        return PerceptionConfigEnv(None, pipeline, settings, operators=InProcessOperators(pipeline, time_bounded=True))
 
 
 class LearnError(RuntimeError):
@@ -189,7 +200,8 @@ def _usable_labels(labels: PickLabels | None, model: Any, score: bool, stats: di
 def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list[Episode], n_episodes: int,
                     seed: int, stop: Callable[[], bool] | None = None) -> Agent:
     """REINFORCE continued from the serving version's weights (a fresh pg when it has none) on
-    `n_episodes` episodes drawn from `episodes` with fresh episode seeds; greedy when returned.
+    `n_episodes` episodes drawn from `episodes`, with fresh episode seeds unless a generator
+    searches the frame (module docstring); greedy when returned.
     `stop` is asked before each episode of a round (LearnError when it says so): a configurator
     that stops waits for one episode, not a round."""
     from ..learning.training import play_round
@@ -201,11 +213,14 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
         learner = make_agent("pg", spec, seed=seed)
     learner.explore = True
     rng = np.random.default_rng(seed)
+    blocks = [env.pipeline.generator] + [a.block for a in env.pipeline.actions]
+    fresh = not any(GeneratorMemo.applies(b) for b in blocks)
     done = 0
     while done < n_episodes:
         k = learner.episodes_per_actor
         picks = rng.integers(len(episodes), size=k)
-        options = [{"episode": dataclasses.replace(episodes[i], seed=int(rng.integers(1, 2**31)))} for i in picks]
+        options = [{"episode": dataclasses.replace(episodes[i], seed=int(rng.integers(1, 2**31))) if fresh
+                    else episodes[i]} for i in picks]
         act_seeds = rng.integers(2**31, size=(len(learner.actors()), k))
         trajectories: list[list[Any]] = []
         for i, actor in enumerate(learner.actors()):  # play_round's order, one episode at a time
@@ -250,6 +265,21 @@ def _save_candidate(agent: Agent, learn_dir: Path, settings: LearnerSettings, ex
     return path
 
 
+def _kept_learner(learn_dir: Path, serving: str) -> tuple[Path | None, int]:
+    """The learner's weights kept by the previous cycle, when they were trained while `serving`
+    served (else None: start again from the serving version), and how many episodes they saw."""
+    path = confined(learn_dir / CANDIDATES, learn_dir, "candidates folder") / LEARNER_FILE
+    if not path.is_file():
+        return None, 0
+    try:
+        extra = policy_info(path).get("extra") or {}
+    except (OSError, ValueError):
+        return None, 0
+    if extra.get("learned_from") != serving:
+        return None, 0
+    return path, int(extra.get("trained_total") or 0)
+
+
 def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[str], None] = lambda s: None,
                env: PerceptionConfigEnv | None = None, models: ModelFolder | None = None,
                stop: Callable[[], bool] | None = None) -> dict[str, Any]:
@@ -281,15 +311,23 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
         if not train_eps:
             raise LearnError("every replayable estimate is on a check frame: nothing to train on")
         started = time.perf_counter()
-        candidate = train_candidate(env, serving_file, train_eps, settings.train_episodes,
+        kept, trained_before = _kept_learner(learn_dir, serving)
+        candidate = train_candidate(env, kept or serving_file, train_eps, settings.train_episodes,
                                     settings.seed + len(episodes), stop)
+        trained_total = trained_before + settings.train_episodes
+        folder = confined(learn_dir / CANDIDATES, learn_dir, "candidates folder")
+        folder.mkdir(parents=True, exist_ok=True)
+        save_agent(candidate, folder / LEARNER_FILE,
+                   {"env_settings": settings.env_settings, "pipeline": settings.pipeline, **settings.extra,
+                    "learned_from": serving, "trained_total": trained_total})
         serving_agent = load_agent(serving_file, env)
         serving_costs, serving_wins = replay(env, serving_agent, check)
         costs, wins = replay(env, candidate, check)
         gate = paired_gate(costs, serving_costs, wins, serving_wins, [ep.stamp_ns for ep in check],
                            margin=settings.margin)
         result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(train_eps), "labels": stats,
-                  "train_episodes": settings.train_episodes, "cost": gate.cost, "serving_cost": gate.serving_cost,
+                  "train_episodes": settings.train_episodes, "trained_total": trained_total, "cost": gate.cost,
+                  "serving_cost": gate.serving_cost,
                   "serving": serving, "margin": settings.margin, "gate": gate.to_json(),
                   "seconds": time.perf_counter() - started}
         path = _save_candidate(candidate, learn_dir, settings, {"learned_from": serving, "replay_check": result})

@@ -30,6 +30,17 @@ from .estimate_client import EstimateClient
 TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
 
 
+def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5) -> list[str]:
+    """The nodes of `names` already on this ROS domain (another cell: a launch, a replay-check, a
+    cell-sim), after `wait` s of discovery. Two cells on one domain answer each other's requests."""
+    deadline = time.monotonic() + wait
+    found: set[str] = set()
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        found |= {n for n in node.get_node_names() if n in names}
+    return sorted(found)
+
+
 class CellNode:
     """This process's view of the cell: the replayed frames' ground truth, the operator traces
     and the serving policy version, received while an estimate is awaited (EstimateClient spins

@@ -78,7 +78,7 @@ from ..store.episode_store import STORE_NAME, policy_version
 from ..util.atomic_file import atomic_write
 from ..util.stop_signals import StopRequested, StopSignals, signal_name
 from ..util.versions import PolicyVersions
-from .cell_sim_drive import CellNode, drive
+from .cell_sim_drive import CellNode, drive, running_elsewhere
 from .cell_sim_robot import FRAME_INFO, ROBOT_SERVICE, SimulatedRobot
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
@@ -102,11 +102,16 @@ def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: boo
     """Start `specs`, drive the cell, stop them; (completed, the configurator's log lines).
     `hidden` and `robot` (a factory on this process's node): a cell without ground truth."""
     log_dir = out / "logs" / name
-    with open(out / f"launch-{name}.log", "w") as launch_log:
-        launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
-        with launcher:
-            node = rclpy.create_node(f"cell_sim_{name}_{os.getpid()}")
-            try:
+    node = rclpy.create_node(f"cell_sim_{name}_{os.getpid()}")
+    try:
+        clash = running_elsewhere(node, SERVICE_NODES)
+        if clash:
+            raise RuntimeError(f"{', '.join(clash)} already run on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID')}: "
+                               "another cell (a launch, a replay-check, a cell-sim) would answer this one's requests; "
+                               "stop it, or run this one with another ROS_DOMAIN_ID")
+        with open(out / f"launch-{name}.log", "w") as launch_log:
+            launcher = Launcher(specs, log_dir=log_dir, out=launch_log if quiet else None)
+            with launcher:
                 cell = CellNode(node, hidden)
                 the_robot = robot(node) if robot is not None else None
                 launcher.wait_for_line("configurator_node", "serving", timeout=120.0)
@@ -116,8 +121,8 @@ def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: boo
                 if the_robot is not None and the_robot.refused_reports:
                     print(f"cell-sim: {len(the_robot.refused_reports)} pick reports refused, the first: "
                           f"{the_robot.refused_reports[0]}", file=sys.stderr, flush=True)
-            finally:
-                node.destroy_node()
+    finally:
+        node.destroy_node()
     lines = (log_dir / "configurator_node.log").read_text(errors="replace").splitlines() \
         if (log_dir / "configurator_node.log").is_file() else []
     return completed, lines
