@@ -41,14 +41,53 @@ def run_name(labels: str, reports: str, seed: int) -> str:
 
 
 def command(args: argparse.Namespace, out: Path, labels: str, reports: str, seed: int,
-            reference_csv: Path | None) -> list[str]:
+            reference_csv: Path | None, learn: bool = True) -> list[str]:
     cmd = CLI + ["cell-sim", "--dataset", str(args.dataset), "--all-images", "--start", "fixed",
                  "--reference", str(args.reference), "--estimates", str(args.estimates), "--seed", str(seed),
                  "--labels", labels, "--robot-reports", reports, "--out", str(out), "--quiet",
                  "--hidden-seeds", str(args.hidden_seeds)]
     if reference_csv is not None:
         cmd += ["--reference-from", str(reference_csv)]
+    if not learn:
+        cmd += ["--no-learn"]
     return cmd
+
+
+def latency(args: argparse.Namespace) -> int:
+    """`--latency N`: the robot cell with the learner and without it, N estimates each, at the same
+    time (each its own ROS domain, so both see the same machine load); estimate_pose's wall time
+    (request to answer, as the robot program waits) p50 and p99 of each."""
+    reference_csv = args.work / run_name("ground_truth", "truth", args.seeds[0]) / "reference.csv"
+    if not reference_csv.is_file():
+        print(f"--latency reuses {reference_csv}: run the benchmark without --latency first", file=sys.stderr)
+        return 2
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    procs = {}
+    for i, learn in enumerate((True, False)):
+        name = f"latency-{'learn' if learn else 'no-learn'}"
+        a = argparse.Namespace(**{**vars(args), "estimates": args.latency, "hidden_seeds": 0})
+        procs[name] = subprocess.Popen(command(a, args.work / name, "robot", "truth", args.seeds[0], reference_csv,
+                                               learn), env={**env, "ROS_DOMAIN_ID": str(args.domain + 20 + i)},
+                                       stdout=open(args.work / f"{name}.log", "w"), stderr=subprocess.STDOUT, cwd=REPO)
+    for p in procs.values():
+        p.wait()
+    from perception_config.bench.cell_sim import read_estimates
+
+    out = {}
+    for name in procs:
+        rows = [r for r in read_estimates(args.work / name / "estimates.csv") if r["answered"]]
+        wall = np.array([r["estimate_wall_s"] for r in rows])
+        out[name] = {"estimates": len(rows), "p50_s": float(np.percentile(wall, 50)),
+                     "p99_s": float(np.percentile(wall, 99)), "mean_s": float(wall.mean())}
+        print(f"{name}: {len(rows)} answered estimates, estimate_pose wall time p50 {out[name]['p50_s']:.3f} s, "
+              f"p99 {out[name]['p99_s']:.3f} s")
+    lines = (args.work / "latency-learn" / "learn" / "learner.log").read_text().splitlines()
+    out["learner_cycles"] = sum("learner: candidate from" in line for line in lines)
+    out["load"] = os.getloadavg()
+    path = args.out.with_name(args.out.stem + "_latency.json")
+    path.write_text(json.dumps(out, indent=1) + "\n")
+    print(f"learner cycles during the learning run: {out['learner_cycles']}; wrote {path}")
+    return 0
 
 
 def main() -> int:

@@ -261,6 +261,7 @@ class ConfiguratorNode(ManagedNode):
         self.operators.deadline = deadline
         if self.learning is not None:  # between estimates: a promoted or pinned version starts serving here
             self.learning.sync(self._swap)
+            self._capture(stamp_ns, warn=False)  # now: the camera cache may have dropped the frame by the end
         try:
             traj = play_episode(self.env, self.agent, {"episode": episode}, acting_seed(seed), max_steps=limit,
                                 require_hypothesis=True, on_step=on_step,
@@ -278,10 +279,7 @@ class ConfiguratorNode(ManagedNode):
                                 label="ground_truth" if has_truth else None)
             response.estimate_id = int(eid or 0)
         if self.learning is not None:
-            try:
-                self.learning.capture(frame_stamp)
-            except Exception as exc:  # noqa: BLE001  (learning must never fail an estimate)
-                self.get_logger().error(f"learn: frame of the estimate not kept: {exc!r}")
+            self._capture(frame_stamp, warn=True)
         info, names = traj.final_info, traj.names
         picked = traj.success
         header = Header(frame_id=self.operators.frame_id)
@@ -380,6 +378,13 @@ class ConfiguratorNode(ManagedNode):
                 return result
             self.get_logger().info(f"{param.name} set to {param.value or 'the newest'}: {when}")
         return SetParametersResult(successful=True)
+
+    def _capture(self, stamp_ns: int, warn: bool) -> None:
+        """Keep the estimate's frame for the learner (learning.capture); never fails an estimate."""
+        try:
+            self.learning.capture(stamp_ns, warn=warn)
+        except Exception as exc:  # noqa: BLE001  (learning must never fail an estimate)
+            self.get_logger().error(f"learn: frame of the estimate not kept: {exc!r}")
 
     def _on_pick_outcome(self, request: ReportPickOutcome.Request, response: ReportPickOutcome.Response
                          ) -> ReportPickOutcome.Response:

@@ -92,7 +92,8 @@ PARAMETERS = (
                   "success not lower (online/promotion_gate.py); below 1", limits=(0.0, 1.0), read_only=True),
     NodeParameter("learn_every", 20, "(learn) new stored estimates between two candidates",
                   limits=(1, INT_MAX), read_only=True),
-    NodeParameter("learn_train_episodes", 200, "(learn) a candidate's training episodes",
+    NodeParameter("learn_train_episodes", 200,
+                  "(learn) training episodes per cycle (the learner continues its weights while one version serves)",
                   limits=(0, INT_MAX), read_only=True),
     NodeParameter("learn_check_episodes", 60, "(learn) a candidate's replay check: at most the newest this many "
                   "stored episodes of the held-out check frames (never trained on); at least 15 on 5 frames are "

@@ -53,6 +53,11 @@ from .conversions import msg_to_pose
 from .request_fields import parse_stamp
 from .stamp_cache import StampCache
 
+# Frames the configurator keeps for capture, by stamp: as many as an operator node (its cache_size
+# default). Captured at the request and after the estimate; an estimate of the cell pipeline takes
+# 0.5-3 s, longer than 8 frames of a 10 Hz camera, which lost 33 of 40 frames in a simulated cell.
+CAMERA_CACHE = 30
+
 SAVE_QUEUE = 16  # frames waiting for the saver thread
 LEARNER_STOP_TIMEOUT = 5.0
 
@@ -127,7 +132,7 @@ class NodeLearning:
 
         # the frames of the estimates, and their replayed ground truth
         group = MutuallyExclusiveCallbackGroup()
-        self.camera = CameraFrames(node, 8, camera_qos, callback_group=group, use_depth=use_depth)
+        self.camera = CameraFrames(node, CAMERA_CACHE, camera_qos, callback_group=group, use_depth=use_depth)
         self.ground_truth: StampCache[dict[str, Any]] = StampCache(16)
         from perception_config_interfaces.msg import ObjectPoses
 
@@ -250,13 +255,18 @@ class NodeLearning:
                 continue
         return False
 
-    def capture(self, stamp_ns: int) -> None:
-        """Queue the estimate's frame for saving (once per stamp); never blocks."""
-        if stamp_ns in self._saved:
+    def capture(self, stamp_ns: int, warn: bool = True) -> None:
+        """Queue the estimate's frame for saving (once per stamp; 0 = the latest); never blocks.
+        The configurator captures at the request (the camera cache holds a few frames only, and
+        an estimate may outlast them) and again after the estimate (for the stamp the operators
+        used); `warn`: log a frame that is not here."""
+        if stamp_ns and stamp_ns in self._saved:
             return
         item = self.camera.frames.get(stamp_ns)
+        if isinstance(item, CameraFrame) and item.stamp_ns in self._saved:
+            return
         if not isinstance(item, CameraFrame):
-            if stamp_ns not in self._missing_logged:
+            if warn and stamp_ns not in self._missing_logged:
                 self._missing_logged.add(stamp_ns)
                 self.log.warning(f"learn: the frame at {stamp_text(stamp_ns)} did not reach the configurator "
                                  "(camera topics): its estimate is stored but cannot be replayed")
@@ -272,7 +282,7 @@ class NodeLearning:
         except queue.Full:
             self.log.warning(f"learn: frame at {stamp_text(stamp_ns)} not saved: {SAVE_QUEUE} frames already wait")
             return
-        self._saved[stamp_ns] = None
+        self._saved[item.stamp_ns] = None
         while len(self._saved) > 4 * self.frame_ring:
             self._saved.pop(next(iter(self._saved)))
 
