@@ -199,3 +199,32 @@ def _picked_last(store, eid: int) -> bool:
     row = store.query("SELECT picked FROM steps WHERE episode_id = ? AND picked IS NOT NULL ORDER BY step DESC LIMIT 1",
                       (eid,))
     return bool(row[0][0]) if row else False
+
+
+def test_a_refused_first_call_with_candidates_is_served_not_refused(tmp_path_factory, dataset):
+    """The configurator's `require_hypothesis`: a first generator call refused below its verification
+    threshold leaves its ranked candidates, and a pipeline with next_candidate goes on from there (as
+    its policy was trained); without next_candidate there is nothing to go on with: refused."""
+    from perception_config.agents import make_agent
+    from perception_config.rl.env import PerceptionConfigEnv
+    from perception_config.rl.episode_loop import play_episode
+
+    strict = CELL_PIPELINE.replace("generator: {block: resting_pose}",
+                                   "generator: {block: resting_pose, params: {min_verification: 0.999}}")
+    env = PerceptionConfigEnv(dataset, pipeline_file(tmp_path_factory, strict, "strict_cell.yaml"),
+                              time_mode="cost_table", min_visib_fract=0.3)
+    agent = make_agent("fixed", env, sequence=["next_candidate", "pick"])
+    for j in range(len(env.source.episodes)):
+        env.reset(options={"episode": j, "episode_seed": 5})
+        if env.ops.candidates:
+            break
+    else:
+        pytest.skip("resting_pose ranked no candidate on the tiny dataset")
+    traj = play_episode(env, agent, {"episode": j, "episode_seed": 5}, 1, require_hypothesis=True)
+    assert not traj.initial_info["ok"] and traj.names[0] == "next_candidate" and traj.oks[0]
+    no_next = strict.replace("  - {name: next_candidate, block: next_candidate}\n", "")
+    env2 = PerceptionConfigEnv(dataset, pipeline_file(tmp_path_factory, no_next, "strict_no_next.yaml"),
+                               time_mode="cost_table", min_visib_fract=0.3)
+    with pytest.raises(ValueError, match="no first hypothesis"):
+        play_episode(env2, make_agent("fixed", env2, sequence=["pick"]), {"episode": j, "episode_seed": 5}, 1,
+                     require_hypothesis=True)

@@ -53,14 +53,16 @@ def play_episode(
     `options` go to `env.reset` (episode index or Episode, lambda, episode_seed); `act_seed`
     reseeds the agent's acting randomness. `max_steps` stops earlier than the env's max_ops
     (a request's own limit), without the truncation charge. `require_hypothesis`: raise
-    ValueError when the generator gives no first hypothesis instead of letting the agent try.
+    ValueError when the generator gives no first hypothesis instead of letting the agent try,
+    unless the refused call left ranked candidates and the pipeline can take them
+    (next_candidate): the agent was trained to go on from there.
     `stop` is asked before each action; True ends the episode there like `max_steps` (the
     configurator's per-estimate deadline, or a cancelled goal) and sets `Trajectory.stopped`.
     `on_step(action_name, info)` is called after each action (the configurator's feedback).
     """
     env_ = getattr(env, "unwrapped", env)
     obs, info = env.reset(options=options)
-    if require_hypothesis and not info["ok"]:
+    if require_hypothesis and not info["ok"] and not _candidates_wait(env_):
         raise ValueError(f"no first hypothesis: {info['reason']}")
     agent.begin_episode(act_seed)
     initial_info = info
@@ -136,3 +138,9 @@ def play_episode(
         step_picked=step_picked,
         initial_operation_seconds=initial_elapsed,
     )
+
+
+def _candidates_wait(env: Any) -> bool:
+    """Whether a refused first generator call left candidates that an action of the pipeline takes."""
+    takes = any(getattr(a.block, "takes_candidate", False) for a in env.pipeline.actions)
+    return takes and bool(getattr(env.ops, "candidates", None))
