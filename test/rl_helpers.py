@@ -41,6 +41,18 @@ actions:
 scoring: [psi_d, psi_c, icp_fitness]
 """
 
+# A cell-like pipeline: a generator that needs no ground truth (its refused call's candidates
+# wait for next_candidate), one refiner, the pick.
+CELL_PIPELINE = """\
+generator: {block: resting_pose}
+actions:
+  - {name: icp_fine, block: icp_point_to_plane,
+     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
+  - {name: next_candidate, block: next_candidate}
+  - {name: pick, block: simulated_pick}
+scoring: [psi_d, icp_fitness]
+"""
+
 # Same actions, other scores: a different observation layout.
 OTHER_SCORES_PIPELINE = PIPELINE.replace("scoring: [psi_d, psi_c, icp_fitness]", "scoring: [psi_d, icp_fitness]")
 

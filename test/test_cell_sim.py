@@ -305,16 +305,6 @@ def test_bad_arguments_are_refused_before_anything_starts(tmp_path_factory, tmp_
     assert not out.exists()
 
 
-CELL_PIPELINE = """\
-generator: {block: resting_pose}
-actions:
-  - {name: icp_fine, block: icp_point_to_plane,
-     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
-  - {name: next_candidate, block: next_candidate}
-  - {name: pick, block: simulated_pick}
-scoring: [psi_d, icp_fitness]
-"""
-
 
 @pytest.mark.ros
 def test_a_cell_without_ground_truth_hears_the_pick_outcomes_from_its_robot(ros_node, tmp_path_factory, tmp_path):
@@ -327,7 +317,7 @@ def test_a_cell_without_ground_truth_hears_the_pick_outcomes_from_its_robot(ros_
     from perception_config.ros.cell_sim_run import cell_sim
     from perception_config.store.episode_store import EpisodeStore
     from perception_config.store.frames import load_frame
-    from rl_helpers import pipeline_file
+    from rl_helpers import CELL_PIPELINE, pipeline_file
 
     root = tiny_dataset(tmp_path_factory)
     pipe = pipeline_file(tmp_path_factory, CELL_PIPELINE, "cell_sim_cell.yaml")

@@ -11,18 +11,7 @@ import pytest
 from perception_config.core.geometry import Pose
 from perception_config.core.metrics import pose_mssd
 from perception_config.online.pick_labels import LABEL_TOLERANCE, PickLabels
-from rl_helpers import pipeline_file, tiny_dataset
-
-# A cell-like pipeline: a generator that needs no ground truth, one refiner, the pick.
-CELL_PIPELINE = """\
-generator: {block: resting_pose}
-actions:
-  - {name: icp_fine, block: icp_point_to_plane,
-     params: {max_correspondence_distance: 0.01, final_distance: 0.003, stages: 2, max_seconds: 10.0}}
-  - {name: next_candidate, block: next_candidate}
-  - {name: pick, block: simulated_pick}
-scoring: [psi_d, icp_fitness]
-"""
+from rl_helpers import CELL_PIPELINE, pipeline_file, tiny_dataset
 
 
 @pytest.fixture(scope="module")
