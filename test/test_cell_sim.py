@@ -302,8 +302,19 @@ def test_bad_arguments_are_refused_before_anything_starts(tmp_path_factory, tmp_
         cell_sim(out, tmp_path / "missing.safetensors", **kw)
     with pytest.raises(ValueError, match="--estimates must be >= 1"):
         cell_sim(out, policy, **{**kw, "estimates": 0})
+    with pytest.raises(ValueError, match="--labels must be one of"):
+        cell_sim(out, policy, labels="oracle", **kw)
+    with pytest.raises(ValueError, match="--robot-reports must be one of"):
+        cell_sim(out, policy, labels="robot", robot_reports="sometimes", **kw)
+    with pytest.raises(ValueError, match=r"--flip-share must be in \[0, 1\]"):
+        cell_sim(out, policy, labels="robot", robot_reports="flipped", flip_share=1.5, **kw)
+    with pytest.raises(ValueError, match="--robot-reports other than truth needs --labels robot"):
+        cell_sim(out, policy, robot_reports="flipped", **kw)
+    with pytest.raises(ValueError, match="--hidden-seeds must be >= 0"):
+        cell_sim(out, policy, hidden_seeds=-1, **kw)
+    with pytest.raises(ValueError, match="simulated_init needs the ground truth"):
+        cell_sim(out, policy, labels="robot", **kw)  # the default pipeline's generator reads the ground truth
     assert not out.exists()
-
 
 
 @pytest.mark.ros

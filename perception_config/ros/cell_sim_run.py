@@ -79,7 +79,7 @@ from ..util.atomic_file import atomic_write
 from ..util.stop_signals import StopRequested, StopSignals, signal_name
 from ..util.versions import PolicyVersions
 from .cell_sim_drive import CellNode, drive, running_elsewhere
-from .cell_sim_robot import FRAME_INFO, ROBOT_SERVICE, SimulatedRobot
+from .cell_sim_robot import FRAME_INFO, REPORTS, ROBOT_SERVICE, SimulatedRobot
 from .estimate_client import EstimateClient
 from .replay_check import record_images, replay_spec, service_specs
 
@@ -146,6 +146,10 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     if labels == "robot" and dataset is None:
         raise ValueError("--labels robot needs --dataset: the simulated robot reads the ground truth from it "
                          "(a bag's ground truth would be replayed to the nodes)")
+    if robot_reports not in REPORTS:
+        raise ValueError(f"--robot-reports must be one of {REPORTS}, got {robot_reports!r}")
+    if not 0.0 <= flip_share <= 1.0:
+        raise ValueError(f"--flip-share must be in [0, 1], got {flip_share}")
     if robot_reports != "truth" and labels != "robot":
         raise ValueError("--robot-reports other than truth needs --labels robot")
     if hidden_seeds < 0:
