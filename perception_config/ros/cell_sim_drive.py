@@ -147,7 +147,9 @@ def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates
                         robot.begin()
                     answer = client.call(stamp, obj, noise_lambda, ep_seed)
                     trace = cell.trace_for(stamp, obj) if answer["success"] else None
-                    if robot is not None and robot.picks and answer["estimate_id"]:
+                    if (robot is not None and robot.picks and answer["estimate_id"] and answer["operations"]
+                            and answer["operations"][-1] in pick_actions):
+                        # the configurator records a report on the estimate's last step: its last pick
                         robot.report(answer["estimate_id"], robot.picks[-1][1])
                 oks = list(trace.ok) if trace is not None else None
                 version = (getattr(trace, "policy_version", "") if trace is not None else "") or cell.version \
