@@ -97,12 +97,17 @@ def main() -> int:
     p.add_argument("--estimates", type=int, default=400)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--poisoned", nargs="*", default=["flipped", "all-failed", "all-success"])
-    p.add_argument("--parallel", type=int, default=2, help="runs at a time (the figures are cost-table: load-free)")
+    p.add_argument("--parallel", type=int, default=2,
+                   help="runs at a time (the hidden figures are cost-table: load-free; the served ones are not)")
     p.add_argument("--hidden-seeds", type=int, default=1)
     p.add_argument("--domain", type=int, default=60, help="ROS_DOMAIN_ID of the first run (the next ones count up)")
     p.add_argument("--work", type=Path, default=REPO / "outputs" / "bench_cell_labels")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "cell_labels.json")
+    p.add_argument("--latency", type=int, default=0, metavar="N",
+                   help="instead: the learner on against off, N estimates each at the same time (serving latency)")
     args = p.parse_args()
+    if args.latency:
+        return latency(args)
     if not args.reference.is_file():
         print(f"no reference policy {args.reference}: run ./scripts/demo.sh (it trains runs/demo-cell-pg)",
               file=sys.stderr)
