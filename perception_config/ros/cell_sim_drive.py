@@ -30,14 +30,23 @@ from .estimate_client import EstimateClient
 TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
 
 
-def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5) -> list[str]:
-    """The nodes of `names` already on this ROS domain (another cell: a launch, a replay-check, a
-    cell-sim), after `wait` s of discovery. Two cells on one domain answer each other's requests."""
-    deadline = time.monotonic() + wait
-    found: set[str] = set()
-    while time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        found |= {n for n in node.get_node_names() if n in names}
+def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5, settle: float = 10.0) -> list[str]:
+    """The nodes of `names` on this ROS domain (another cell: a launch, a replay-check, a
+    cell-sim): looked for during `wait` s of discovery; nodes seen must still be there after up to
+    `settle` s (a cell that is stopping, e.g. a configurator waiting for its learner, leaves the
+    graph within seconds). Two cells on one domain answer each other's requests."""
+    def seen(seconds: float) -> set[str]:
+        deadline = time.monotonic() + seconds
+        found: set[str] = set()
+        while time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            found |= {n for n in node.get_node_names() if n in names}
+        return found
+
+    found = seen(wait)
+    deadline = time.monotonic() + settle
+    while found and time.monotonic() < deadline:
+        found = seen(0.5)
     return sorted(found)
 
 

@@ -61,7 +61,6 @@ from ..bench.cell_sim import (
     reference_figures,
     summarise,
 )
-from ..bench.hidden_eval import evaluate_versions, hidden_summary
 from ..blocks.base import GROUND_TRUTH, Kind
 from ..blocks.pipeline import load_pipeline
 from ..datasets.bag import bag_info
@@ -70,6 +69,7 @@ from ..datasets.bop_models import ModelFolder
 from ..launcher.resolution import default_models
 from ..launcher.ros_environment import configure_ros_environment
 from ..launcher.supervisor import Launcher
+from ..learning.hidden_evaluation import evaluate_versions, hidden_summary
 from ..online.pick_labels import label_counts
 from ..online.promotion_gate import MIN_CHECK_FRAMES, is_check_frame
 from ..online.score_learner import SCORES
