@@ -136,15 +136,7 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     icp_coarse, icp_fine, pick: a pg trained on 8 episodes (one update) does not pass the gate and
     is discarded, twice, for the same costs."""
     from perception_config.agents import load_agent, make_agent
-    from perception_config.online import policy_learner
-    from perception_config.online.policy_learner import (
-        CANDIDATES,
-        LEARNER_FILE,
-        POLICIES,
-        PolicyVersions,
-        format_result,
-        learn_once,
-    )
+    from perception_config.online import policy_learner as pl
     from perception_config.online.promotion_gate import MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame
 
     trained_on: list[int] = []
@@ -159,9 +151,9 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     n = record_like_the_configurator(bad, data, recorded, ["regenerate"], never_picks)
     lines: list[str] = []
     with monkeypatch.context() as m:
-        m.setattr(policy_learner, "train_candidate", picking_candidate)
-        r = learn_once(bad, settings_for(data, never_picks, check_episodes=30), lines.append)
-    line = format_result(r)
+        m.setattr(pl, "train_candidate", picking_candidate)
+        r = pl.learn_once(bad, settings_for(data, never_picks, check_episodes=30), lines.append)
+    line = pl.format_result(r)
     m = LINE.match(line)
     assert m, line
     assert r["outcome"] == "promoted" and m.group(4) == "promoted v0001", line
@@ -171,30 +163,30 @@ def test_a_better_candidate_is_promoted_and_a_worse_one_discarded(tmp_path, data
     assert trained_on and not any(is_check_frame(s) for s in trained_on), "trained on a check frame"
     assert gate["upper"] < 0 and gate["successes"] > gate["serving_successes"] == 0, line
     assert r["serving_cost"] > data["env"].settings.truncation_cost  # never picked: every episode truncated
-    versions = PolicyVersions(bad / POLICIES)
+    versions = pl.PolicyVersions(bad / pl.POLICIES)
     assert versions.current() == "v0001"
     assert load_agent(versions.path("v0001"), data["env"]).kind == "fixed"
     assert versions.list()[-1]["info"]["serving"] == "v0000"
     assert versions.list()[-1]["info"]["gate"]["promote"] is True  # the decision's figures are kept
-    assert [p.name for p in (bad / CANDIDATES).glob("*")] == [LEARNER_FILE]  # the candidate file is gone
+    assert [p.name for p in (bad / pl.CANDIDATES).glob("*")] == [pl.LEARNER_FILE]  # the candidate file is gone
     assert (int(m.group(11)), int(m.group(12)), int(m.group(13))) == (r["labels"]["ground_truth"], 0, 0)
 
     good = tmp_path / "good"
     record_like_the_configurator(good, data, recorded, ["icp_coarse", "icp_fine", "pick"])
-    r = learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
-    assert r["outcome"] == "discarded" and not r["gate"]["promote"], format_result(r)
-    assert LINE.match(format_result(r)).group(4) == "discarded"
-    assert [e["version"] for e in PolicyVersions(good / POLICIES).list()] == ["v0000"]
-    kept = good / CANDIDATES / LEARNER_FILE
-    assert [p.name for p in (good / CANDIDATES).glob("*")] == [LEARNER_FILE], "a discarded candidate is deleted"
+    r = pl.learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
+    assert r["outcome"] == "discarded" and not r["gate"]["promote"], pl.format_result(r)
+    assert LINE.match(pl.format_result(r)).group(4) == "discarded"
+    assert [e["version"] for e in pl.PolicyVersions(good / pl.POLICIES).list()] == ["v0000"]
+    kept = good / pl.CANDIDATES / pl.LEARNER_FILE
+    assert [p.name for p in (good / pl.CANDIDATES).glob("*")] == [pl.LEARNER_FILE], "a discarded candidate is deleted"
     assert r["trained_total"] == 8  # the learner's own weights are kept for the next cycle
 
     # The same cycle again from the same start gives the same costs: the replay check is deterministic (cost table).
     kept.rename(tmp_path / "kept.safetensors")
-    again = learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
+    again = pl.learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))
     assert (again["cost"], again["serving_cost"]) == (r["cost"], r["serving_cost"])
     # While the same version serves, the next cycle continues the learner's weights instead of starting again.
-    assert learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))["trained_total"] == 16
+    assert pl.learn_once(good, settings_for(data, train_episodes=8, check_episodes=30))["trained_total"] == 16
 
 
 def test_a_cycle_that_cannot_make_a_candidate_is_one_line_and_changes_nothing(tmp_path, data, recorded):
