@@ -66,7 +66,7 @@ def evaluate_versions(policies: str | Path, dataset: str | Path, keys: Sequence[
                 "first_pick_success": float(np.mean([t.first_pick_success for t in trajectories])),
                 "cost": float(np.mean([t.cost for t in trajectories])),
                 "time_s": float(np.mean([t.time for t in trajectories])),
-                "learned_from": (info.get("replay_check") or info).get("serving") if isinstance(info, dict) else None,
+                "learned_from": info.get("serving") if isinstance(info, dict) else None,  # the gate's record
             }
     finally:
         bar.close()
