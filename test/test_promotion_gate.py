@@ -72,6 +72,13 @@ def test_fewer_successes_or_a_gain_below_the_margin_is_not_promoted():
     assert not d.promote and d.upper < 0 and "margin" in d.reason, d
     with pytest.raises(ValueError, match="one cost"):
         paired_gate(cost, serving[:-1], wins, wins, frames)
+    # Surely cheaper, but nothing picked on either side (a robot reporting every pick failed):
+    # a cheaper failure, not an improvement. One success makes the same candidate pass.
+    cost, serving, frames = _episodes(8, 3, -2.0, 0.05, rng)
+    none = [False] * 24
+    d = paired_gate(cost, serving, none, none, frames)
+    assert not d.promote and d.upper < 0 and "no success" in d.reason, d
+    assert paired_gate(cost, serving, [True] + none[1:], none, frames).promote
 
 
 def test_the_per_frame_bound_is_students_t_over_the_frames_means():

@@ -20,7 +20,10 @@ bound of the mean of those differences at `confidence` (95 %). The candidate is 
   large: 2.13 at 5 frames, 6.31 at 2);
 - the upper bound is below zero (its cost is lower at 95 % confidence);
 - its mean cost is below (1 - margin) x the serving one (a minimum effect worth a new version);
-- its successes on the check episodes are not fewer than the serving policy's.
+- its successes on the check episodes are not fewer than the serving policy's;
+- it has at least one success on them: without any, a lower cost is only a cheaper failure
+  (fewer pick attempts, giving up sooner), which is what a robot program that reports every
+  pick failed would teach through the robot's labels.
 """
 from __future__ import annotations
 
@@ -107,6 +110,8 @@ def paired_gate(costs: Sequence[float], serving_costs: Sequence[float], successe
         promote, reason = False, f"lower by less than the margin {margin:g}"
     elif wins < serving_wins:
         promote, reason = False, f"fewer successes ({wins} vs {serving_wins})"
+    elif wins == 0:
+        promote, reason = False, "no success on the check episodes (a cheaper failure is no improvement)"
     else:
         promote, reason = True, f"lower at {confidence:.0%} confidence, success not lower"
     return GateDecision(promote, reason, n, k, mean_cost, mean_serving, difference, upper, confidence, wins,
