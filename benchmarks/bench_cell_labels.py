@@ -8,14 +8,24 @@ the fixed pipeline, `--reference` the cell policy) for each seed twice: `--label
 (the nodes and the learner see the replayed ground truth) and `--labels robot` (only the
 simulated robot knows it and answers each pick; the learner learns from its outcomes), then the
 three poisoned robot programs on the first seed (`--robot-reports flipped | all-failed |
-all-success`). Each run ends with the hidden evaluation (every kept version on the same episodes
-with the ground truth, cost-table time: load-independent). The first run measures the reference
+all-success`; `--poisoned` without a value: none). A run whose summary.json exists is not run
+again: a benchmark stopped midway continues when started again. Each run ends with the hidden
+evaluation (every kept version on the same episodes with the ground truth, cost-table time:
+load-independent). The first run measures the reference
 through the nodes; the others reuse its reference.csv.
 
 Reported per run: the hidden cost and success of the first and last served versions, the
 promotions and how many were truly worse. Per seed, the robot run's improvement (hidden cost
 start - end) as a share of the ground-truth run's. Writes results/cell_labels.json and .png; the
 runs' folders go to outputs/bench_cell_labels/.
+
+The cell's pipeline is the reference policy's. With the learned pick-success score in it (a
+policy trained on benchmarks/cell_pick_success_pipeline.yaml), the robot-label learner judges
+the poses no robot outcome covers by that score:
+    perception-config train --dataset data/default --agent pg --episodes 400 --seeds 2 --workers 2 \
+        --pipeline benchmarks/cell_pick_success_pipeline.yaml --out runs/cell-ps-pg
+    .venv/bin/python benchmarks/bench_cell_labels.py --reference runs/cell-ps-pg/policy.safetensors \
+        --work outputs/bench_cell_labels_score --out benchmarks/results/cell_labels_score.json --domain 80
 """
 from __future__ import annotations
 
@@ -119,7 +129,11 @@ def main() -> int:
     reference_csv = args.work / run_name(*first) / "reference.csv"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     running: list[tuple[tuple, subprocess.Popen, float]] = []
-    pending = list(jobs)
+    # A run with a summary is done: a benchmark stopped midway continues when started again.
+    pending = [job for job in jobs if not (args.work / run_name(*job) / "summary.json").is_file()]
+    for job in jobs:
+        if job not in pending:
+            print(f"{run_name(*job)}: done before ({args.work / run_name(*job) / 'summary.json'})", flush=True)
     started_all = time.time()
     while pending or running:
         can_start = len(running) < args.parallel and pending and (pending[0] == first or reference_csv.is_file())
