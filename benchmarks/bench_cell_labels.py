@@ -130,10 +130,13 @@ def main() -> int:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     running: list[tuple[tuple, subprocess.Popen, float]] = []
     # A run with a summary is done: a benchmark stopped midway continues when started again.
-    pending = [job for job in jobs if not (args.work / run_name(*job) / "summary.json").is_file()]
+    pending = []
     for job in jobs:
-        if job not in pending:
-            print(f"{run_name(*job)}: done before ({args.work / run_name(*job) / 'summary.json'})", flush=True)
+        summary = args.work / run_name(*job) / "summary.json"
+        if summary.is_file():
+            print(f"{run_name(*job)}: done before ({summary})", flush=True)
+        else:
+            pending.append(job)
     started_all = time.time()
     while pending or running:
         can_start = len(running) < args.parallel and pending and (pending[0] == first or reference_csv.is_file())

@@ -553,7 +553,7 @@ def test_a_burst_beyond_the_request_queue_is_answered_busy_and_no_request_is_los
     warn = {st.name: st for st in statuses if st.level == DiagnosticStatus.WARN}
     assert {"/scoring_node", "/configurator_node"} <= set(warn), {st.name: st.message for st in statuses}
     values = {kv.key: kv.value for kv in warn["/scoring_node"].values}
-    # each WARN counts the refusals of the second before it: on a loaded machine the burst's span more than one
+    # each WARN counts the refusals of the second before it: on a loaded machine a burst's refusals span two
     refused = sum(int(kv.value) for st in statuses if st.name == "/scoring_node" and st.level == DiagnosticStatus.WARN
                   for kv in st.values if kv.key == "busy_refusals")
     assert "refused busy" in warn["/scoring_node"].message and refused >= 30, (refused, values)
