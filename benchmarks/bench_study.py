@@ -2,6 +2,7 @@
 
     python benchmarks/bench_study.py [--datasets default,seed1] [--pipelines pick_success,default,cell]
         [--seeds 5] [--episodes 1500] [--eval-episodes 60] [--workers 2] [--runs runs/bench-study]
+        [--agent-param KEY=VALUE ...] [--tag NAME]
 
 For each dataset (`default`: data/default, the demo's; `seedN`: the same generator with seed N,
 synthesised into data/synthetic-seedN once) and pipeline: with `pick_success` the learned score
@@ -85,6 +86,9 @@ def main() -> int:
     ap.add_argument("--eval-episodes", type=int, default=60)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench-study")
+    ap.add_argument("--agent-param", action="append", default=[], metavar="KEY=VALUE",
+                    help="passed to the study (over the recipe's), e.g. base=best_static")
+    ap.add_argument("--tag", default="", help="appended to the results' file names (a variant's own files)")
     args = ap.parse_args()
     for ds_name in args.datasets.split(","):
         dataset = dataset_path(ds_name)
@@ -97,13 +101,15 @@ def main() -> int:
             cmd = [*CLI, "study", "--dataset", str(dataset), "--out", str(runs / "study"), "--pipeline", pipeline,
                    "--seeds", str(args.seeds), "--episodes", str(args.episodes), "--eval-episodes",
                    str(args.eval_episodes), "--lambdas", lambdas, "--workers", str(args.workers), "--quiet"]
+            for item in args.agent_param:
+                cmd += ["--agent-param", item]
             run(cmd)
             study = json.loads((runs / "study" / "study.json").read_text())
             record = {"dataset": ds_name, "pipeline": pipe_name, "command": " ".join(cmd[2:]),
                       "seconds": round(time.monotonic() - started, 1), "load_1min": os.getloadavg()[0],
                       "date": time.strftime("%Y-%m-%d"), "summary": summary(study), "study": study}
             RESULTS.mkdir(parents=True, exist_ok=True)
-            name = f"study_{ds_name}_{pipe_name}"
+            name = f"study_{ds_name}_{pipe_name}{'_' + args.tag if args.tag else ''}"
             (RESULTS / f"{name}.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
             if (runs / "study" / "study.png").exists():
                 shutil.copy(runs / "study" / "study.png", RESULTS / f"{name}.png")

@@ -626,9 +626,10 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         obj = cell["frames"][stamp_ns(0)].objects[0]
         req = EstimatePose.Request(object_id=str(obj.obj_id), noise_lambda=0.3, seed=4, max_operations=10)
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
-        for _ in range(10):  # the first estimates may hit the deadline while the operators are discovered
+        discovery = time.monotonic() + 60  # the first estimates may hit the deadline while the operators are
+        while True:                          # discovered (on a loaded machine: over 10 tries of 1.5 s)
             res = call(ros_node, est, req, timeout=30)
-            if res.operations or "estimate_timeout" not in res.message:
+            if res.operations or "estimate_timeout" not in res.message or time.monotonic() > discovery:
                 break
         assert res.success and list(res.operations) == ["icp_coarse", "icp_fine"], (res.message, res.operations)
         os.kill(refinement.pid, signal.SIGSTOP)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from typing import Any, Callable
 
 import rclpy
@@ -19,6 +20,12 @@ from ..launcher.fastdds_shm import clean_stale_fastdds_shm
 from ..launcher.ros_environment import configure_ros_environment
 from ..util.allocator import keep_freed_memory
 from .managed_node import ManagedNode
+
+# After a shutdown transition finalized every node, the process lives this long (s) before it
+# destroys its nodes: the change_state answer is a reliable DDS sample that may still need a
+# resend (writers heartbeat every 0.1 s, fastdds_profile.xml). Destroyed at once, a loaded
+# machine lost the answer and the lifecycle manager waited its whole timeout for it.
+FINALIZED_LINGER = 1.0
 
 
 def spin(node_factory: Callable[[], Node], args: list[str] | None = None,
@@ -68,6 +75,10 @@ def run_nodes(node_factories: list[Callable[[], Node]], args: list[str] | None =
             executor.add_node(node)
         while rclpy.ok() and not stop.is_set() and not all(getattr(n, "finalized", False) for n in nodes):
             executor.spin_once(timeout_sec=0.2)
+        if not stop.is_set():  # finalized by a shutdown transition: its answer is still on its way
+            linger = time.monotonic() + FINALIZED_LINGER
+            while rclpy.ok() and time.monotonic() < linger:
+                executor.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
