@@ -158,14 +158,17 @@ def ros_node():
     rclpy.try_shutdown()
 
 
-# The files that take half a minute or more on 2 cores, longest first. They run first: pytest-xdist
+# The files that take a quarter of a minute or more on 2 cores, longest first (measured with
+# --durations=0). They run first: pytest-xdist
 # hands whole files to the workers in collection order (scripts/test.sh: --dist loadfile
 # --no-loadscope-reorder), so that the last files to start are short ones and no worker waits
 # idle for one long file at the end.
-LONG_FILES = ("test_training_signals", "test_score_learning", "test_ray_cluster", "test_training_validation",
-              "test_ray_workers", "test_colcon", "test_ros_nodes", "test_replay_check", "test_online_learning",
-              "test_cell_sim", "test_cost_model", "test_best_static", "test_study", "test_ppf", "test_resting_pose",
-              "test_ros_replay")
+LONG_FILES = ("test_ros_nodes", "test_training_signals", "test_cell_sim", "test_colcon", "test_online_learning",
+              "test_learning_signals", "test_ray_cluster", "test_launch", "test_candidates", "test_replay_check",
+              "test_score_learning", "test_pick_success", "test_ray_workers",
+              "test_training_validation", "test_evaluation", "test_study", "test_ppf", "test_agents",
+              "test_ros_lifecycle", "test_bop_toolkit", "test_bench_real", "test_cost_model", "test_best_static",
+              "test_resting_pose", "test_ros_replay")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

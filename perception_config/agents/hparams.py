@@ -66,10 +66,9 @@ class IntList:
 class StrList:
     max_len: int
     nullable: bool = False
-    words: tuple[str, ...] = ()  # single names accepted in place of a list (e.g. "best_static")
 
     def check(self, name: str, v: Any) -> None:
-        if (v is None and self.nullable) or (isinstance(v, str) and v in self.words):
+        if v is None and self.nullable:
             return
         if not isinstance(v, (list, tuple)) or not 1 <= len(v) <= self.max_len \
                 or not all(isinstance(s, str) and len(s) <= 256 for s in v):

@@ -25,14 +25,6 @@ sampling policy's. The value network keeps one step per batch. K = 1 is plain RE
 Diagnostics: `update` also reports, read off without changing the step, the gradient norms before
 clipping, the learning rate used and the approximate KL between the policy before and after the
 step over the batch (CleanRL's approx_kl); training.py writes them to history.csv.
-Residual on a base sequence (`base`: action names, e.g. the best static pipeline found on the
-train episodes; residual policy learning, Silver et al. 2018): the base plays its sequence as
-the fixed agent does (repeated, actions the mask forbids skipped); its next action b_t gets a
-fixed bonus on its logit and is one more input of both networks (one-hot, appended to s):
-    pi(a | s) = softmax(W2 tanh(W1 [s, onehot(b_t)] + b1) + b2 + base_bonus * onehot(b_t))
-The base moves on when its action is taken; another action is inserted before it. At the start
-the greedy policy plays the base exactly; learning moves it off the base only where the returns
-say so. b_t follows from the episode's actions and masks, so the update recomputes it.
 Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
 Action mask (`info["action_mask"]`): the logits of the actions that cannot run are -inf, when
 acting and in the update's log pi and entropy (the masks of every step are in the trajectory),
@@ -49,10 +41,9 @@ from torch import nn
 
 from ..rl.trajectory import Trajectory, allowed_actions, returns_to_go
 from .base import Agent, EnvSpec
-from .hparams import SEED, Choice, Float, Int, StrList
+from .hparams import SEED, Choice, Float, Int
 
 MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare
-BASE_SEARCH = "best_static"  # `base` asking training to search the base (learning/base_search.py)
 
 
 class PolicyNet(nn.Module):
@@ -96,22 +87,18 @@ class PolicyGradientAgent(Agent):
                      "gamma": Float(0.0, 1.0), "batch_episodes": Int(1, 10_000), "entropy_coef": Float(0.0, 100.0),
                      "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
                      "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9),
-                     "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0),
-                     "base": StrList(64, nullable=True, words=(BASE_SEARCH,)), "base_bonus": Float(0.0, 100.0),
-                     "seed": SEED}
+                     "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0), "seed": SEED}
 
     @classmethod
     def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
         h, n, d = int(hparams.get("hidden", 32)), spec.n_actions, spec.obs_dim
-        d += n if hparams.get("base") else 0
         return {"policy.fc1.weight": (h, d), "policy.fc1.bias": (h,), "policy.fc2.weight": (n, h),
                 "policy.fc2.bias": (n,)}
 
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
                  baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, lr_half_life: float = 0.0,
-                 update_epochs: int = 1, clip: float = 0.2, base: list[str] | None = None, base_bonus: float = 3.0,
-                 seed: int = 0) -> None:
+                 update_epochs: int = 1, clip: float = 0.2, seed: int = 0) -> None:
         super().__init__(spec, seed)
         if baseline not in ("value", "mean"):
             raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
@@ -128,24 +115,9 @@ class PolicyGradientAgent(Agent):
         if int(update_epochs) < 1 or not clip > 0:
             raise ValueError(f"need update_epochs >= 1 and clip > 0, got {update_epochs}, {clip}")
         self.update_epochs, self.clip = int(update_epochs), float(clip)
-        if isinstance(base, str):
-            raise ValueError(f"base {base!r}: training searches it (perception-config train resolves "
-                             f"base={BASE_SEARCH}); an agent is built with the action names")
-        self.base = [str(a) for a in base] if base else None
-        unknown = [a for a in self.base or () if a not in spec.action_names]
-        if unknown:
-            raise ValueError(f"base sequence names unknown action(s) {unknown}; "
-                             f"the environment's actions are {list(spec.action_names)}")
-        if not base_bonus >= 0:
-            raise ValueError(f"base_bonus must be >= 0, got {base_bonus}")
-        self.base_bonus = float(base_bonus)
-        self._base_ids = [spec.action_names.index(a) for a in self.base or ()]
-        self._base_pos = 0  # the base's position in its (repeated) sequence in this episode
-        self._base_next: tuple[int, int] | None = None  # (action, position) the base proposed last
         gen = torch.Generator().manual_seed(int(seed))
-        d_in = spec.obs_dim + (spec.n_actions if self.base else 0)
-        self.policy = PolicyNet(d_in, spec.n_actions, self.hidden)
-        self.value = PolicyNet(d_in, 1, self.hidden)
+        self.policy = PolicyNet(spec.obs_dim, spec.n_actions, self.hidden)
+        self.value = PolicyNet(spec.obs_dim, 1, self.hidden)
         with torch.no_grad():  # seeded initialisation, independent of the global torch rng
             for p in list(self.policy.parameters()) + list(self.value.parameters()):
                 bound = 1.0 / np.sqrt(p.shape[-1]) if p.dim() > 1 else 0.0
@@ -171,74 +143,20 @@ class PolicyGradientAgent(Agent):
             self._value_optimizer = torch.optim.Adam(self.value.parameters(), lr=self.value_lr)
         return self._value_optimizer
 
-    # -- the base sequence (module docstring) ------------------------------------------------
-    def _base_proposal(self, pos: int, allowed: np.ndarray | None) -> tuple[int, int] | None:
-        """(action, position) the base plays next from `pos`: its first planned action the mask
-        allows; None when none is allowed (or there is no base)."""
-        n = len(self._base_ids)
-        for k in range(pos, pos + n):
-            a = self._base_ids[k % n]
-            if allowed is None or allowed[a]:
-                return a, k
-        return None
-
-    def base_actions(self, actions: np.ndarray, allowed: np.ndarray) -> np.ndarray:
-        """(T, n) float32 one-hot of the base's proposal before each step of an episode played
-        with `actions` under the masks `allowed` (T, n) bool (zeros where it had none)."""
-        out = np.zeros((len(actions), self.spec.n_actions), np.float32)
-        pos = 0
-        for t, a in enumerate(actions):
-            proposal = self._base_proposal(pos, None if allowed[t].all() else allowed[t])
-            if proposal is not None:
-                out[t, proposal[0]] = 1.0
-                if int(a) == proposal[0]:
-                    pos = proposal[1] + 1
-        return out
-
-    def _inputs(self, obs: np.ndarray | torch.Tensor, base: np.ndarray | torch.Tensor | None) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, np.float32)) if not isinstance(obs, torch.Tensor) else obs
-        if not self.base:
-            return x
-        b = (torch.as_tensor(base, dtype=torch.float32) if base is not None
-             else torch.zeros(*x.shape[:-1], self.spec.n_actions))
-        return torch.cat([x, b], -1)
-
-    def _logits(self, obs: Any, base: Any = None) -> torch.Tensor:
-        logits = self.policy(self._inputs(obs, base))
-        if self.base and base is not None:
-            logits = logits + self.base_bonus * torch.as_tensor(base, dtype=torch.float32)
-        return logits
-
-    def begin_episode(self, seed: int | None = None) -> None:
-        super().begin_episode(seed)
-        self._base_pos, self._base_next = 0, None
-
     # -- acting ---------------------------------------------------------------------------
-    def probabilities(self, obs: np.ndarray, allowed: np.ndarray | None = None,
-                      base: np.ndarray | None = None) -> np.ndarray:
-        """pi(. | obs); with `allowed` (bool per action) the others have probability 0; `base`:
-        the one-hot of the base's proposal (a policy with a base; zeros when omitted)."""
+    def probabilities(self, obs: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray:
+        """pi(. | obs); with `allowed` (bool per action) the others have probability 0."""
         with torch.no_grad():
-            logits = self._logits(obs, base)
+            logits = self.policy(torch.as_tensor(np.asarray(obs, np.float32)))
             if allowed is not None:
                 logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
             return torch.softmax(logits, -1).double().numpy()
 
     def act(self, obs: np.ndarray, info: dict[str, Any]) -> int:
-        allowed = allowed_actions(info, self.spec.n_actions)
-        base = None
-        if self.base:
-            if isinstance(info, dict) and info.get("steps", None) == 0:  # an episode's first step
-                self._base_pos = 0
-            self._base_next = self._base_proposal(self._base_pos, allowed)
-            base = np.zeros(self.spec.n_actions, np.float32)
-            if self._base_next is not None:
-                base[self._base_next[0]] = 1.0
-        p = self.probabilities(obs, allowed, base)
-        a = int(self.rng.choice(len(p), p=p / p.sum())) if self.explore else int(np.argmax(p))
-        if self._base_next is not None and a == self._base_next[0]:
-            self._base_pos = self._base_next[1] + 1
-        return a
+        p = self.probabilities(obs, allowed_actions(info, self.spec.n_actions))
+        if self.explore:
+            return int(self.rng.choice(len(p), p=p / p.sum()))
+        return int(np.argmax(p))
 
     # -- learning -------------------------------------------------------------------------
     def current_lr(self) -> float:
@@ -252,11 +170,11 @@ class PolicyGradientAgent(Agent):
         return self.batch_episodes
 
     def _log_pi(self, obs: torch.Tensor, actions: torch.Tensor, allowed: np.ndarray,
-                masked: bool, base: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                masked: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """log pi(a_t | s_t) of the taken actions (masked actions: -inf logits, as when they were
         sampled) and the mean entropy over the states. Without a restricting mask the graph is the
         unmasked one, op for op (bitwise the same update)."""
-        logits = self._logits(obs, base)
+        logits = self.policy(obs)
         if masked:
             logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
         logp_all = torch.log_softmax(logits, -1)
@@ -280,15 +198,12 @@ class PolicyGradientAgent(Agent):
         g_np = np.concatenate([returns_to_go(t.rewards, self.gamma) for t in trajs])
         returns = torch.as_tensor(g_np, dtype=torch.float32)
         step_idx = np.concatenate([np.arange(t.steps) for t in trajs])
-        allowed = np.concatenate([t.allowed_actions(self.spec.n_actions) for t in trajs])
-        base = np.concatenate([self.base_actions(t.actions, t.allowed_actions(self.spec.n_actions))
-                               for t in trajs]) if self.base else None
 
         # Baseline b(s_t) and the advantage A_t = G_t - b(s_t).
         figures: dict[str, float] = {}  # read-outs only (diagnostics): they change nothing above
         value_loss = torch.zeros(())
         if self.baseline == "value":
-            v = self.value(self._inputs(obs, base)).squeeze(-1)
+            v = self.value(obs).squeeze(-1)
             advantages = returns - v.detach()
             value_loss = ((v - returns) ** 2).mean()
             self.value_optimizer.zero_grad()
@@ -308,8 +223,9 @@ class PolicyGradientAgent(Agent):
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
         # Policy gradient step: maximise E[log pi(a|s) A] plus a little entropy (masks: _log_pi).
+        allowed = np.concatenate([t.allowed_actions(self.spec.n_actions) for t in trajs])
         masked = not allowed.all()
-        logp, entropy = self._log_pi(obs, actions, allowed, masked, base)
+        logp, entropy = self._log_pi(obs, actions, allowed, masked)
         loss = -(logp * advantages).mean() - self.entropy_coef * entropy
         if self.lr_half_life > 0:
             for group in self.optimizer.param_groups:
@@ -320,7 +236,7 @@ class PolicyGradientAgent(Agent):
         self.optimizer.step()
         logp = logp.detach()  # pi_old of the further passes (the approx_kl below compares with it too)
         for _ in range(self.update_epochs - 1):
-            logp_k, entropy_k = self._log_pi(obs, actions, allowed, masked, base)
+            logp_k, entropy_k = self._log_pi(obs, actions, allowed, masked)
             ratio = (logp_k - logp).exp()
             surrogate = torch.minimum(ratio * advantages, ratio.clamp(1 - self.clip, 1 + self.clip) * advantages)
             self.optimizer.zero_grad()
@@ -332,7 +248,7 @@ class PolicyGradientAgent(Agent):
         # Diagnostics (CleanRL's): how far the step moved the policy on this batch's states and actions,
         # approx_kl = mean[(ratio - 1) - log ratio], ratio = pi_new(a|s) / pi_old(a|s) (Schulman's k3 estimator).
         with torch.no_grad():
-            log_ratio = self._log_pi(obs, actions, allowed, masked, base)[0] - logp
+            log_ratio = self._log_pi(obs, actions, allowed, masked)[0] - logp
             approx_kl = ((log_ratio.exp() - 1) - log_ratio).mean()
         return {"loss": loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
                 "grad_norm": grad_norm.item(), **figures, "lr": float(self.optimizer.param_groups[0]["lr"]),
@@ -344,7 +260,7 @@ class PolicyGradientAgent(Agent):
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
                 "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
                 "lr_half_life": self.lr_half_life, "update_epochs": self.update_epochs, "clip": self.clip,
-                "base": list(self.base) if self.base else None, "base_bonus": self.base_bonus, "seed": self.seed}
+                "seed": self.seed}
 
     def tensors(self) -> dict[str, np.ndarray]:
         return {f"policy.{k}": v.detach().numpy().copy() for k, v in self.policy.state_dict().items()}

@@ -67,7 +67,6 @@ from ..rl.settings import EnvSettings, settings_from_policy_meta
 from ..store.episode_store import STORE_NAME, StoreWriter, store_episode
 from ..util.open3d_threads import open3d_single_thread
 from ..util.stop_signals import Interrupted, StopRequested, StopSignals, signal_name
-from .base_search import BASE_SEARCH, search_base
 from .learning_curve import plot_learning_curve
 from .ray_workers import RayRunner, chunks, play_chunk, ray_wanted, snapshot
 from .training_history import (
@@ -219,7 +218,6 @@ def train(
                              validation_episodes=len(val_options), validate_every=int(validate_every))
 
     history = new_history()
-    runner: RayRunner | None = None  # made before the stop signals are installed (ray.init's own handler)
     rng = np.random.default_rng(seed)
     done = 0
     selection = Selection()
@@ -259,21 +257,6 @@ def train(
         learner = agent
     else:
         kw = {"seed": seed, **(agent_kwargs or {})}
-        if name == "pg" and kw.get("base") == BASE_SEARCH:  # the best static pipeline of the training episodes
-            if ray_wanted(workers, ray_address):  # the training's own workers, started early
-                runner = RayRunner(workers, ray_address)
-            try:
-                found = search_base(env, train_idx, settings.lambda_range, seed, runner=runner, recipe=recipe,
-                                    progress=progress)
-            except BaseException:
-                if runner is not None:
-                    runner.close()
-                raise
-            kw["base"] = found.sequence
-            training_info["base_search"] = {"sequence": found.sequence, **found.to_json()}
-            if progress:
-                _quietly(print, f"base: {' > '.join(found.sequence)} (mean cost {found.mean_cost:.3f} s over "
-                                f"{found.episodes} training episodes, {found.seconds:.0f} s)", flush=True)
         learner = make_agent(name, spec, **kw)
     learner.explore = True
     updates = updates_done(history)
@@ -316,12 +299,9 @@ def train(
         return play_round(env, [actor], options, act_seeds[None, :], runner, recipe_ref)[0]
 
     def validation_due() -> bool:
-        """Every `validate_every` episodes (the first round past each multiple) and at the end; a
-        residual policy (pg with a base) also before its first round."""
+        """Every `validate_every` episodes (the first round past each multiple) and at the end."""
         if not val_options or selection.last_episode == done:
             return False
-        if done == 0 and getattr(learner, "base", None):  # the untrained residual plays its base: a candidate too
-            return True
         return done >= episodes or done // validate_every > max(selection.last_episode, 0) // validate_every
 
     writer = StoreWriter(out / STORE_NAME, lambda line: _quietly(print, line, file=sys.stderr, flush=True)) \
@@ -335,8 +315,8 @@ def train(
                               dataset=recipe.dataset, episode_seed=opt["episode_seed"])
 
     # Ray first: ray.init installs its own SIGTERM handler, which the stop signals then replace.
-    if runner is None and ray_wanted(workers, ray_address) and (done < episodes or validation_due()):
-        runner = RayRunner(workers, ray_address)
+    runner = RayRunner(workers, ray_address) \
+        if ray_wanted(workers, ray_address) and (done < episodes or validation_due()) else None
     recipe_ref = runner.put(recipe) if runner is not None else None
     stops = StopSignals()
     lo, hi = settings.lambda_range
