@@ -87,7 +87,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench-study")
     ap.add_argument("--agent-param", action="append", default=[], metavar="KEY=VALUE",
-                    help="passed to the study (over the recipe's), e.g. base=best_static")
+                    help="passed to the study (over the recipe's), e.g. entropy_coef=0.01")
     ap.add_argument("--tag", default="", help="appended to the results' file names (a variant's own files)")
     args = ap.parse_args()
     for ds_name in args.datasets.split(","):

@@ -159,10 +159,9 @@ def ros_node():
 
 
 # The files that take a quarter of a minute or more on 2 cores, longest first (measured with
-# --durations=0). They run first: pytest-xdist
-# hands whole files to the workers in collection order (scripts/test.sh: --dist loadfile
-# --no-loadscope-reorder), so that the last files to start are short ones and no worker waits
-# idle for one long file at the end.
+# --durations=0). They run first: pytest-xdist hands whole files to the workers in collection
+# order (scripts/test.sh: --dist loadfile --no-loadscope-reorder), so that the last files to
+# start are short ones and no worker waits idle for one long file at the end.
 LONG_FILES = ("test_ros_nodes", "test_training_signals", "test_cell_sim", "test_colcon", "test_online_learning",
               "test_learning_signals", "test_ray_cluster", "test_launch", "test_candidates", "test_replay_check",
               "test_score_learning", "test_pick_success", "test_ray_workers",
