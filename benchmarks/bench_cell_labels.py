@@ -60,6 +60,10 @@ def command(args: argparse.Namespace, out: Path, labels: str, reports: str, seed
         cmd += ["--reference-from", str(reference_csv)]
     if not learn:
         cmd += ["--no-learn"]
+    elif args.lockstep:
+        cmd += ["--lockstep"]
+    if learn and args.learn_every:
+        cmd += ["--learn-every", str(args.learn_every)]
     return cmd
 
 
@@ -113,6 +117,10 @@ def main() -> int:
     p.add_argument("--domain", type=int, default=60, help="ROS_DOMAIN_ID of the first run (the next ones count up)")
     p.add_argument("--work", type=Path, default=REPO / "outputs" / "bench_cell_labels")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "cell_labels.json")
+    p.add_argument("--lockstep", action="store_true",
+                   help="cell-sim --lockstep: each estimate waits while the learner trains (a real cell's pace)")
+    p.add_argument("--learn-every", type=int, default=0, metavar="K",
+                   help="new estimates between two learner cycles (0: the configurator's default, 20)")
     p.add_argument("--latency", type=int, default=0, metavar="N",
                    help="instead: the learner on against off, N estimates each at the same time (serving latency)")
     args = p.parse_args()
@@ -183,6 +191,7 @@ def collect(args: argparse.Namespace, jobs: list[tuple[str, str, int]]) -> dict:
             "hidden_cost_start": s.get("hidden_cost_start"), "hidden_cost_end": s.get("hidden_cost_end"),
             "worse_promotions": s.get("worse_promotions"), "promotion_checks": s.get("promotion_checks"),
             "stored_labels": s.get("stored_labels"), "learner_lines": s.get("learner_lines", [])[-3:],
+            "lockstep": s.get("lockstep"),
         }
     ratios = {}
     for seed in args.seeds:
@@ -192,7 +201,8 @@ def collect(args: argparse.Namespace, jobs: list[tuple[str, str, int]]) -> dict:
             r = rb["hidden_cost_start"] - rb["hidden_cost_end"]
             ratios[str(seed)] = {"ground_truth_gain": g, "robot_gain": r, "share": (r / g) if g > 1e-9 else None}
     worse = sum(int(r.get("worse_promotions") or 0) for r in runs.values())
-    return {"estimates": args.estimates, "seeds": args.seeds, "runs": runs, "improvement_share": ratios,
+    return {"estimates": args.estimates, "seeds": args.seeds, "lockstep": args.lockstep,
+            "learn_every": args.learn_every or 20, "runs": runs, "improvement_share": ratios,
             "worse_promotions_total": worse, "load": os.getloadavg()}
 
 

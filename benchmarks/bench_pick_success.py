@@ -41,6 +41,7 @@ from perception_config.vision.pick_features import FEATURE_NAMES  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 LAMBDAS = (0.1, 0.3, 0.5)
+SETS = ("lmo", "lmo-rgb", "ycbv-rgbd")  # folders of ../shared/data
 BASELINES = ("psi_d", "psi_c", "icp_fitness", "psi_rgb")  # single scores the learned one is compared with
 
 
@@ -103,15 +104,20 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default=SHIPPED_MODEL, help="model file or folder (default: the shipped one)")
     ap.add_argument("--seeds", type=int, default=20, help="perturbed hypotheses per instance and lambda")
+    ap.add_argument("--sets", nargs="+", choices=SETS, default=list(SETS),
+                    help="the real sets to score (default: every one ../shared has)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pick_success_real.json")
     args = ap.parse_args()
     model = load_model(args.model)
     sets: dict[str, dict[str, np.ndarray]] = {}
-    if (SHARED / "lmo" / "models").is_dir():
+    if "lmo" in args.sets and (SHARED / "lmo" / "models").is_dir():
         ds = BopDataset(SHARED / "lmo", "test")
         sets["lmo RGB-D"] = score_frames(ds, model, args.seeds, use_depth=True)
         sets["lmo as RGB-only"] = score_frames(ds, model, args.seeds, use_depth=False)
-    if (SHARED / "lmo-rgb" / "models").is_dir():
+    if "ycbv-rgbd" in args.sets and (SHARED / "ycbv-rgbd" / "models").is_dir():
+        sets["ycbv-rgbd RGB-D"] = score_frames(BopDataset(SHARED / "ycbv-rgbd", "test"), model, args.seeds,
+                                               use_depth=True)
+    if "lmo-rgb" in args.sets and (SHARED / "lmo-rgb" / "models").is_dir():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the annotations' near-rotations are projected, with a warning
             sets["lmo-rgb (RGB-only)"] = score_frames(BopDataset(SHARED / "lmo-rgb", use_depth=False), model,

@@ -255,6 +255,7 @@ def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_
     the id under which the configurator stored the estimate in <out>/learn/episodes.sqlite, whose
     charged time and outcome are the row's. A reference CSV of a previous run is reused."""
     from perception_config.datasets.bag import write_bag
+    from perception_config.online.learner_state import read_state
     from perception_config.ros.cell_sim_run import cell_sim
     from perception_config.store.episode_store import EpisodeStore
 
@@ -266,7 +267,8 @@ def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_
             ref.append(_row(i, int(i != 0), 0.5))
     out = tmp_path / "out"
     s = cell_sim(out, policy, bag=bag, models=root / "models", start="fixed", estimates=6, learn=True,
-                 learn_every=1000, window=3, reference_from=tmp_path / "reference.csv", rate=2.0, progress=False)
+                 learn_every=1000, window=3, reference_from=tmp_path / "reference.csv", rate=2.0, progress=False,
+                 lockstep=True)
     print(format_summary(s))
     rows = read_estimates(out / "estimates.csv")
     assert len(rows) == 6 and s["learn"] and not s["interrupted"]
@@ -282,6 +284,11 @@ def test_a_short_learning_cell_run_passes_the_learning_parameters(ros_node, tmp_
         assert (seed, success, first, version) == (r["seed"], r["success"], r["first_pick_success"], "v0000")
         assert math.isclose(r["time_s"], time_s, rel_tol=1e-9, abs_tol=1e-9)
     assert s["candidates"] == 0  # learn_every 1000: no candidate in 6 estimates
+    # --lockstep: the learner's state file was read before each estimate; an idle learner (or one still
+    # starting: its state file comes with its first look at the store) holds nothing
+    assert s["lockstep"] == {"holds": 0, "seconds": 0.0, "timeouts": 0}
+    state = read_state(out / "learn")
+    assert state is None or (state["state"] == "idle" and state["every"] == 1000 and state["cycles"] == 0)
 
 
 def test_bad_arguments_are_refused_before_anything_starts(tmp_path_factory, tmp_path, policy):

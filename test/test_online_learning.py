@@ -310,6 +310,7 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
 
     from perception_config.agents import make_agent, save_agent
     from perception_config.datasets.bop import BopDataset
+    from perception_config.online.learner_state import read_state
     from perception_config.online.policy_learner import POLICIES, PolicyVersions
     from perception_config.ros.conversions import frame_to_msgs, pose_to_msg
     from perception_config.store.episode_store import EpisodeStore
@@ -393,6 +394,8 @@ def test_the_configurator_learns_online_without_delaying_estimates(ros_node, dat
             busy.append(wall)
         log = learner_log(learn)
         assert "learner: candidate from" not in log and "no candidate" not in log, "training ended too early:\n" + log
+        state = read_state(learn)  # the state file says what the log says: a cycle runs
+        assert state is not None and state["state"] == "training" and state["stored"] == int(started.group(1))
         print(f"estimate_pose wall time, median of {IDLE} / {BUSY}: learner idle {np.median(idle):.3f} s, "
               f"learner training {np.median(busy):.3f} s; mean {np.mean(idle):.3f} / {np.mean(busy):.3f} s, "
               f"max {np.max(idle):.3f} / {np.max(busy):.3f} s")

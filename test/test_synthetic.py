@@ -318,3 +318,62 @@ def test_places_models_of_a_bop_models_folder(lmo_root, tmp_path):
     f = ds.load_frame(0, 0)
     assert 3 <= len(f.objects) <= 8
     assert all(e["px_count_all"] > 0 for e in ds.gt_info(0, 0))
+
+
+# --------------------------------------------------------------------------- realism, camera
+
+
+def test_realism_adds_calibration_and_annotation_errors_and_nothing_else(synthetic_dataset, tmp_path):
+    """The same scenes and views; the written ground truth within a few mm and degrees of the true
+    pose and the depth offset, warped and shifted against the clean run; seeded."""
+    from perception_config.core.geometry import rotation_angle
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.datasets.realism import Realism
+
+    real = generate(tmp_path / "real", scenes=1, images_per_scene=2, seed=0, progress=False, realism=Realism())
+    again = generate(tmp_path / "again", scenes=1, images_per_scene=2, seed=0, progress=False, realism=Realism())
+    assert _files(real) == _files(again)
+    info = json.loads((real / "dataset_info.json").read_text())
+    assert info["realism"]["annotation_mm"] == Realism().annotation_mm
+    clean, noisy = BopDataset(synthetic_dataset), BopDataset(real)
+    angles, moves, residuals = [], [], []
+    for im in (0, 1):
+        a, b = clean.load_frame(0, im), noisy.load_frame(0, im)
+        assert (real / f"test/000000/rgb/{im:06d}.png").read_bytes() == \
+            (synthetic_dataset / f"test/000000/rgb/{im:06d}.png").read_bytes()  # colour untouched
+        for oa, ob in zip(a.objects, b.objects):
+            assert oa.obj_id == ob.obj_id
+            angles.append(np.degrees(rotation_angle(oa.gt.R, ob.gt.R)))
+            moves.append(np.linalg.norm(oa.gt.t - ob.gt.t))
+        both = np.isfinite(a.depth) & np.isfinite(b.depth)
+        residuals.append(np.median(np.abs(a.depth[both] - b.depth[both])))
+    assert 0 < max(angles) < 6 and 0 < max(moves) < 0.015, (angles, moves)
+    assert max(residuals) > 5e-4  # offset, warp and shift move the depth by millimetres
+
+
+def test_realism_ranges_are_checked():
+    from perception_config.datasets.realism import Realism
+
+    for bad in ({"depth_bias_mm": -1.0}, {"shift_px": 1.5}, {"noise_scale": (2.0, 1.0)}, {"annotation_deg": np.nan}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            Realism(**bad)
+
+
+def test_synth_takes_the_camera_of_a_real_dataset(lmo_root, tmp_path, capsys):
+    from perception_config.cli import main
+    from perception_config.datasets.bop import BopDataset
+    from perception_config.datasets.synthetic import camera_from
+
+    K, w, h = camera_from(lmo_root)
+    assert (w, h) == (640, 480) and K[0, 0] == pytest.approx(572.4114)
+    cam = tmp_path / "camera.json"
+    cam.write_text(json.dumps({"fx": 600.0, "fy": 610.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240}))
+    out = tmp_path / "ds"
+    assert main(["synth", "--out", str(out), "--scenes", "1", "--images-per-scene", "1", "--camera", str(cam),
+                 "--quiet"]) == 0
+    f = BopDataset(out).load_frame(0, 0)
+    assert f.rgb.shape[:2] == (240, 320) and f.K[0, 0] == 600.0 and f.K[1, 2] == 120.0
+    cam.write_text(json.dumps({"fx": 600.0}))
+    assert main(["synth", "--out", str(tmp_path / "bad"), "--camera", str(cam), "--quiet"]) == 2
+    assert "camera.json" in capsys.readouterr().out
+    assert not (tmp_path / "bad").exists()

@@ -54,6 +54,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     cs.add_argument("--learn-margin", type=float, default=None, metavar="M",
                     help="a candidate is promoted only if, besides passing the 95 %% paired test on held-out "
                          "frames, its replay-check cost is lower by this fraction (learn_margin)")
+    cs.add_argument("--lockstep", action="store_true",
+                    help="hold the next estimate while the learner trains a candidate: a real cell's robot takes "
+                         "seconds per pick, so the learner keeps up with it; the simulated robot takes none, and "
+                         "without this a run of a few hundred estimates ends before the learner's second cycle "
+                         "(summary.json: lockstep holds and seconds)")
     cs.add_argument("--lambda", dest="noise_lambda", type=float, default=0.5,
                     help="noise level of the simulated initial hypotheses (0.5)")
     cs.add_argument("--seed", type=int, default=0, help="the estimates' seeds")

@@ -47,6 +47,7 @@ to a hidden sibling folder marked `.incomplete` and renamed to `out` only when c
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -59,10 +60,11 @@ from ..core.geometry import Pose
 from ..util.atomic_file import atomic_write
 from ..util.safe_json import read_json_file
 from . import sensor
+from .realism import Realism, annotation_error, draw_noise_scale, miscalibrate_depth
 from .stable_poses import stable_poses
 from .synthetic_scene import SynthObject, SynthScene, make_scene, sample_camera
 
-__all__ = ["generate", "LINEMOD_K", "DEPTH_SCALE", "GENERATOR_NAME"]
+__all__ = ["generate", "camera_from", "LINEMOD_K", "DEPTH_SCALE", "GENERATOR_NAME"]
 
 LINEMOD_K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 DEPTH_SCALE = 1.0  # mm per depth PNG unit
@@ -70,6 +72,39 @@ GENERATOR_NAME = "perception_config.datasets.synthetic"
 
 
 # --------------------------------------------------------------------------- one image
+
+
+def camera_from(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
+    """(K, width, height) of a camera: a BOP camera.json (fx, fy, cx, cy, width, height), or a BOP
+    dataset folder (its camera.json, else its first test image's cam_K and size). ValueError
+    naming the file when it cannot be read."""
+    from ..util.safe_json import read_json_file
+
+    path = Path(path)
+    if path.is_dir() and (path / "camera.json").is_file():
+        path = path / "camera.json"
+    if path.is_file():
+        try:
+            c = read_json_file(path, what="camera file")
+            K = np.array([[float(c["fx"]), 0.0, float(c["cx"])], [0.0, float(c["fy"]), float(c["cy"])],
+                          [0.0, 0.0, 1.0]])
+            width, height = int(c["width"]), int(c["height"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}: not a BOP camera.json (fx, fy, cx, cy, width, height): {e}") from e
+    elif path.is_dir():
+        from .bop import BopDataset
+
+        ds = BopDataset(path, "test")
+        keys = ds.image_keys()
+        if not keys:
+            raise ValueError(f"{path}: a BOP dataset without test images has no camera to copy")
+        K = np.asarray(ds.camera(*keys[0]).K, dtype=np.float64)
+        height, width = ds.load_frame(*keys[0]).rgb.shape[:2]
+    else:
+        raise ValueError(f"{path}: no such camera file or dataset folder")
+    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and width >= 64 and height >= 48):
+        raise ValueError(f"{path}: unusable camera (K {K.tolist()}, {width}x{height})")
+    return K, int(width), int(height)
 
 
 def _apply(R: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -298,6 +333,8 @@ def generate(
     width: int = 640,
     height: int = 480,
     depth: bool = True,
+    K: np.ndarray | None = None,
+    realism: Realism | None = None,
 ) -> Path:
     """Write a synthetic BOP dataset to `out` (split "test"); returns `out`.
 
@@ -305,8 +342,12 @@ def generate(
     annotations as with depth (the same random draws), without the depth images.
 
     `models_dir`: a BOP models folder whose models are placed instead of the procedural
-    parts (copied into out/models). An existing `out` is replaced only when it is an empty
-    folder or a dataset this generator wrote; anything else raises ValueError.
+    parts (copied into out/models). `K`: the intrinsics of a width x height camera (default:
+    Linemod's, scaled to the size; `camera_from` reads a real dataset's). `realism`: the
+    calibration and annotation errors of a real cell, drawn per image and object
+    (realism.py); None: none (the bytes of a dataset without it do not change). An existing
+    `out` is replaced only when it is an empty folder or a dataset this generator wrote;
+    anything else raises ValueError.
     """
     from ..core.scene import Frame, SceneObject
     from .bop_writer import SceneWriter
@@ -325,10 +366,12 @@ def generate(
         shutil.rmtree(tmp)
     tmp.mkdir()
     (tmp / ".incomplete").write_text("generation in progress or interrupted\n")
-    K = LINEMOD_K.copy()
-    if (width, height) != (640, 480):  # same field of view, scaled
-        K[0] *= width / 640.0
-        K[1] *= height / 480.0
+    if K is None:
+        K = LINEMOD_K.copy()
+        if (width, height) != (640, 480):  # same field of view, scaled
+            K[0] *= width / 640.0
+            K[1] *= height / 480.0
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
     try:
         pool = _prepare_models(tmp / "models", Path(models_dir) if models_dir is not None else None)
         _write_models_eval(tmp / "models", tmp / "models_eval")
@@ -349,7 +392,17 @@ def generate(
                     for im_id in range(images_per_scene):
                         rng = np.random.default_rng([seed, scene_id, im_id, 1])
                         w2c = sample_camera(rng, scene, K, width, height)
-                        rgb, dimg, poses, infos = _render_image(rng, scene, w2c, K, width, height, rays, noise)
+                        image_noise, real_rng = noise, None
+                        if realism is not None:  # its own generator: the other draws stay the same
+                            real_rng = np.random.default_rng([seed, scene_id, im_id, 2])
+                            f = draw_noise_scale(real_rng, realism)
+                            image_noise = dataclasses.replace(noise, sigma_a=noise.sigma_a * f,
+                                                              sigma_b=noise.sigma_b * f)
+                        rgb, dimg, poses, infos = _render_image(rng, scene, w2c, K, width, height, rays,
+                                                                image_noise)
+                        if real_rng is not None:
+                            dimg = miscalibrate_depth(dimg, real_rng, realism)
+                            poses = [annotation_error(p, real_rng, realism) for p in poses]
                         objects = [SceneObject(o.obj_id, gt=p) for o, p in zip(scene.objects, poses)]
                         frame = Frame(rgb=rgb, depth=dimg if depth else None, K=K, scene_id=scene_id, im_id=im_id,
                                       objects=objects)
@@ -365,6 +418,7 @@ def generate(
             "images_per_scene": int(images_per_scene), "width": int(width), "height": int(height),
             "models": "procedural parts" if models_dir is None else "copied from a BOP models folder",
             "depth_scale": DEPTH_SCALE, "split": "test", "depth": bool(depth),
+            **({"realism": dataclasses.asdict(realism)} if realism is not None else {}),
         })
         (tmp / ".incomplete").unlink()
         if out.exists():

@@ -81,6 +81,7 @@ from ..store.frames import frame_path, load_frame
 from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
 from .learner_link import LearnerEnd
+from .learner_state import write_state
 from .pick_labels import PickLabels, robot_labels
 from .promotion_gate import CHECK_FRACTION, MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame, paired_gate
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
@@ -374,7 +375,8 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerE
                 nice: int = 10) -> None:
     """The worker process: every `settings.every` new stored estimates one `learn_once`; each
     result goes to the configurator through `link` (learner_link.py) and, as its line, to
-    `<learn_dir>/learner.log`. Ends when the link says stop, or the parent dies. The link's
+    `<learn_dir>/learner.log`; its state (idle, training) to `<learn_dir>/learner_state.json`
+    (learner_state.py). Ends when the link says stop, or the parent dies. The link's
     ready flag is set once the worker has started (its imports done): before that it has done
     nothing, and its configurator may end it at once instead of waiting for it."""
     learn_dir = Path(learn_dir)
@@ -415,12 +417,15 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerE
         log(f"learner: {exc}; no candidate is trained until it is replaced")
     if link is not None:
         link.set_ready()
+    cycles = 0
     while not stopped():
         count = _stored_count(learn_dir)
         if count is not None and last is None:
             last = count  # the first cycle comes `every` estimates after the worker started
+            write_state(learn_dir, "idle", count, settings.every, cycles)
         if count is not None and count - last >= settings.every:
             last = count
+            write_state(learn_dir, "training", count, settings.every, cycles)
             report("status", {"state": "training", "stored": count})
             log(f"learner: training a candidate ({count} estimates stored)")
             try:
@@ -437,6 +442,8 @@ def run_learner(learn_dir: str | Path, settings: LearnerSettings, link: LearnerE
                 result = {"outcome": "failed", "serving": None, "reason": f"{type(exc).__name__}: {exc}"[:500]}
             log(format_result(result))
             report("result", result)
+            cycles += 1
+            write_state(learn_dir, "idle", count, settings.every, cycles)
             report("status", {"state": "idle", "stored": count})
         if link is not None:
             link.wait(settings.poll_seconds)

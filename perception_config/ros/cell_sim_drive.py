@@ -129,13 +129,15 @@ class CellNode:
 def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates: int | None, rounds: int | None,
           frames_per_round: int, noise_lambda: float, seed: int, pick_actions: list[str], failed_pick_cost: float,
           start_version: str, frame_timeout: float, alive: Callable[[], None], desc: str, window: int = DEFAULT_WINDOW,
-          progress: bool = True, stop: StopSignals | None = None, robot: SimulatedRobot | None = None) -> bool:
+          progress: bool = True, stop: StopSignals | None = None, robot: SimulatedRobot | None = None,
+          pace: Callable[[int, Callable[[], None]], None] | None = None) -> bool:
     """Estimate frame after frame (ros/cell_sim_run.py) until `estimates` are done or `rounds`
     rounds are complete; rows go to `log`. With `robot` (a cell without ground truth) the robot
     answers the picks, its program reports each estimate's outcome (`report_pick_outcome`), and
     a row's `success` is the true outcome, `reported_success` the reported one. False when
     stopped by a stop signal (`stop`: SIGINT, SIGTERM, SIGHUP abandon the estimate in flight;
-    without it, Ctrl-C)."""
+    without it, Ctrl-C). `pace` (online/learner_state.LearnerPace) is called with the estimates
+    done before each estimate and may hold it."""
     interruptible = stop.interruptible if stop is not None else contextlib.nullcontext
     done: set[int] = set()
     round_no = index = 0
@@ -153,6 +155,8 @@ def drive(cell: CellNode, client: EstimateClient, log: EstimateLog, *, estimates
                     continue
                 ep_seed = max(1, episode_seed(seed, index))
                 with interruptible():  # the row is written outside: a signal never cuts a line short
+                    if pace is not None:
+                        pace(index, alive)
                     if robot is not None:
                         robot.begin()
                     answer = client.call(stamp, obj, noise_lambda, ep_seed)

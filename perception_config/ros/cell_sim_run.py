@@ -70,6 +70,7 @@ from ..launcher.resolution import default_models
 from ..launcher.ros_environment import configure_ros_environment
 from ..launcher.supervisor import Launcher
 from ..learning.hidden_evaluation import evaluate_versions, hidden_summary
+from ..online.learner_state import LearnerPace
 from ..online.pick_labels import label_counts
 from ..online.promotion_gate import MIN_CHECK_FRAMES, is_check_frame
 from ..online.score_learner import SCORES
@@ -136,8 +137,10 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
              reference_from: str | Path | None = None, reference_rounds: int = 1,
              fixed_sequence: list[str] | None = None, quiet: bool = True, progress: bool = True,
              stop: StopSignals | None = None, all_images: bool = False, labels: str = "ground_truth",
-             robot_reports: str = "truth", flip_share: float = 0.3, hidden_seeds: int = 1) -> dict[str, Any]:
-    """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`."""
+             robot_reports: str = "truth", flip_share: float = 0.3, hidden_seeds: int = 1,
+             lockstep: bool = False) -> dict[str, Any]:
+    """Run the cell (module docstring); returns the summary also written to `<out>/summary.json`.
+    `lockstep`: hold each estimate while the learner's cycle runs (online/learner_state.LearnerPace)."""
     out = Path(out).resolve()
     if (bag is None) == (dataset is None):
         raise ValueError("give exactly one of --bag and --dataset")
@@ -274,9 +277,11 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
     start_version = policy_version(start_policy) if start_policy else \
         "fixed:" + "+".join(sequence) if start == "fixed" else start  # as the episode store names the agent
     with EstimateLog(out / "estimates.csv") as log:
+        pace = LearnerPace(out / "learn") if learn and lockstep else None
         completed, lines = run_phase(specs, out, "cell", log, quiet=quiet, estimates=estimates, rounds=None,
                                      seed=seed, start_version=start_version, desc="cell",
-                                     hidden=hidden_ids if labels == "robot" else None, robot=robot, **drive_common)
+                                     hidden=hidden_ids if labels == "robot" else None, robot=robot, pace=pace,
+                                     **drive_common)
     events = learner_events(lines)
     summary = summarise(log.rows, ref, events, window, tolerance, requested=estimates)
     summary["learner_failures"] = [line.strip() for line in lines if "learner: no candidate:" in line]
@@ -284,6 +289,7 @@ def cell_sim(out: str | Path, reference: str | Path, *, bag: str | Path | None =
                     "bag": str(bag_path), "frames": frames, "noise_lambda": noise_lambda, "interrupted": not completed,
                     "learner_lines": [e.line for e in events], "labels": labels, "robot_reports": robot_reports,
                     "flip_share": flip_share if robot_reports == "flipped" else None,
+                    "lockstep": pace.record() if pace is not None else None,
                     "reported_success": float(np.mean([r["reported_success"] for r in log.rows]))
                     if log.rows else None})
     if learn:
@@ -335,6 +341,7 @@ def run_cli(args: Any) -> int:
                          all_images=args.all_images, labels=args.labels, robot_reports=args.robot_reports,
                          flip_share=args.flip_share, hidden_seeds=args.hidden_seeds,
                          reference_rounds=args.reference_rounds, progress=not args.quiet, stop=stop,
+                         lockstep=args.lockstep,
                          fixed_sequence=[a for a in args.fixed_sequence.split(",") if a] if args.fixed_sequence
                          else None)
     except RuntimeError as exc:  # a node died, no frames came: the rows that ran are in estimates.csv
