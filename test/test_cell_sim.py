@@ -74,6 +74,35 @@ def test_promotions_are_checked_against_their_predecessor():
     assert not worse["all_not_worse"] and [p["not_worse"] for p in worse["promotions"]] == [True, True, False]
 
 
+def test_a_promotion_is_significantly_worse_only_beyond_the_hidden_sets_noise():
+    """The strict rule flags any drop; the paired tests flag only what the episodes establish."""
+    from perception_config.learning.hidden_evaluation import hidden_summary
+
+    rng = np.random.default_rng(0)
+    base_cost = rng.uniform(0.2, 3.0, 200)
+    base_success = (rng.random(200) < 0.9).astype(int)
+
+    def fig(costs, successes, learned_from=None):
+        return {"episodes": 200, "success": float(np.mean(successes)), "first_pick_success": 0.0,
+                "cost": float(np.mean(costs)), "time_s": 0.0, "learned_from": learned_from,
+                "successes": [int(s) for s in successes], "costs": [float(c) for c in costs]}
+
+    noisy = base_success.copy()
+    noisy[np.flatnonzero(base_success)[:3]] = 0  # 3 episodes fewer, none more: p = 1/8
+    lost = base_success.copy()
+    lost[np.flatnonzero(base_success)[:12]] = 0  # 12 fewer: p = 2**-12
+    figures = {"v0000": fig(base_cost, base_success), "v0001": fig(base_cost - 0.01, noisy, "v0000"),
+               "v0002": fig(base_cost - 0.01, lost, "v0001"), "v0003": fig(base_cost + 0.3, lost, "v0002")}
+    s = hidden_summary(figures, ["v0000", "v0001", "v0002", "v0003"])
+    checks = {c["version"]: c for c in s["promotion_checks"]}
+    assert [checks[v]["worse"] for v in ("v0001", "v0002", "v0003")] == [True, True, True]
+    assert [checks[v]["significantly_worse"] for v in ("v0001", "v0002", "v0003")] == [False, True, True]
+    assert checks["v0001"]["fewer_successes_p"] == pytest.approx(1 / 8)
+    assert checks["v0003"]["cost_difference_bound"] == pytest.approx(0.31)  # every episode 0.31 s dearer
+    assert s["worse_promotions"] == 3 and s["significantly_worse_promotions"] == 2
+    assert "costs" not in s["hidden_versions"]["v0001"]  # the per-episode lists stay out of summary.json
+
+
 def test_a_promotion_is_marked_where_its_version_first_served():
     rows = [_row(i, 1, 1.0, "fixed" if i < 5 else "v0001") for i in range(8)]
     promotions = [{"version": "v0001", "log_time": None}, {"version": "v0002", "log_time": 1006.5},

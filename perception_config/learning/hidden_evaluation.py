@@ -11,7 +11,10 @@ meets the same hypotheses. A version's figures:
 success share, first-pick share, mean cost (charged seconds + failed picks + truncation: what
 the reward and the learner's gate optimise) and mean time. A promoted version is **worse** than
 the one it replaced (the version serving when it was trained) when its mean cost is higher or
-its success share lower on these episodes.
+its success share lower on these episodes (`worse_promotions`), and **significantly worse** when
+that holds beyond the episodes' own noise (`paired_worse`: a one-sided 95 % bound on the paired
+cost differences above 0, or fewer successes by an exact sign test at p < 0.05;
+`significantly_worse_promotions`).
 """
 from __future__ import annotations
 
@@ -67,6 +70,9 @@ def evaluate_versions(policies: str | Path, dataset: str | Path, keys: Sequence[
                 "cost": float(np.mean([t.cost for t in trajectories])),
                 "time_s": float(np.mean([t.time for t in trajectories])),
                 "learned_from": info.get("serving") if isinstance(info, dict) else None,  # the gate's record
+                # per episode, in the episodes' order (the same for every version): the paired tests
+                "successes": [int(t.success) for t in trajectories],
+                "costs": [round(float(t.cost), 4) for t in trajectories],
             }
     finally:
         bar.close()
@@ -83,9 +89,31 @@ def worse_promotions(figures: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
             continue
         p = figures[previous]
         worse = bool(f["cost"] > p["cost"] + 1e-9 or f["success"] < p["success"] - 1e-9)
-        out.append({"version": version, "previous": previous, "cost": f["cost"], "previous_cost": p["cost"],
-                    "success": f["success"], "previous_success": p["success"], "worse": worse})
+        check = {"version": version, "previous": previous, "cost": f["cost"], "previous_cost": p["cost"],
+                 "success": f["success"], "previous_success": p["success"], "worse": worse}
+        if len(f.get("costs") or ()) == len(p.get("costs") or ()) > 1:
+            check.update(paired_worse(f["costs"], p["costs"], f["successes"], p["successes"]))
+        out.append(check)
     return out
+
+
+def paired_worse(costs: Sequence[float], previous_costs: Sequence[float], successes: Sequence[int],
+                 previous_successes: Sequence[int]) -> dict[str, Any]:
+    """Whether a version is worse than its predecessor beyond the hidden set's own noise, on the
+    same episodes: its cost higher (one-sided 95 % Student-t bound on the paired differences above
+    0) or its successes fewer (exact one-sided sign test on the episodes only one of the two
+    picked, p < 0.05). `cost_difference_bound`: the lower 95 % bound of the mean cost difference."""
+    from scipy import stats
+
+    d = np.asarray(costs, float) - np.asarray(previous_costs, float)
+    n = len(d)
+    sd = float(d.std(ddof=1))
+    low = float(d.mean() - stats.t.ppf(0.95, n - 1) * sd / math.sqrt(n)) if sd > 0 else float(d.mean())
+    s, ps = np.asarray(successes, int), np.asarray(previous_successes, int)
+    lost, gained = int(((ps == 1) & (s == 0)).sum()), int(((ps == 0) & (s == 1)).sum())
+    p_fewer = float(stats.binomtest(lost, lost + gained, 0.5, alternative="greater").pvalue) if lost + gained else 1.0
+    return {"cost_difference_bound": low, "only_previous_picked": lost, "only_this_picked": gained,
+            "fewer_successes_p": p_fewer, "significantly_worse": bool(low > 0 or p_fewer < 0.05)}
 
 
 def hidden_summary(figures: dict[str, dict[str, Any]], served: Sequence[str]) -> dict[str, Any]:
@@ -102,5 +130,7 @@ def hidden_summary(figures: dict[str, dict[str, Any]], served: Sequence[str]) ->
     return {"hidden_success_start": get(first, "success"), "hidden_success_end": get(last, "success"),
             "hidden_cost_start": get(first, "cost"), "hidden_cost_end": get(last, "cost"),
             "hidden_time_start": get(first, "time_s"), "hidden_time_end": get(last, "time_s"),
-            "hidden_versions": figures, "promotion_checks": checks,
-            "worse_promotions": sum(c["worse"] for c in checks)}
+            "hidden_versions": {v: {k: x for k, x in f.items() if k not in ("successes", "costs")}
+                                for v, f in figures.items()},
+            "promotion_checks": checks, "worse_promotions": sum(c["worse"] for c in checks),
+            "significantly_worse_promotions": sum(bool(c.get("significantly_worse")) for c in checks)}
