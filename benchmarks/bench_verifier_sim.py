@@ -1,7 +1,7 @@
 """The pick-success score trained in simulation on a real dataset's own meshes, judged on its real frames.
 
     .venv/bin/python benchmarks/bench_verifier_sim.py [--sets lmo ycbv-rgbd] [--variants clean realism]
-        [--scenes 8] [--episodes 1500] [--work outputs/bench_verifier_sim]
+        [--scenes 4] [--episodes 1500] [--work outputs/bench_verifier_sim]
 
 Per real RGB-D set of ../shared/data (skipped when absent) and per variant of the synthetic data:
 1. `perception-config synth --models <set>/models --camera <set> [--realism] --scenes N`: scenes
@@ -39,7 +39,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", nargs="+", choices=sorted(SET_NAMES), default=sorted(SET_NAMES))
     ap.add_argument("--variants", nargs="+", choices=("clean", "realism"), default=["clean", "realism"])
-    ap.add_argument("--scenes", type=int, default=8)
+    ap.add_argument("--scenes", type=int, default=4)
     ap.add_argument("--episodes", type=int, default=1500)
     ap.add_argument("--work", type=Path, default=REPO / "outputs" / "bench_verifier_sim")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "verifier_sim.json")
