@@ -28,7 +28,9 @@ def _cmd_launch(args: argparse.Namespace) -> int:
                 spec.params["autostart"] = False
 
         def bring_up(launcher) -> bool:
-            return bring_up_launched(launcher, say)
+            # the launcher's own `say`: it writes under the lock its node-output threads write under,
+            # so a status line is never cut by a node's line (print writes the text and the newline apart)
+            return bring_up_launched(launcher, launcher.say)
 
     return run(specs, log_dir=args.log_dir, composed=args.composed, bring_up=bring_up)
 
