@@ -78,8 +78,6 @@ def camera_from(path: str | os.PathLike) -> tuple[np.ndarray, int, int]:
     """(K, width, height) of a camera: a BOP camera.json (fx, fy, cx, cy, width, height), or a BOP
     dataset folder (its camera.json, else its first test image's cam_K and size). ValueError
     naming the file when it cannot be read."""
-    from ..util.safe_json import read_json_file
-
     path = Path(path)
     if path.is_dir() and (path / "camera.json").is_file():
         path = path / "camera.json"
