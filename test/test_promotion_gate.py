@@ -79,6 +79,17 @@ def test_fewer_successes_or_a_gain_below_the_margin_is_not_promoted():
     d = paired_gate(cost, serving, none, none, frames)
     assert not d.promote and d.upper < 0 and "no success" in d.reason, d
     assert paired_gate(cost, serving, [True] + none[1:], none, frames).promote
+    # Successes granted by the learned score alone (no ground truth, no pose the robot reported
+    # picked: what a robot reporting every pick failed leaves) are no evidence either.
+    wins = [True] * 12 + [False] * 12
+    d = paired_gate(cost, serving, wins, wins, frames, confirmed=[False] * 24)
+    assert not d.promote and "none of its 12 successes is confirmed" in d.reason and d.confirmed == 0, d
+    # A confirmed flag on an episode the candidate failed does not count.
+    d = paired_gate(cost, serving, wins, wins, frames, confirmed=[False] * 12 + [True] * 12)
+    assert not d.promote and d.confirmed == 0, d
+    d = paired_gate(cost, serving, wins, wins, frames, confirmed=[True] + [False] * 23)
+    assert d.promote and d.confirmed == 1, d
+    assert paired_gate(cost, serving, wins, wins, frames).confirmed == 12  # ground truth: every success
 
 
 def test_the_per_frame_bound_is_students_t_over_the_frames_means():

@@ -61,6 +61,9 @@ def test_a_replayed_pick_is_judged_by_the_robots_outcomes(obj):
     assert only_failed.judge(truth, model)[0] is False
     assert only_failed.judge(truth, model, {"pick_success": 0.9})[0] is True
     assert only_failed.judge(shifted(truth, 0.31 * d), model, {"pick_success": 0.9})[0] is False
+    # Confirmed: only a success at a pose the robot picked, not one the score granted.
+    assert labels.confirms(near, model) and labels.confirms(picked, model)
+    assert not labels.confirms(middle, model) and not only_failed.confirms(truth, model)
 
 
 def test_labels_that_contradict_each_other_are_not_used(obj):
@@ -160,8 +163,10 @@ def test_a_cells_store_is_replayed_on_the_robots_labels(tmp_path, tmp_path_facto
     assert looked == len(outcomes)
     assert stats["ground_truth"] == 0 and stats["robot"] == len(replayable) == sum(s for _, s in outcomes)
     assert all(ep.ground_truth is None and ep.labels is not None for ep in replayable)
-    _, wins = replay(env, agent, replayable)
+    confirmed: list[bool] = []
+    _, wins = replay(env, agent, replayable, confirmed)
     assert all(wins)  # the serving policy's own picks, judged by its labels: what the robot said
+    assert confirmed == wins  # ... at the poses the robot picked: confirmed, not the score's
     # Without a generator free of ground truth (or told so) nothing is replayed on robot labels.
     assert replayable_episodes(honest, models, robot_labels_ok=False)[0] == []
 

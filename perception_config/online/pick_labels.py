@@ -26,8 +26,9 @@ nothing, no credit beyond the policy that collected it).
 of them is used (`conflict`): two picked poses more than 0.2 d apart cannot both be within 0.1 d
 of one truth, and a failed pose within `CONFLICT_TOLERANCE` (0.02 d) of a picked one contradicts
 it. A robot program that reports at random is caught whenever a frame is estimated twice; one that
-reports every pick failed leaves no picked pose (nothing to replay without the learned score); one
-that reports every pick successful labels the serving policy's own poses, so a candidate gains
+reports every pick failed leaves no picked pose (nothing to replay without the learned score, and
+with it no success is confirmed, so the gate promotes nothing: promotion_gate); one that reports
+every pick successful labels the serving policy's own poses, so a candidate gains
 nothing there over the policy that made them.
 
 What this cannot learn: a frame where the robot never succeeded teaches nothing without the
@@ -82,6 +83,11 @@ class PickLabels:
             if d <= CONFLICT_TOLERANCE:
                 return f"a failed pose {d:.3f} d from a picked one"
         return None
+
+    def confirms(self, pose: Pose, model: ObjectModel) -> bool:
+        """Whether a pick at `pose` is judged picked by a pose the robot picked (the table's first
+        row), not by the learned score: a confirmed success."""
+        return self._nearest(pose, self.picked, model) <= LABEL_TOLERANCE
 
     def judge(self, pose: Pose, model: ObjectModel, scores: dict[str, float] | None = None
               ) -> tuple[bool, dict[str, float]]:

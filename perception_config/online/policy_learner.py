@@ -36,12 +36,14 @@ One learning cycle, every `every` new stored estimates (`learn_once`):
    the env's: charged seconds + failed-pick robot time + truncation penalty (Trajectory.cost);
    a cycle with fewer than 15 check episodes on 5 check frames trains nothing and waits;
 4. the gate (promotion_gate.paired_gate): promoted only if the per-frame paired cost difference
-   is below zero at 95 % confidence, the mean cost below (1 - margin) x the serving one and the
-   successes not fewer: the file is kept as the next version (util/versions.PolicyVersions),
+   is below zero at 95 % confidence, the mean cost below (1 - margin) x the serving one, the
+   successes not fewer and at least one of them confirmed (ground truth, or a pose the robot
+   reported picked; not the learned score alone): the file is kept as the next version (util/versions.PolicyVersions),
    with the gate's figures; otherwise the candidate is deleted.
 Each cycle reports one line (`format_result`), the line the configurator logs:
     learner: candidate from N episodes: cost X vs serving Y -> promoted vN | discarded (the gate's
-    reason: difference D s, 95 % upper bound U s over F held-out frames; successes S vs T)
+    reason: difference D s, 95 % upper bound U s over F held-out frames; successes S vs T[, C of
+    them confirmed: shown when some are not])
 A failure (the store locked or corrupt, a frame file unreadable, training raising) is one line
 `learner: no candidate: <reason>; serving vN unchanged`; the worker keeps running.
 
@@ -236,10 +238,17 @@ def train_candidate(env: PerceptionConfigEnv, serving_file: Path, episodes: list
     return learner
 
 
-def replay(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode]) -> tuple[list[float], list[bool]]:
+def replay(env: PerceptionConfigEnv, agent: Agent, episodes: list[Episode],
+           confirmed: list[bool] | None = None) -> tuple[list[float], list[bool]]:
     """Cost (charged seconds + failed picks + truncation) and success of `agent` on each stored
-    episode, with its stored episode seed and the acting seed derived from it."""
+    episode, with its stored episode seed and the acting seed derived from it. `confirmed`, when
+    given, receives per episode whether its success is confirmed: by the frame's ground truth, or
+    at a pose the robot reported picked (PickLabels.confirms), not by the learned score alone."""
     trajectories = [play_episode(env, agent, {"episode": ep}, acting_seed(ep.seed)) for ep in episodes]
+    if confirmed is not None:
+        confirmed[:] = [bool(t.success) and (ep.ground_truth is not None or (
+            ep.labels is not None and bool(t.step_poses) and t.step_poses[-1] is not None
+            and ep.labels.confirms(t.step_poses[-1], ep.model))) for ep, t in zip(episodes, trajectories)]
     return [float(t.cost) for t in trajectories], [bool(t.success) for t in trajectories]
 
 
@@ -323,9 +332,10 @@ def learn_once(learn_dir: str | Path, settings: LearnerSettings, log: Callable[[
                     "learned_from": serving, "trained_total": trained_total})
         serving_agent = load_agent(serving_file, env)
         serving_costs, serving_wins = replay(env, serving_agent, check)
-        costs, wins = replay(env, candidate, check)
+        confirmed: list[bool] = []
+        costs, wins = replay(env, candidate, check, confirmed)
         gate = paired_gate(costs, serving_costs, wins, serving_wins, [ep.stamp_ns for ep in check],
-                           margin=settings.margin)
+                           margin=settings.margin, confirmed=confirmed)
         result = {"outcome": "discarded", "episodes": len(check), "trained_on": len(train_eps), "labels": stats,
                   "train_episodes": settings.train_episodes, "trained_total": trained_total, "cost": gate.cost,
                   "serving_cost": gate.serving_cost,
@@ -347,6 +357,11 @@ def _label_text(stats: dict[str, int]) -> str:
             f"{stats.get('conflicting', 0)} objects in frames with conflicting robot outcomes left out")
 
 
+def _confirmed_text(gate: dict[str, Any]) -> str:
+    n = int(gate.get("confirmed", -1))
+    return f", {n} of them confirmed" if 0 <= n < int(gate["successes"]) else ""
+
+
 def format_result(r: dict[str, Any]) -> str:
     """The learner's one line per cycle (the configurator logs it; the cell simulation parses it)."""
     if r["outcome"] == "failed":
@@ -355,7 +370,7 @@ def format_result(r: dict[str, Any]) -> str:
     g = r.get("gate") or {}
     why = (f" ({g['reason']}: difference {g['difference']:+.3f} s, {g['confidence']:.0%} upper bound "
            f"{g['upper']:+.3f} s over {g['frames']} held-out frames; successes {g['successes']} vs "
-           f"{g['serving_successes']})") if g else ""
+           f"{g['serving_successes']}{_confirmed_text(g)})") if g else ""
     labels = f"; replayed {_label_text(r['labels'])}" if r.get("labels") else ""
     return (f"learner: candidate from {r['episodes']} episodes: cost {r['cost']:.3f} vs serving "
             f"{r['serving_cost']:.3f} -> {verdict}{why}{labels}")

@@ -21,9 +21,13 @@ bound of the mean of those differences at `confidence` (95 %). The candidate is 
 - the upper bound is below zero (its cost is lower at 95 % confidence);
 - its mean cost is below (1 - margin) x the serving one (a minimum effect worth a new version);
 - its successes on the check episodes are not fewer than the serving policy's;
-- it has at least one success on them: without any, a lower cost is only a cheaper failure
-  (fewer pick attempts, giving up sooner), which is what a robot program that reports every
-  pick failed would teach through the robot's labels.
+- at least one of its successes on them is **confirmed**: judged by the frame's ground truth, or
+  within the label tolerance of a pose the robot reported picked (online/pick_labels.py), not
+  by the learned pick-success score alone. Without one, a lower cost is only a cheaper failure
+  (fewer pick attempts, giving up sooner), or a success the score grants where the robot never
+  said yes: a robot program that reports every pick failed leaves no picked pose, so its check
+  successes are all the score's, and a candidate that avoids the poses it reported would win
+  the comparison without any evidence that it picks.
 """
 from __future__ import annotations
 
@@ -64,6 +68,7 @@ class GateDecision:
     confidence: float
     successes: int
     serving_successes: int
+    confirmed: int = -1  # of the candidate's successes, those confirmed (module docstring); -1: not given
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -90,15 +95,20 @@ def per_frame_bound(values: Sequence[float], frames: Sequence[object], confidenc
 
 def paired_gate(costs: Sequence[float], serving_costs: Sequence[float], successes: Sequence[bool],
                 serving_successes: Sequence[bool], frames: Sequence[int], margin: float = 0.05,
-                confidence: float = CONFIDENCE) -> GateDecision:
+                confidence: float = CONFIDENCE, confirmed: Sequence[bool] | None = None) -> GateDecision:
     """The decision on a candidate from its check episodes, paired with the serving policy's on
-    the same ones; `frames`: each episode's frame stamp (module docstring)."""
+    the same ones; `frames`: each episode's frame stamp; `confirmed`: per episode, whether the
+    candidate's success there is confirmed by ground truth or a robot's picked pose (None: every
+    success is, as with ground truth) (module docstring)."""
     n = len(costs)
-    if not (len(serving_costs) == len(successes) == len(serving_successes) == len(frames) == n):
-        raise ValueError("paired_gate needs one cost, serving cost, success, serving success and frame per episode")
+    confirmed = successes if confirmed is None else confirmed
+    if not (len(serving_costs) == len(successes) == len(serving_successes) == len(frames) == len(confirmed) == n):
+        raise ValueError("paired_gate needs one cost, serving cost, success, serving success, confirmation and "
+                         "frame per episode")
     cost, serving = np.asarray(costs, float), np.asarray(serving_costs, float)
     difference, upper, k = per_frame_bound(cost - serving, [int(f) for f in frames], confidence, "upper")
     wins, serving_wins = int(np.sum(successes)), int(np.sum(serving_successes))
+    sure = int(np.sum(np.asarray(successes, bool) & np.asarray(confirmed, bool)))
     mean_cost = float(cost.mean()) if n else math.nan
     mean_serving = float(serving.mean()) if n else math.nan
     if k < MIN_CHECK_FRAMES or n < MIN_CHECK_EPISODES:
@@ -112,7 +122,10 @@ def paired_gate(costs: Sequence[float], serving_costs: Sequence[float], successe
         promote, reason = False, f"fewer successes ({wins} vs {serving_wins})"
     elif wins == 0:
         promote, reason = False, "no success on the check episodes (a cheaper failure is no improvement)"
+    elif sure == 0:
+        promote, reason = False, (f"none of its {wins} successes is confirmed by ground truth or a pose the robot "
+                                  "picked (the score alone granted them)")
     else:
         promote, reason = True, f"lower at {confidence:.0%} confidence, success not lower"
     return GateDecision(promote, reason, n, k, mean_cost, mean_serving, difference, upper, confidence, wins,
-                        serving_wins)
+                        serving_wins, sure)
