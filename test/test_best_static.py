@@ -95,7 +95,7 @@ def test_the_agent_plays_each_lambdas_sequence_and_survives_a_snapshot(searched)
 
 def test_evaluate_searches_train_images_only_and_reports_the_sequence(tmp_path_factory, tmp_path):
     out = tmp_path / "ev"
-    results = evaluate(tiny_dataset(tmp_path_factory), ["best_static", "random"], [0.3, 1.2], out,
+    results = evaluate(tiny_dataset(tmp_path_factory), ["best_static", "best_static_single", "random"], [0.3, 1.2], out,
                        episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table",
                        max_ops=4, include_baselines=False, progress=False, plots=False, store_episodes=False,
                        best_static_length=2, best_static_episodes=3)
@@ -115,6 +115,16 @@ def test_evaluate_searches_train_images_only_and_reports_the_sequence(tmp_path_f
         played = [e for e in episodes if e["agent"] == "best_static" and e["lambda"] == r["lambda"]]
         assert played and all(e["actions"][0] == r["sequence"][0] for e in played)
     assert "random" in {r["agent"] for r in records}
+    # best_static_single: one sequence for both lambdas, chosen on their 2 x 3 search episodes
+    # together; no sequence beats each lambda's own choice there, so its mean is not below theirs.
+    single = [r for r in records if r["agent"] == "best_static_single"]
+    assert [r["lambda"] for r in single] == [0.3, 1.2] and all(r["kind"] == "best_static_single" for r in single)
+    assert single[0]["sequence"] == single[1]["sequence"] and "pick" in single[0]["sequence"]
+    s = single[0]["search"]
+    assert s["episodes"] == 6 and s["sequences"] == 10 and not {tuple(k) for k in s["images"]} & test_images
+    assert s["mean_cost"] >= np.mean([r["search"]["mean_cost"] for r in mine]) - 1e-9
+    played = [e for e in episodes if e["agent"] == "best_static_single"]
+    assert played and all(e["actions"][0] == single[0]["sequence"][0] for e in played)
 
 
 def test_bad_options_give_clear_errors(tmp_path_factory, tmp_path, capsys):

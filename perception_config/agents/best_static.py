@@ -242,6 +242,7 @@ class BestStaticAgent(Agent):
         self._players = {lam: FixedAgent(spec, seq, after="repeat", seed=seed) for lam, seq in self.sequences.items()}
         self._default = FixedAgent(spec, list(spec.action_names), after="repeat", seed=seed)
         self.search: dict[float, SearchResult] = {}  # the search reports, where this process searched
+        self.single_search: SearchResult | None = None  # the lambdas' costs pooled (evaluation_best_static)
 
     def sequence_for(self, noise_lambda: float | None) -> list[str]:
         """The sequence played at this noise level."""

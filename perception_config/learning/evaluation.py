@@ -24,7 +24,10 @@ The best static pipeline (`best_static`, agents/best_static.py): before the swee
 an exhaustive search over the fixed sequences of up to `best_static_length` actions with a pick,
 each played as the fixed agent plays it, on `best_static_episodes` episodes of the TRAIN images
 (an env over the split's train keys), scored by mean episode_cost; the agent then plays each
-lambda's winner. Its records carry `sequence` and `search` (episodes, sequences, max_length,
+lambda's winner. `best_static_single` plays one sequence at every lambda: the lowest mean
+episode_cost over all the lambdas' search episodes together (one pipeline for the whole noise
+range, as a configurator like SMAC would fix it; neither it nor the learned agent is told the
+noise level). Their records carry `sequence` and `search` (episodes, sequences, max_length,
 mean_cost of the chosen, runner_up and runner_up_cost, seconds); meta.json's `best_static` the
 search settings (learning/evaluation_best_static.py).
 
@@ -81,7 +84,14 @@ from ..store.episode_store import STORE_NAME, StoreWriter, store_episode
 from ..util.atomic_file import atomic_write
 from ..util.open3d_threads import open3d_single_thread
 from .evaluation_agents import DEFAULT_FIXED_SEQUENCES, EvalAgent, build_agents
-from .evaluation_best_static import DEFAULT_EPISODES, DEFAULT_MAX_LENGTH, best_static_agent, check_options, search_seed
+from .evaluation_best_static import (
+    DEFAULT_EPISODES,
+    DEFAULT_MAX_LENGTH,
+    best_static_agent,
+    check_options,
+    search_seed,
+    single_sequence_agent,
+)
 from .evaluation_export import make_plots, write_bop_csvs
 from .evaluation_records import DEFINITIONS, mark_best_fixed, oracle_ratios, summarise
 from .evaluation_sweep import sweep_here, sweep_on_ray
@@ -178,11 +188,13 @@ def evaluate(
     env_settings = settings.env.replace(lambda_range=(0.0, LAMBDA_MAX))  # every lambda is set per episode
     source = EpisodeSource(ds, test_keys, min_visib_fract=env_settings.min_visib_fract)
     env = PerceptionConfigEnv(source, pipe, env_settings)
-    wants_best_static = best_static_episodes > 0 and (include_baselines or "best_static" in policies)
-    # the searched agent replaces this stand-in before the sweep; building the agents first finds bad
+    wants_best_static = best_static_episodes > 0 and (
+        include_baselines or any(p in ("best_static", "best_static_single") for p in policies if isinstance(p, str)))
+    # the searched agents replace these stand-ins before the sweep; building the agents first finds bad
     # policies before the search
     stand_in = BestStaticAgent(EnvSpec.from_env(env)) if wants_best_static else None
-    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget, stand_in)
+    single_stand_in = BestStaticAgent(EnvSpec.from_env(env)) if wants_best_static else None
+    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget, stand_in, single_stand_in)
     plan = episode_plan(len(source), episodes_per_lambda, seed)
     recipe = None
     if ray_wanted(workers, ray_address):
@@ -195,7 +207,8 @@ def evaluate(
     if wants_best_static:
         best_static_meta = {"max_length": int(best_static_length), "episodes": int(best_static_episodes),
                             "seed": search_seed(seed), "train_images": len(train_keys),
-                            "note": "exhaustive search per lambda on train episodes; mean episode_cost"}
+                            "note": "exhaustive search per lambda on train episodes; mean episode_cost; "
+                                    "best_static_single: the lambdas' episodes pooled"}
 
     bar = None
     records: list[dict[str, Any]] = []
@@ -219,9 +232,12 @@ def evaluate(
                 searched = best_static_agent(
                     train_env, lams, episode_plan(len(train_env.source), best_static_episodes, search_seed(seed)),
                     best_static_length, seed, runner, train_recipe, progress)
+                single = single_sequence_agent(searched)
                 for ea in agents:
                     if ea.agent is stand_in:
                         ea.agent = searched
+                    elif ea.agent is single_stand_in:
+                        ea.agent = single
             if progress:
                 from tqdm import tqdm
 
@@ -235,7 +251,7 @@ def evaluate(
                 eps = [{"agent": ea.name, **rec} for rec in sweep[(ea.name, lam)]]
                 per_episode.extend(eps)
                 records.append({**summarise(ea.name, lam, eps), "kind": ea.kind})
-                if ea.kind == "best_static":
+                if ea.kind in ("best_static", "best_static_single"):
                     records[-1]["sequence"] = ea.agent.sequence_for(lam)
                     if lam in ea.agent.search:
                         records[-1]["search"] = ea.agent.search[lam].to_json()

@@ -55,14 +55,14 @@ def _policy_name(path: Path, kind: str) -> str:
 def build_agents(
     env: PerceptionConfigEnv, policies: Sequence[Any], seed: int, include_baselines: bool = True,
     sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES, oracle_budget: int | None = None,
-    best_static: Any = None,
+    best_static: Any = None, best_static_single: Any = None,
 ) -> list[EvalAgent]:
     """The agents to evaluate: policy files (checked against the env's action set), agent
     names, or (name, agent) pairs / objects with `act`; then the baselines (oracle, the fixed
     pipelines, the best static pipeline, random) unless already given; `oracle_budget`: the
     oracle's operator calls per episode (its `node_budget`; default 2000). `best_static`: the
     searched BestStaticAgent (the name "best_static" among `policies` is this agent; None: no
-    best_static baseline)."""
+    best_static baseline); `best_static_single`: its one sequence for every lambda (likewise)."""
     from .. import agents
 
     out: list[EvalAgent] = []
@@ -74,11 +74,12 @@ def build_agents(
         elif is_policy_file(spec):
             agent = agents.load_agent(Path(spec), env)
             out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent, policy_version(spec)))
-        elif spec == "best_static":
-            if best_static is None:
-                raise ValueError("agent 'best_static' is the result of a search on the train images: "
+        elif spec in ("best_static", "best_static_single"):
+            searched = best_static if spec == "best_static" else best_static_single
+            if searched is None:
+                raise ValueError(f"agent {spec!r} is the result of a search on the train images: "
                                  "give best_static_episodes > 0 (CLI: --best-static-episodes N)")
-            out.append(EvalAgent(spec, spec, best_static))
+            out.append(EvalAgent(spec, spec, searched))
         elif isinstance(spec, str):
             if spec not in agents.AGENTS:
                 hint = f" and there is no file {spec}" if (os.sep in spec or "." in spec) else ""
@@ -97,8 +98,9 @@ def build_agents(
             name = "fixed:" + "+".join(seq)
             if name not in names:
                 out.append(EvalAgent(name, "fixed", agents.make_agent("fixed", env=env, seed=seed, sequence=list(seq))))
-        if best_static is not None and "best_static" not in names:
-            out.append(EvalAgent("best_static", "best_static", best_static))
+        for name, searched in (("best_static", best_static), ("best_static_single", best_static_single)):
+            if searched is not None and name not in names:
+                out.append(EvalAgent(name, name, searched))
         if "random" not in names:
             out.append(EvalAgent("random", "random", agents.make_agent("random", env=env, seed=seed)))
     if not out:

@@ -2,6 +2,19 @@
 evaluated lambda, on TRAIN episodes (an env over the split's train image keys: the search never
 sees a test image), then a BestStaticAgent that plays, per lambda, the sequence found for it.
 
+Two bars come out of the same searched costs:
+
+| agent                | plays                                             | told the noise level |
+|----------------------|---------------------------------------------------|----------------------|
+| `best_static`        | per lambda, the lowest mean cost at that lambda   | yes                  |
+| `best_static_single` | one sequence: the lowest mean cost over all the   | no                   |
+|                      | lambdas' search episodes together                 |                      |
+
+`best_static_single` is Dynamic Algorithm Configuration's static reference (one configuration for
+the whole instance distribution, what SMAC or irace return for a cell): the noise level of a
+hypothesis is not observed by the learned agent, nor known in a cell. `best_static` selects a
+sequence per noise level with that knowledge, a stronger bar than any one fixed pipeline.
+
 At every lambda the search plays the same train episodes (the plan's episode indices and seeds,
 drawn from a seeded rng; common random numbers, as the evaluation's own plan) at that lambda.
 In this process, or with Ray workers as tasks of a few episodes each (`search_chunk`: each
@@ -64,6 +77,9 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
 
         bar = tqdm(total=len(lams) * len(plan), desc="best_static search", unit="ep", dynamic_ncols=True)
     results: dict[float, SearchResult] = {}
+    all_costs: list[np.ndarray] = []
+    all_images: list[tuple[int, int]] = []
+    started = time.perf_counter()
     try:
         recipe_ref = runner.put(recipe) if runner is not None else None
         for lam in lams:
@@ -81,9 +97,23 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
                 costs = np.concatenate([rows for rows, _ in parts])
                 images = [key for _, keys in parts for key in keys]
             results[lam] = SearchResult.from_costs(sequences, costs, max_length, time.perf_counter() - t0, images)
+            all_costs.append(costs)
+            all_images.extend(images)
     finally:
         if bar is not None:
             bar.close()
     agent = BestStaticAgent(spec, {lam: r.sequence for lam, r in results.items()}, seed=seed)
     agent.search = results
+    # the same costs pooled over the lambdas (rows in lambda order): one sequence for all of them
+    agent.single_search = SearchResult.from_costs(sequences, np.concatenate(all_costs), max_length,
+                                                  time.perf_counter() - started, all_images)
+    return agent
+
+
+def single_sequence_agent(searched: BestStaticAgent) -> BestStaticAgent:
+    """`best_static_single` (module docstring): the searched agent's pooled choice, played at
+    every lambda of its search."""
+    pooled = searched.single_search
+    agent = BestStaticAgent(searched.spec, {lam: pooled.sequence for lam in searched.search}, seed=searched.seed)
+    agent.search = {lam: pooled for lam in searched.search}
     return agent

@@ -4,7 +4,10 @@ each seed against the bar and the oracle, the table and the verdict lines.
 
 The bar: `best_static` (kind "best_static": the best fixed sequence found on the train images,
 per lambda), else the best fixed pipeline (the `fixed` record flagged `best_fixed`), and the
-report says it fell back. A seed beats the bar at a lambda when its mean episode cost is lower
+report says it fell back. Beside it, where the evaluation has it, `best_static_single` (one
+sequence for every lambda: the static reference of Dynamic Algorithm Configuration, not told
+the noise level, as the learned agent is not) gets its own k of N (`comparisons[i]["single"]`,
+and the verdict line). A seed beats the bar at a lambda when its mean episode cost is lower
 and its success not lower (point estimates, `study_stats.beats`); it beats it surely when, in
 addition, the 95 % interval of the paired cost difference (seed minus bar, episode by episode)
 lies below 0. The oracle comparison is the time ratio on the episodes both picked (the mean of
@@ -24,7 +27,7 @@ import numpy as np
 
 from . import study_stats as st
 
-BASELINE_KINDS = ("oracle", "fixed", "random", "best_static")
+BASELINE_KINDS = ("oracle", "fixed", "random", "best_static", "best_static_single")
 FIGURES = ("success", "first_pick_success", "episode_cost", "time_to_success")
 
 
@@ -133,6 +136,7 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
     kinds = {r["agent"]: r.get("kind", "") for r in records}
     lambdas = sorted({float(r["lambda"]) for r in records})
     bar = choose_bar(records)
+    single = next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
     seeds = list(seeds) if seeds is not None else list(range(len(learned)))
     rows, pooled, comparisons = [], [], []
     for lam in lambdas:
@@ -164,6 +168,8 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
             comp["bar_success"] = float(bar_arr["success"].mean())
             comp["k_beats"] = sum(1 for p in per_seed if p["beats"])
             comp["k_beats_surely"] = sum(1 for p in per_seed if p["beats_surely"])
+        if single and single in arr:
+            comp["single"] = _single_comparison(arr, learned, single, records, lam, **kw)
         comp["pooled_cost"] = pooled_fig["episode_cost"].to_json()
         comp["pooled_success"] = pooled_fig["success"].value
         if "oracle_ratio" in pooled_cmp:
@@ -174,6 +180,19 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
             "best_fixed": best_fixed_name(records), "agents": rows, "pooled": pooled, "comparisons": comparisons,
             "bootstrap": {"method": st.METHOD, "resamples": kw.get("resamples", st.RESAMPLES),
                           "level": kw.get("level", st.LEVEL), "seed": kw.get("seed", st.BOOTSTRAP_SEED)}}
+
+
+def _single_comparison(arr: dict[str, dict[str, np.ndarray]], learned: Sequence[str], single: str,
+                       records: Sequence[dict[str, Any]], lam: float, **kw: Any) -> dict[str, Any]:
+    """The seeds against `best_static_single` at one lambda (one sequence for every lambda, not told
+    the noise level, as the learned agent is not: learning/evaluation_best_static.py)."""
+    per_seed = [compare(arr[a], arr[single], None, **kw) for a in learned]
+    sequence = next((r.get("sequence") for r in records
+                     if r["agent"] == single and float(r["lambda"]) == lam), None)
+    return {"bar": single, "sequence": sequence, "k_beats": sum(1 for c in per_seed if c["beats"]),
+            "k_beats_surely": sum(1 for c in per_seed if c["beats_surely"]),
+            "bar_cost": st.mean_interval(arr[single]["cost"], **kw).to_json(),
+            "bar_success": float(arr[single]["success"].mean())}
 
 
 def format_estimate(d: dict[str, Any] | None, fmt: str = ".2f", unit: str = "", scale: float = 1.0) -> str:
@@ -198,6 +217,12 @@ def verdict_line(comp: dict[str, Any], label: str, bar: dict[str, Any]) -> str:
                 f"{format_estimate(comp['pooled_cost'], '.3g', unit=' s')} vs "
                 f"{format_estimate(comp['bar_cost'], '.3g')}; success "
                 f"{100 * comp['pooled_success']:.1f} % vs {100 * comp['bar_success']:.1f} %)")
+    single = comp.get("single")
+    if single:
+        seq = "+".join(single.get("sequence") or [])
+        text += (f"; beats {single['bar']} ({seq}, one sequence for every lambda) in {single['k_beats']} of "
+                 f"{comp['n_seeds']} ({single['k_beats_surely']} surely; its cost "
+                 f"{format_estimate(single['bar_cost'], '.3g')})")
     ratio = comp.get("pooled_oracle_ratio")
     if ratio and ratio.get("mean") is not None:
         text += "; " + _oracle_text(ratio["mean"], ratio.get("lo"), ratio.get("hi"))
