@@ -152,6 +152,14 @@ def test_verdict_of_an_evaluation_folder(tmp_path):
     line = verdict(tmp_path, "pg:seed-0")
     assert "\n" not in line and line.startswith("pg:seed-0 (lambda 0.5, 20 episodes): beats best_static")
     assert "paired difference -0.100" in line and "2.00x the oracle's time [2.00, 2.00]" in line
+    assert "best_static_single" not in line
+    eps += _episodes("best_static_single", 0.5, [0.45] * 20, [1] * 20)
+    records += [{"agent": "best_static_single", "lambda": 0.5, "kind": "best_static_single"}]
+    (tmp_path / "results.json").write_text(json.dumps(records))
+    (tmp_path / "episodes.jsonl").write_text("".join(json.dumps(e) + "\n" for e in eps))
+    line = verdict(tmp_path, "pg:seed-0")  # 0.40 s against 0.45 s, every pick: beats it too
+    assert "; beats best_static_single (one sequence for every lambda): cost 0.450" in line, line
+    assert "does not beat best_static_single" in verdict(tmp_path, "pg:seed-1")  # 0.55 s
     with pytest.raises(ValueError, match="name the agent"):
         verdict(tmp_path)  # four learned agents
     with pytest.raises(ValueError, match="no agent 'pg:seed-9'"):

@@ -303,6 +303,13 @@ def verdict(eval_dir: str | Path, agent: str | None = None, lam: float | None = 
                  f"{100 * bar_arr['success'].mean():.1f} %")
         if bar["kind"] != "best_static":
             text += " (no best_static in this evaluation)"
+        single = next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
+        if single and single != agent and single in eps.agents():
+            s_arr = eps.arrays(single, lambdas, keys_of=agent)
+            s_won = compare(mine, s_arr, None, **kw)["beats"]
+            text += (f"; {'beats' if s_won else 'does not beat'} {single} (one sequence for every lambda): cost "
+                     f"{st.mean_interval(s_arr['cost'], **kw).format('.3f')} s, success "
+                     f"{100 * s_arr['success'].mean():.1f} %")
     else:
         text += f"cost {cost.format('.3f')} s, success {100 * mine['success'].mean():.1f} % (no bar to compare with)"
     ratio = c.get("oracle_ratio")
