@@ -13,7 +13,9 @@ Two bars come out of the same searched costs:
 `best_static_single` is Dynamic Algorithm Configuration's static reference (one configuration for
 the whole instance distribution, what SMAC or irace return for a cell): the noise level of a
 hypothesis is not observed by the learned agent, nor known in a cell. `best_static` selects a
-sequence per noise level with that knowledge, a stronger bar than any one fixed pipeline.
+sequence per noise level with that knowledge: on its train episodes no single sequence beats it,
+but each lambda's choice rests on a third of the episodes, and on test episodes the single
+sequence has measured the stronger (docs/results/configurator.md).
 
 At every lambda the search plays the same train episodes (the plan's episode indices and seeds,
 drawn from a seeded rng; common random numbers, as the evaluation's own plan) at that lambda.
