@@ -99,6 +99,11 @@ def choose_bar(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "note": "no best_static and no fixed pipeline in this evaluation: no bar to compare with"}
 
 
+def single_bar_name(records: Sequence[dict[str, Any]]) -> str | None:
+    """The evaluation's `best_static_single` agent (one sequence for every lambda), None without it."""
+    return next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
+
+
 def best_fixed_name(records: Sequence[dict[str, Any]]) -> str | None:
     return next((r["agent"] for r in records if r.get("best_fixed")), None)
 
@@ -136,7 +141,7 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
     kinds = {r["agent"]: r.get("kind", "") for r in records}
     lambdas = sorted({float(r["lambda"]) for r in records})
     bar = choose_bar(records)
-    single = next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
+    single = single_bar_name(records)
     seeds = list(seeds) if seeds is not None else list(range(len(learned)))
     rows, pooled, comparisons = [], [], []
     for lam in lambdas:
@@ -303,7 +308,7 @@ def verdict(eval_dir: str | Path, agent: str | None = None, lam: float | None = 
                  f"{100 * bar_arr['success'].mean():.1f} %")
         if bar["kind"] != "best_static":
             text += " (no best_static in this evaluation)"
-        single = next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
+        single = single_bar_name(records)
         if single and single != agent and single in eps.agents():
             s_arr = eps.arrays(single, lambdas, keys_of=agent)
             s_won = compare(mine, s_arr, None, **kw)["beats"]
