@@ -7,6 +7,7 @@ blocks and the same agent in-process: the ROS layer must not change what is comp
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import numpy as np
@@ -647,10 +648,20 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         assert all(a is not None and not a.success and a.message.startswith("estimate_timeout (1.5 s) reached")
                    for a in answers), [a and a.message for a in answers]
         assert max(came) < 1.5 + 1.5, came
-        assert any("in the queue" in a.message or "before this one" in a.message for a in answers), \
-            [a.message for a in answers]
+        # the later ones ran out of time behind another estimate, not on refine_hypothesis: they say so
+        # ("in the queue", "before this one"), or took the lock with the deadline all but spent, so their
+        # next call (generate_hypothesis) had a moment (a race of microseconds decides which)
+        assert any(waited_behind(a.message) for a in answers), [a.message for a in answers]
     finally:
         assert node.stop() == 0, node.output()
+
+
+def waited_behind(message: str) -> bool:
+    """Whether an estimate_timeout answer spent its time queued behind another estimate."""
+    if "in the queue" in message or "before this one" in message:
+        return True
+    waited = re.search(r"waiting ([0-9.e+-]+) s for", message)
+    return waited is not None and float(waited.group(1)) < 0.5
 
 
 def test_a_stopped_configurator_blames_no_operator_node(ros_node, cell):
