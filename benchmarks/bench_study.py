@@ -1,7 +1,8 @@
 """The learned configurator against the strongest fixed pipeline, over seeds and datasets.
 
     python benchmarks/bench_study.py [--datasets default,seed1] [--pipelines pick_success,default,cell]
-        [--seeds 5] [--episodes 1500] [--eval-episodes 60] [--workers 2] [--runs runs/bench-study]
+        [--seeds 5] [--restarts 1] [--episodes 1500] [--eval-episodes 60] [--workers 2]
+        [--runs runs/bench-study]
         [--agent-param KEY=VALUE ...] [--tag NAME]
 
 For each dataset (`default`: data/default, the demo's; `seedN`: the same generator with seed N,
@@ -83,6 +84,7 @@ def main() -> int:
     ap.add_argument("--pipelines", default="pick_success,default,cell")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--episodes", type=int, default=1500)
+    ap.add_argument("--restarts", type=int, default=1, help="runs per seed, the validation-best kept")
     ap.add_argument("--eval-episodes", type=int, default=60)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench-study")
@@ -99,7 +101,8 @@ def main() -> int:
             lambdas = "0.5" if pipe_name == "cell" else "0.3,0.5,0.7"
             started = time.monotonic()
             cmd = [*CLI, "study", "--dataset", str(dataset), "--out", str(runs / "study"), "--pipeline", pipeline,
-                   "--seeds", str(args.seeds), "--episodes", str(args.episodes), "--eval-episodes",
+                   "--seeds", str(args.seeds), "--restarts", str(args.restarts), "--episodes", str(args.episodes),
+                   "--eval-episodes",
                    str(args.eval_episodes), "--lambdas", lambdas, "--workers", str(args.workers), "--quiet"]
             for item in args.agent_param:
                 cmd += ["--agent-param", item]

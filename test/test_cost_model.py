@@ -12,7 +12,7 @@ from perception_config.agents.base import EnvSpec
 from perception_config.agents.fixed import FixedAgent
 from perception_config.bench.calibration import calibrate, read_cost_table, write_cost_model
 from perception_config.core.geometry import Pose
-from perception_config.rl.pose_memory import PoseMemory, loop_steps, same_pose
+from perception_config.rl.pose_memory import PoseMemory, loop_steps, same_pose, surface_move
 from perception_config.rl.settings import EnvSettings
 from rl_helpers import make_env, pipeline_file, tiny_dataset
 
@@ -42,11 +42,48 @@ def test_pose_memory_marks_actions_taken_at_a_hypothesis_reached_again():
     assert loop_steps(p0, [p0, p0], ["pick", "pick"], ["pick"] * 2, d) == 0
 
 
+def test_pose_memory_names_an_action_that_converged():
+    d = 0.1  # m
+    m = PoseMemory(d)
+    m.visit(_pose(0.0))
+    m.record(_pose(0.0), 0, _pose(0.02))  # A moved every point 0.2 d: not converged
+    assert m.converged(_pose(0.02), 0.01) == set()
+    m.record(_pose(0.02), 0, _pose(0.0205))  # A again moved it 0.005 d: converged
+    assert m.converged(_pose(0.0205), 0.01) == {0}
+    assert m.stale(_pose(0.0205)) == set()  # 0.5 mm is more than POSE_TOL: not the same hypothesis
+    assert m.converged(_pose(0.0205), 0.0) == set() and m.converged(None, 0.01) == set()
+    # a rotation counts by what it moves the points: 0.03 rad moves one d / 2 from the origin 0.015 d
+    assert surface_move(_pose(0.0), _pose(0.0, 0.03), d) == pytest.approx(0.015)
+    m.record(_pose(0.0205), 1, _pose(0.0205, 0.03))
+    assert m.converged(_pose(0.0205, 0.03), 0.01) == set()  # B moved it too far; A left it elsewhere
+
+
+def test_env_masks_a_refiner_that_converged(tmp_path_factory):
+    """icp_fine until its call moves no point of the object by 1 % of the diameter: then the
+    convergence rule masks it (action_mask 0, loop_mask 1) though the hypothesis moved; with
+    converge_tol 0 only the unchanged-hypothesis rule would."""
+    env = make_env(tmp_path_factory, max_ops=20, converge_tol=0.01)
+    fine = env.action_names.index("icp_fine")
+    _, info = env.reset(options={"episode": 0, "lambda": 0.3, "episode_seed": 3})
+    for _ in range(15):
+        before = env.last_outcome.pose
+        _, _, _, _, info = env.step(fine)
+        if surface_move(before, env.last_outcome.pose, env.episode.model.diameter) <= 0.01:
+            break
+    else:
+        raise AssertionError("icp_fine moved the hypothesis by more than 1 % for 15 calls")
+    assert info["action_mask"][fine] == 0 and info["loop_mask"][fine] == 1
+    pose, d = env.last_outcome.pose, env.episode.model.diameter
+    assert fine in env._memory.converged(pose, 0.01)
+    if not same_pose(before, pose, d):  # it moved: the unchanged-hypothesis rule alone would not mask it
+        assert fine not in env._memory.stale(pose)
+
+
 def test_env_masks_an_action_that_left_the_hypothesis_unchanged(tmp_path_factory):
     """icp_fine until it stops moving the hypothesis: then it is masked (action_mask 0, loop_mask 1)
     while the hypothesis stays; with loop_mask off it never is; a fixed plan still plays it."""
     for loop_mask in (True, False):
-        env = make_env(tmp_path_factory, loop_mask=loop_mask, max_ops=20)
+        env = make_env(tmp_path_factory, loop_mask=loop_mask, max_ops=20, converge_tol=0.0)
         fine = env.action_names.index("icp_fine")
         _, info = env.reset(options={"episode": 0, "lambda": 0.05, "episode_seed": 3})
         unchanged = False

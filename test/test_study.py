@@ -228,3 +228,28 @@ def test_study_runs_end_to_end_and_resumes_without_retraining(tmp_path_factory, 
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "seed-0" in err and "trained with other settings" in err and "cost_table" in err
+
+
+def test_a_study_seed_can_be_the_validation_best_of_restarts(tmp_path_factory, tmp_path, capsys):
+    """--restarts 2: each study seed trains two runs (seeds s and s + 1000) in its folder and its
+    policy is the one of lower validation cost (seeds.csv says which); the study kept that way is
+    refused under another restarts count."""
+    from perception_config.cli import main
+    from perception_config.learning.seed_selection import SEEDS_CSV
+
+    out = tmp_path / "study"
+    argv = ["study", "--dataset", str(tiny_dataset(tmp_path_factory)), "--pipeline",
+            str(pipeline_file(tmp_path_factory)), "--out", str(out), "--seeds", "1", "--restarts", "2",
+            "--episodes", "8", "--eval-episodes", "2", "--lambdas", "0.5", "--cost-table", "blocks",
+            "--best-static-episodes", "0", "--agent-param", "batch_episodes=8", "--quiet"]
+    assert main(argv) == 0
+    study = json.loads((out / "study.json").read_text())
+    assert study["restarts"] == 2 and study["learned"] == ["pg:seed-0"]
+    rows = (out / "seed-0" / SEEDS_CSV).read_text().splitlines()
+    assert [r.split(",")[0] for r in rows[1:]] == ["0", "1000"]
+    shipped = next(r.split(",")[1] for r in rows[1:] if r.endswith(",1"))
+    assert (out / "seed-0" / "policy.safetensors").read_bytes() == \
+        (out / "seed-0" / shipped / "policy.safetensors").read_bytes()
+    capsys.readouterr()
+    assert main([a if a != "2" else "1" for a in argv]) == 2  # restarts 1 over it (eval episodes 1)
+    assert "the best of 2 runs, this study has restarts 1" in capsys.readouterr().err

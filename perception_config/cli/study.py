@@ -34,8 +34,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
         warn(note)
     study = run_study(
         args.dataset, args.out, pipeline=args.pipeline, agent=args.agent, seeds=args.seeds, seed=args.seed,
-        episodes=args.episodes, eval_episodes=args.eval_episodes, lambdas=lambdas, workers=args.workers,
-        ray_address=args.ray_address,
+        restarts=args.restarts, episodes=args.episodes, eval_episodes=args.eval_episodes, lambdas=lambdas,
+        workers=args.workers, ray_address=args.ray_address,
         cost_table=args.cost_table, validation_fraction=args.validation_fraction,
         agent_kwargs=recipe_params(args.agent, args.agent_param), eval_seed=args.eval_seed, use_depth=args.use_depth,
         evaluate_kwargs={k: v for k, v in (("best_static_length", args.best_static_length),
@@ -49,7 +49,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
 def _command(args: argparse.Namespace) -> list[str]:
     """The study's command line with every option's value spelled out (defaults too), to repeat it."""
     cmd = ["perception-config", "study", "--dataset", str(args.dataset), "--out", str(args.out)]
-    for name in ("pipeline", "agent", "seeds", "seed", "episodes", "eval_episodes", "eval_seed", "lambdas",
+    for name in ("pipeline", "agent", "seeds", "seed", "restarts", "episodes", "eval_episodes", "eval_seed", "lambdas",
                  "cost_table", "validation_fraction", "best_static_length", "best_static_episodes", "workers",
                  "ray_address"):
         value = getattr(args, name)
@@ -65,6 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         DEFAULT_EPISODES,
         DEFAULT_EVAL_EPISODES,
         DEFAULT_LAMBDAS,
+        DEFAULT_RESTARTS,
         DEFAULT_SEEDS,
         DEFAULT_VALIDATION_FRACTION,
     )
@@ -94,6 +95,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agent", choices=("pg", "es", "simple"), default="pg")
     p.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, metavar="N", help=f"seeds trained ({DEFAULT_SEEDS})")
     p.add_argument("--seed", type=int, default=0, metavar="S0", help="the first seed (0)")
+    p.add_argument("--restarts", type=int, default=DEFAULT_RESTARTS, metavar="R",
+                   help="runs per seed (training seeds s, s+1000, ...), the one of lowest validation cost being "
+                        f"the seed's policy, as `train --seeds R` ships ({DEFAULT_RESTARTS})")
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, metavar="E",
                    help=f"training episodes per seed ({DEFAULT_EPISODES})")
     p.add_argument("--eval-episodes", type=int, default=DEFAULT_EVAL_EPISODES, metavar="M",

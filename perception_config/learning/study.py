@@ -6,7 +6,10 @@ episodes next to every baseline, and the comparison with confidence intervals.
    `cost_table` given: a `calibrate` output, or "blocks" for the blocks' default costs); every
    seed is trained and evaluated with that one table, so their costs compare;
 2. the seeds s0 .. s0+N-1, each an ordinary training run (learning/training.py) in
-   out/seed-<s>/ with the same split, pipeline, settings and validation-based selection. A seed
+   out/seed-<s>/ with the same split, pipeline, settings and validation-based selection; with
+   `restarts` R > 1 each seed is R runs (training seeds s, s + 1000, ..., learning/seed_selection.py
+   in out/seed-<s>/) of which the one of lowest validation cost is the seed's policy: what a
+   user who trains with `train --seeds R` ships, judged as one seed. A seed
    whose policy is complete (trained to `episodes`, not stopped) is kept as it is (not trained
    again, its files untouched); a seed stopped midway resumes from its checkpoint; a seed
    trained with other settings (another cost table, pipeline, agent) is an error naming it.
@@ -55,6 +58,8 @@ DEFAULT_EPISODES = 1000
 DEFAULT_EVAL_EPISODES = 60
 DEFAULT_LAMBDAS: tuple[float, ...] = (0.3, 0.5, 0.7)
 DEFAULT_VALIDATION_FRACTION = 0.2
+DEFAULT_RESTARTS = 1
+RESTART_STRIDE = 1000  # a study seed s's restarts train with seeds s, s + RESTART_STRIDE, ...
 
 
 def _say(progress: bool, text: str) -> None:
@@ -109,8 +114,24 @@ def policy_file(run: Path) -> Path | None:
     return next((run / n for n in ("policy.safetensors", "policy.json") if (run / n).is_file()), None)
 
 
+def restart_seeds(seed: int, restarts: int) -> list[int]:
+    """The training seeds of one study seed's restarts."""
+    return [int(seed) + RESTART_STRIDE * r for r in range(int(restarts))]
+
+
+def runs_shipped_from(run: Path) -> int:
+    """How many runs a study seed's folder chose its policy among (seed_selection's seeds.csv
+    rows; 1 without it)."""
+    from .seed_selection import SEEDS_CSV
+
+    try:
+        return max(1, len((run / SEEDS_CSV).read_text().strip().splitlines()) - 1)
+    except OSError:
+        return 1
+
+
 def seed_state(run: Path, agent: str, episodes: int, settings: EnvSettings, pipeline: str | Path | None,
-               validation_fraction: float, use_depth: bool) -> str:
+               validation_fraction: float, use_depth: bool, restarts: int = 1) -> str:
     """"done" (a complete policy trained as this study trains: kept), "resume" (a checkpoint
     to continue) or "new". A complete policy trained otherwise is a ValueError naming it."""
     from .training import CHECKPOINT
@@ -131,6 +152,8 @@ def seed_state(run: Path, agent: str, episodes: int, settings: EnvSettings, pipe
                                 f"{validation_fraction}")
             if bool(extra.get("use_depth", True)) != bool(use_depth):
                 problems.append(f"use_depth {extra.get('use_depth')}, this study has {use_depth}")
+            if runs_shipped_from(run) != restarts:
+                problems.append(f"the best of {runs_shipped_from(run)} runs, this study has restarts {restarts}")
             if problems:
                 raise ValueError(f"{policy} was trained with other settings than this study ({'; '.join(problems)}): "
                                  f"give the study another --out, or remove {run} to train that seed again")
@@ -149,14 +172,16 @@ def _read_seconds(out: Path) -> dict[str, Any]:
 def train_study_seeds(dataset: str | Path, out: Path, agent: str, seeds: Sequence[int], episodes: int,
                       settings: EnvSettings, *, pipeline: str | Path | None, validation_fraction: float,
                       agent_kwargs: dict[str, Any] | None, workers: int | None, use_depth: bool,
-                      progress: bool, ray_address: str | None = None) -> dict[int, Path]:
-    """Train (or keep, or resume) every seed's run in out/seed-<s>/; {seed: policy file}."""
+                      progress: bool, ray_address: str | None = None, restarts: int = 1) -> dict[int, Path]:
+    """Train (or keep, or resume) every seed's run in out/seed-<s>/ (`restarts` > 1: the runs of
+    restart_seeds(s) there, the validation-best shipped); {seed: policy file}."""
+    from .seed_selection import train_seeds
     from .training import train
 
     policies: dict[int, Path] = {}
     for k, s in enumerate(seeds):
         run = out / f"seed-{s}"
-        state = seed_state(run, agent, episodes, settings, pipeline, validation_fraction, use_depth)
+        state = seed_state(run, agent, episodes, settings, pipeline, validation_fraction, use_depth, restarts)
         if state == "done":
             policy = policy_file(run)
             assert policy is not None
@@ -166,11 +191,15 @@ def train_study_seeds(dataset: str | Path, out: Path, agent: str, seeds: Sequenc
         _say(progress, f"seed {s} ({k + 1} of {len(seeds)}): "
                        f"{'resuming ' if state == 'resume' else 'training '}{run}")
         started = time.monotonic()
+        common = dict(settings=settings, pipeline=pipeline, agent_kwargs=agent_kwargs, workers=workers,
+                      ray_address=ray_address, progress=progress, use_depth=use_depth,
+                      validation_fraction=validation_fraction)
         try:
-            policies[s] = train(dataset, agent, run, episodes, settings=settings, seed=int(s), pipeline=pipeline,
-                                agent_kwargs=agent_kwargs, workers=workers, ray_address=ray_address,
-                                resume=state == "resume",
-                                progress=progress, use_depth=use_depth, validation_fraction=validation_fraction)
+            if restarts > 1:  # the finished restarts resume at their end: kept as they are
+                policies[s] = train_seeds(dataset, agent, run, episodes, restart_seeds(s, restarts), resume=True,
+                                          **common)
+            else:
+                policies[s] = train(dataset, agent, run, episodes, seed=int(s), resume=state == "resume", **common)
         except StopRequested as exc:
             raise StopRequested(exc.signum, f"study stopped by {signal_name(exc.signum)} while training seed {s} "
                                             f"(its work is saved in {run}): run the same command again to continue "
@@ -220,6 +249,7 @@ def run_study(
     agent: str = "pg",
     seeds: int = DEFAULT_SEEDS,
     seed: int = 0,
+    restarts: int = DEFAULT_RESTARTS,
     episodes: int = DEFAULT_EPISODES,
     eval_episodes: int = DEFAULT_EVAL_EPISODES,
     lambdas: Sequence[float] = DEFAULT_LAMBDAS,
@@ -237,7 +267,8 @@ def run_study(
 ) -> dict[str, Any]:
     """Run the study of the module docstring into `out`; returns what out/study.json holds.
 
-    `seeds` runs with seeds `seed`..`seed`+`seeds`-1 of `episodes` training episodes each;
+    `seeds` runs with seeds `seed`..`seed`+`seeds`-1 of `episodes` training episodes each (each the
+    validation-best of `restarts` runs);
     `eval_episodes` test episodes per lambda of `lambdas` (evaluation seed `eval_seed`);
     `workers` / `ray_address`: as train's and evaluate's (each seed's rounds, the evaluation);
     `evaluate_kwargs`: more evaluate() arguments (e.g. best_static_episodes);
@@ -250,6 +281,10 @@ def run_study(
         raise ValueError(f"a study trains a learning agent ({', '.join(LEARNING_AGENTS)}), got {agent!r}")
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
+    if not 1 <= restarts < RESTART_STRIDE:
+        raise ValueError(f"restarts must be in [1, {RESTART_STRIDE - 1}], got {restarts}")
+    if restarts > 1 and not validation_fraction > 0:
+        raise ValueError("restarts are chosen among by their validation cost: validation_fraction must be > 0")
     if episodes < 1 or eval_episodes < 1:
         raise ValueError(f"episodes and eval_episodes must be >= 1, got {episodes} and {eval_episodes}")
     lams = [check_noise_lambda(float(x)) for x in lambdas]
@@ -265,7 +300,7 @@ def run_study(
     settings = EnvSettings().replace(cost_table=table)
     policies = train_study_seeds(dataset, out, agent, seed_list, episodes, settings, pipeline=pipeline,
                                  validation_fraction=validation_fraction, agent_kwargs=agent_kwargs, workers=workers,
-                                 use_depth=use_depth, progress=progress, ray_address=ray_address)
+                                 use_depth=use_depth, progress=progress, ray_address=ray_address, restarts=restarts)
     paths = [policies[s] for s in seed_list]
     names = [seed_agent_name(agent, s) for s in seed_list]
     eval_dir = out / EVALUATION
@@ -288,7 +323,8 @@ def run_study(
         "command": list(command) if command is not None else list(sys.argv),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "dataset": str(Path(dataset).resolve()), "out": str(out.resolve()), "agent": agent,
-        "pipeline": pipeline_reference(pipeline), "seeds": seed_list, "episodes": int(episodes),
+        "pipeline": pipeline_reference(pipeline), "seeds": seed_list, "restarts": int(restarts),
+        "episodes": int(episodes),
         "eval_episodes": int(eval_episodes), "eval_seed": int(eval_seed), "evaluate_arguments": evaluate_kwargs,
         "validation_fraction": validation_fraction,
         "agent_params": dict(agent_kwargs or {}), "cost_model": table_source,
@@ -303,5 +339,6 @@ def run_study(
 
 __all__ = ["run_study", "study_cost_table", "seed_state", "train_study_seeds", "evaluation_current",
            "evaluation_stamp", "policy_file", "seed_agent_name", "STUDY_JSON", "STUDY_PNG", "COST_MODEL", "EVALUATION",
-           "TRAINING_SECONDS", "STAMP", "DEFAULT_LAMBDAS", "DEFAULT_SEEDS", "DEFAULT_EPISODES", "DEFAULT_EVAL_EPISODES",
+           "TRAINING_SECONDS", "STAMP", "DEFAULT_RESTARTS", "restart_seeds",
+           "DEFAULT_LAMBDAS", "DEFAULT_SEEDS", "DEFAULT_EPISODES", "DEFAULT_EVAL_EPISODES",
            "LEARNING_AGENTS"]

@@ -50,8 +50,11 @@ info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 
 Loop rule (`settings.loop_mask`, on by default): an action other than pick already taken at the
 current hypothesis (the same pose within 2e-3 of the diameter and 2e-3 rad, rl/pose_memory.py:
-it left the hypothesis unchanged, or the episode came back to it) is masked, unless nothing
-else could run; `info["loop_mask"]` marks the actions masked by this rule alone.
+it left the hypothesis unchanged, or the episode came back to it) is masked, and so is one that
+has converged (`settings.converge_tol`, default 0.01: its latest call moved no point of the
+object by more than that share of the diameter, a tenth of the pick's tolerance, and the
+hypothesis is still where it left it), unless nothing else could run; `info["loop_mask"]`
+marks the actions masked by this rule alone.
 
 Final-pick rule (`settings.final_pick`, on by default): the last of the `max_ops` operations is
 a pick: every other action is masked there (they could only end the episode truncated, at the
@@ -238,7 +241,8 @@ class PerceptionConfigEnv(gym.Env):
             drop([i for i, a in enumerate(self.pipeline.actions) if a.block.kind != Kind.PICK])
         before_loop = mask.copy()
         if self.settings.loop_mask and self._memory is not None:
-            drop(sorted(i for i in self._memory.stale(pose) if self.pipeline.actions[i].block.kind != Kind.PICK))
+            looped = self._memory.stale(pose) | self._memory.converged(pose, self.settings.converge_tol)
+            drop(sorted(i for i in looped if self.pipeline.actions[i].block.kind != Kind.PICK))
         return mask, (before_loop - mask).astype(np.int8)
 
     # -- hindsight search -----------------------------------------------------------------

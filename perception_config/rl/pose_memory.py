@@ -11,11 +11,19 @@ hypothesis already reached. The environment masks stale actions while the hypoth
 (rl/env.py). A stochastic action (regenerate, a randomised generator) moves elsewhere each call,
 so it is only stale when the episode really came back to where it was called.
 
+An ICP re-deriving its correspondences from each new hypothesis does not stop at a fixed point:
+called again it keeps nudging the pose by a few thousandths of the diameter, more than
+`POSE_TOL`, far less than a pick can tell apart (trained policies spent 3-6 such calls waiting for
+the nudges to fade). `converged(pose, tol)` names the actions whose latest call moved no point of
+the object by more than `tol` x diameter (`surface_move`) and left the hypothesis within that of
+where it is: the environment masks them too (`EnvSettings.converge_tol`).
+
 `loop_steps` counts the steps of a played episode that took a stale action (the evaluation's loop
 count).
 """
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -41,6 +49,15 @@ def same_pose(a: Any, b: Any, diameter: float, tol: float = POSE_TOL) -> bool:
     return within(a, b, tol * diameter, tol)
 
 
+def surface_move(a: Any, b: Any, diameter: float) -> float:
+    """How far a point of the object moves between poses `a` and `b`, at most, as a share of its
+    diameter: |t_a - t_b| / d + angle(R_a, R_b) / 2 (a bound for points within d / 2 of the
+    model's origin, as on BOP's centred models); inf when either is None."""
+    if a is None or b is None:
+        return math.inf
+    return float(np.linalg.norm(np.asarray(a.t) - np.asarray(b.t)) / diameter + rotation_angle(a.R, b.R) / 2.0)
+
+
 class PoseMemory:
     """The hypotheses of one episode and the actions taken at each (module docstring).
 
@@ -51,6 +68,7 @@ class PoseMemory:
         self.diameter = float(diameter)
         self.poses: list[Any] = []  # distinct hypotheses reached, in order (None = no hypothesis)
         self.taken: set[tuple[int, int]] = set()  # (hypothesis, action) pairs played
+        self.latest: dict[int, tuple[Any, Any]] = {}  # action -> (before, after) of its latest call
 
     def index(self, pose: Any) -> int:
         """The index of `pose` among the hypotheses reached; -1 when new."""
@@ -73,6 +91,7 @@ class PoseMemory:
         src, _ = self.visit(before)
         _, seen = self.visit(after)
         self.taken.add((src, int(action)))
+        self.latest[int(action)] = (before, after)
         return seen
 
     def stale(self, pose: Any) -> set[int]:
@@ -80,9 +99,19 @@ class PoseMemory:
         src = self.index(pose)
         return {a for s, a in self.taken if s == src} if src >= 0 else set()
 
+    def converged(self, pose: Any, tol: float) -> set[int]:
+        """The actions whose latest call moved no point of the object by more than `tol` x
+        diameter and left the hypothesis within that of `pose` (still where they left it): called
+        again here they would move it as little (module docstring). None for tol <= 0."""
+        if tol <= 0 or pose is None:
+            return set()
+        return {a for a, (before, after) in self.latest.items()
+                if surface_move(before, after, self.diameter) <= tol
+                and surface_move(after, pose, self.diameter) <= tol}
+
     def copy(self) -> "PoseMemory":
         out = PoseMemory(self.diameter)
-        out.poses, out.taken = list(self.poses), set(self.taken)
+        out.poses, out.taken, out.latest = list(self.poses), set(self.taken), dict(self.latest)
         return out
 
 

@@ -47,6 +47,7 @@ class EnvSettings:
     lambda_range: tuple[float, float] = (0.1, 1.0)  # lambda ~ U(range) when a reset names none
     loop_mask: bool = True  # mask actions already taken at the current hypothesis (rl/pose_memory.py)
     final_pick: bool = True  # the last of max_ops operations is a pick (rl/env.py: the final-pick rule)
+    converge_tol: float = 0.01  # loop rule: mask an action whose latest call moved no point > this x diameter
 
     def __post_init__(self) -> None:
         m = self.max_ops
@@ -68,6 +69,10 @@ class EnvSettings:
         if not (math.isfinite(visib) and 0.0 <= visib <= 1.0):
             raise ValueError(f"min_visib_fract must be in [0, 1], got {self.min_visib_fract!r}")
         object.__setattr__(self, "min_visib_fract", visib)
+        tol = float(self.converge_tol)
+        if not (math.isfinite(tol) and 0.0 <= tol <= 1.0):
+            raise ValueError(f"converge_tol must be in [0, 1], got {self.converge_tol!r}")
+        object.__setattr__(self, "converge_tol", tol)
         try:
             lo, hi = self.lambda_range
         except (TypeError, ValueError):
@@ -95,7 +100,7 @@ class EnvSettings:
             "truncation_cost": self.truncation_cost, "time_mode": self.time_mode,
             "cost_table": dict(self.cost_table), "min_visib_fract": self.min_visib_fract,
             "lambda_range": list(self.lambda_range), "loop_mask": self.loop_mask,
-            "final_pick": self.final_pick,
+            "final_pick": self.final_pick, "converge_tol": self.converge_tol,
         }
 
     @classmethod
