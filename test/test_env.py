@@ -263,3 +263,30 @@ def test_empty_dataset_is_a_clear_error(tmp_path_factory):
         EpisodeSource(BopDataset(ds), None, min_visib_fract=1.01)
     with pytest.raises(ValueError, match="min_visib_fract must be in \\[0, 1\\]"):
         PerceptionConfigEnv(ds, pipe, min_visib_fract=1.01)
+
+
+def test_the_final_pick_takes_the_best_hypothesis_the_episode_reached(tmp_path_factory):
+    """With pick_success among the scores, the pick at the last operation is taken at the
+    hypothesis of highest pick score reached when the current one scores lower (info
+    "picked_best"); when the current one is the best it is picked as it is."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "perception_config" / "config" / "pick_success_pipeline.yaml")
+    env = make_env(tmp_path_factory, text.read_text(), "pick_success.yaml", max_ops=4)
+    regenerate, pick = env.action_names.index("regenerate"), env.action_names.index("pick")
+    seen = {True: 0, False: 0}
+    for ep_seed in range(12):
+        _, info = env.reset(options={"episode": 0, "lambda": 0.6, "episode_seed": ep_seed})
+        reached = [(info["scores"]["pick_success"], info["pose"])]
+        for _ in range(3):
+            _, _, _, _, info = env.step(regenerate)
+            reached.append((info["scores"]["pick_success"], info["pose"]))
+        assert info["action_mask"].tolist() == [int(i == pick) for i in range(len(env.action_names))]
+        _, _, _, _, info = env.step(pick)
+        best_score, best_pose = max(reached, key=lambda r: r[0])
+        assert info["picked_best"] == (best_score > reached[-1][0])
+        expected = best_pose if info["picked_best"] else reached[-1][1]
+        np.testing.assert_allclose(info["pose"].t, expected.t)
+        np.testing.assert_allclose(info["pose"].R, expected.R)
+        seen[info["picked_best"]] += 1
+    assert seen[True] and seen[False], seen

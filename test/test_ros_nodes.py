@@ -920,3 +920,24 @@ def test_a_node_that_hangs_or_dies_fails_the_estimate_and_the_configurator_keeps
     assert not res.picked and "refinement_node has received none since it started" in res.message, res.message
     assert restarted.alive()
 
+
+
+def test_ros_operators_hand_back_a_hypothesis_as_the_final_pick_takes_it(ros_node, data):
+    """The final-pick rule (rl/env.py) keeps `ops.hypothesis()` of the best hypothesis reached and
+    makes it current again with `set_hypothesis`: over ROS the pose as answered (pose_msg) and the
+    scores come back with it, the pose first, as in-process."""
+    from perception_config.blocks.pipeline import load_pipeline
+    from perception_config.ros.ros_operators import RosOperators
+
+    ops = RosOperators(load_pipeline(data["pipeline"]), node_name="hypothesis_check")
+    try:
+        pose, msg = Pose(np.eye(3), np.array([0.01, 0.02, 0.5])), object()
+        ops.pose, ops.pose_msg, ops.scores = pose, msg, {"pick_success": 0.9}
+        kept = ops.hypothesis()
+        assert kept[0] is pose
+        ops.scores["pick_success"] = 0.1  # the episode moves on
+        ops.pose, ops.pose_msg = None, None
+        ops.set_hypothesis(kept)
+        assert ops.pose is pose and ops.pose_msg is msg and ops.scores == {"pick_success": 0.9}
+    finally:
+        ops.node.destroy_node()

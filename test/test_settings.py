@@ -15,11 +15,11 @@ def test_settings_round_trip_and_defaults():
     assert EnvSettings().to_json() == {"max_ops": 10, "failed_pick_cost": 2.0, "truncation_cost": 10.0,
                                        "time_mode": "cost_table", "cost_table": {}, "min_visib_fract": 0.3,
                                        "lambda_range": [0.1, 1.0], "loop_mask": True, "final_pick": True,
-                                       "converge_tol": 0.01}
+                                       "converge_tol": 0.0}
     # a policy written before loop_mask, final_pick and converge_tol existed loads with the rules on
     old = {k: v for k, v in s.to_json().items() if k not in ("loop_mask", "final_pick", "converge_tol")}
     assert EnvSettings.from_json(old).loop_mask is True and EnvSettings.from_json(old).final_pick is True
-    assert EnvSettings.from_json(old).converge_tol == 0.01
+    assert EnvSettings.from_json(old).converge_tol == 0.0
     assert s.replace(max_ops=None) == s  # None = not given
     assert s.differences(s.replace(failed_pick_cost=3.0, lambda_range=(0.0, 1.0))) == ["failed_pick_cost: 2.0 -> 3.0"]
 

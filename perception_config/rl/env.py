@@ -50,16 +50,20 @@ info["truncation_cost"], not in info["seconds"] / info["episode_time"].
 
 Loop rule (`settings.loop_mask`, on by default): an action other than pick already taken at the
 current hypothesis (the same pose within 2e-3 of the diameter and 2e-3 rad, rl/pose_memory.py:
-it left the hypothesis unchanged, or the episode came back to it) is masked, and so is one that
-has converged (`settings.converge_tol`, default 0.01: its latest call moved no point of the
-object by more than that share of the diameter, a tenth of the pick's tolerance, and the
-hypothesis is still where it left it), unless nothing else could run; `info["loop_mask"]`
-marks the actions masked by this rule alone.
+it left the hypothesis unchanged, or the episode came back to it) is masked, and with
+`settings.converge_tol` > 0 (default 0: off) so is one that has converged (its latest call moved
+no point of the object by more than that share of the diameter and the hypothesis is still
+where it left it), unless nothing else could run; `info["loop_mask"]` marks the actions masked
+by this rule alone.
 
 Final-pick rule (`settings.final_pick`, on by default): the last of the `max_ops` operations is
 a pick: every other action is masked there (they could only end the episode truncated, at the
 truncation charge; a pick may succeed), unless the pick cannot run itself (it just failed on this
 hypothesis). It binds every agent, fixed pipelines included; `info["loop_mask"]` does not mark it.
+With a pipeline that scores `pick_success` (the calibrated probability that a pick succeeds),
+that last pick is taken at the best hypothesis the episode reached by that score, when it scores
+higher than the current one (an anytime answer: refiners can drift from a right pose; a
+hypothesis a pick failed on is not kept); `info["picked_best"]` is True when it was.
 
 Time: `time_mode="cost_table"` by default: fixed seconds per action and per scoring pass (the
 settings' `cost_table`, a `perception-config calibrate` output, keyed `action:<name>@<obj_id>`,
@@ -96,6 +100,8 @@ from .episodes import EpisodeSource
 from .operators import Episode, InProcessOperators, Operators, StepOutcome
 from .pose_memory import PoseMemory, within
 from .settings import GENERATE, EnvSettings
+
+PICK_SCORE = "pick_success"  # the score the final pick's hypothesis is chosen by (blocks/pick_success.py)
 
 
 def normalise_score(value: float, score_range: tuple[float, float] | None) -> float:
@@ -187,6 +193,7 @@ class PerceptionConfigEnv(gym.Env):
         self._searched: set[int] = set()  # deterministic generator actions already called this episode
         self._picked_without_pose = False  # a pick was refused for want of a hypothesis
         self._memory: PoseMemory | None = None  # hypotheses reached, actions taken at each (loop rule)
+        self._best: tuple[float, Any] | None = None  # (pick score, ops.hypothesis()) of the best reached
 
     def _frame_changed(self) -> None:
         """The action mask and the cost-table scoring pass of the episode's frame (RGB-only or not:
@@ -245,10 +252,31 @@ class PerceptionConfigEnv(gym.Env):
             drop(sorted(i for i in looped if self.pipeline.actions[i].block.kind != Kind.PICK))
         return mask, (before_loop - mask).astype(np.int8)
 
+    # -- the final pick's hypothesis ------------------------------------------------------
+    def _note_best(self, outcome: StepOutcome) -> None:
+        """Remember the hypothesis of the highest pick score reached (the final-pick rule)."""
+        score = outcome.scores.get(PICK_SCORE)
+        if outcome.pose is None or score is None or not math.isfinite(score):
+            return
+        if self._best is None or score > self._best[0]:
+            self._best = (float(score), self.ops.hypothesis())
+
+    def _final_pick_at_best(self, block: Any) -> bool:
+        """Before a pick at the last operation: make the best hypothesis reached the current one
+        when it scores higher (module docstring: the final-pick rule); whether it did."""
+        if not (self.settings.final_pick and block.kind == Kind.PICK and self.steps == self.max_ops - 1
+                and self._best is not None):
+            return False
+        current = self.last_outcome.scores.get(PICK_SCORE) if self.last_outcome is not None else None
+        if current is not None and math.isfinite(current) and current >= self._best[0]:
+            return False
+        self.ops.set_hypothesis(self._best[1])
+        return True
+
     # -- hindsight search -----------------------------------------------------------------
     _EPISODE_STATE = ("steps", "last_action", "last_outcome", "pose_change", "pick_failed", "last_failed",
                       "episode", "episode_time", "_mask", "_failed_pick_pose", "_searched", "_picked_without_pose",
-                      "_memory", "_scoring_cost")
+                      "_memory", "_scoring_cost", "_best")
 
     def snapshot(self) -> Any:
         """An opaque copy of the episode's whole state (the env's and its operators'): `restore`
@@ -343,6 +371,7 @@ class PerceptionConfigEnv(gym.Env):
         with open3d_single_thread(self._reproducible):
             outcome = self.ops.start(self.episode)
         self.last_outcome = outcome
+        self._note_best(outcome)
         self._memory = PoseMemory(self.episode.model.diameter)
         self._memory.visit(outcome.pose)
         seconds = self.action_seconds(outcome, self.pipeline.generator)
@@ -361,6 +390,7 @@ class PerceptionConfigEnv(gym.Env):
         name = self.action_names[a]
         block = self.pipeline.actions[a].block
         before = self.last_outcome.pose if self.last_outcome else None
+        picked_best = self._final_pick_at_best(block)
         with open3d_single_thread(self._reproducible):
             outcome = self.ops.apply(name)
         seconds = self.action_seconds(outcome, block)
@@ -376,6 +406,9 @@ class PerceptionConfigEnv(gym.Env):
             else:
                 self.pick_failed = True
                 self._failed_pick_pose = outcome.pose if outcome.pose is not None else before
+                if self._best is not None and self._failed_pick_pose is not None \
+                        and _same_pose(self._best[1][0], self._failed_pick_pose):
+                    self._best = None  # a pose a pick failed on is no answer
                 reward -= self.settings.failed_pick_cost
                 seconds += self.settings.failed_pick_cost
         self.steps += 1
@@ -391,6 +424,8 @@ class PerceptionConfigEnv(gym.Env):
         else:
             self.pose_change = (0.0, 0.0)
         self.last_outcome = outcome
+        if block.kind != Kind.PICK:
+            self._note_best(outcome)
         if self._memory is not None:
             self._memory.record(before, a, after)
         truncated = not terminated and self.steps >= self.max_ops
@@ -398,6 +433,7 @@ class PerceptionConfigEnv(gym.Env):
             reward -= self.settings.truncation_cost
         info = self._info(outcome, seconds)
         info["truncation_cost"] = self.settings.truncation_cost if truncated else 0.0
+        info["picked_best"] = picked_best
         return self._obs(), float(reward), terminated, truncated, info
 
 

@@ -177,6 +177,13 @@ class Operators(Protocol):
     def restore(self, state: Any) -> None:
         """Return to a state from `snapshot`."""
 
+    def hypothesis(self) -> Any:
+        """A copy of the current hypothesis and its scores (a tuple, the pose first; not the rng or
+        candidates)."""
+
+    def set_hypothesis(self, hypothesis: Any) -> None:
+        """Make a hypothesis from `hypothesis()` the current one again, with its scores."""
+
 
 class InProcessOperators:
     """Runs the pipeline's blocks in this process.
@@ -296,6 +303,13 @@ class InProcessOperators:
     def snapshot(self) -> Any:
         return (self.pose, dict(self.scores), self.rng.bit_generator.state, self.refiner_rng.bit_generator.state,
                 list(self.candidates))
+
+    def hypothesis(self) -> Any:
+        return self.pose, dict(self.scores)
+
+    def set_hypothesis(self, hypothesis: Any) -> None:
+        pose, scores = hypothesis
+        self.pose, self.scores = pose, dict(scores)
 
     def restore(self, state: Any) -> None:
         self.pose, scores, rng_state, refiner_state, candidates = state

@@ -47,7 +47,7 @@ class EnvSettings:
     lambda_range: tuple[float, float] = (0.1, 1.0)  # lambda ~ U(range) when a reset names none
     loop_mask: bool = True  # mask actions already taken at the current hypothesis (rl/pose_memory.py)
     final_pick: bool = True  # the last of max_ops operations is a pick (rl/env.py: the final-pick rule)
-    converge_tol: float = 0.01  # loop rule: mask an action whose latest call moved no point > this x diameter
+    converge_tol: float = 0.0  # loop rule: mask an action whose latest call moved no point > this x diameter
 
     def __post_init__(self) -> None:
         m = self.max_ops

@@ -289,6 +289,13 @@ class RosOperators:
         return (self.pose, self.pose_msg, dict(self.scores), self.rng.bit_generator.state,
                 self.refiner_rng.bit_generator.state, self.stamp, self.frame_id, list(self._candidates))
 
+    def hypothesis(self) -> Any:
+        return self.pose, self.pose_msg, dict(self.scores)
+
+    def set_hypothesis(self, hypothesis: Any) -> None:
+        pose, pose_msg, scores = hypothesis
+        self.pose, self.pose_msg, self.scores = pose, pose_msg, dict(scores)
+
     def restore(self, state: Any) -> None:
         (self.pose, self.pose_msg, scores, rng_state, refiner_state, self.stamp, self.frame_id,
          candidates) = state
