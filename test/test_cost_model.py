@@ -170,13 +170,14 @@ def test_train_calibrates_by_default_and_keeps_the_model_in_the_policy(tmp_path_
     ds, pipe = tiny_dataset(tmp_path_factory), pipeline_file(tmp_path_factory)
     out = tmp_path / "run"
     args = ["train", "--dataset", str(ds), "--pipeline", str(pipe), "--agent", "pg", "--out", str(out), "--quiet",
-            "--no-episode-store", "--calibration-episodes", "3"]
+            "--no-episode-store", "--calibration-episodes", "3", "--final-pick-best", "--converge-tol", "0.02"]
     assert main([*args, "--episodes", "8"]) == 0
     model = json.loads((out / "cost_model.json").read_text())
     assert model["episodes"] == 3  # --calibration-episodes
     meta, _ = read_file(out / "policy.safetensors")
     settings = EnvSettings.from_json(meta["extra"]["env_settings"])
     assert settings.time_mode == "cost_table" and settings.cost_table == model["cost_table"]
+    assert settings.final_pick_best is True and settings.converge_tol == 0.02  # the rules' options, kept
     extra = meta["extra"]  # measured on the train images (validation's included), never on the test images
     assert model["image_keys"] == sorted(extra["train_image_keys"] + extra.get("validation_image_keys", []))
     assert not {tuple(k) for k in model["image_keys"]} & {tuple(k) for k in extra["test_image_keys"]}

@@ -266,13 +266,13 @@ def test_empty_dataset_is_a_clear_error(tmp_path_factory):
 
 
 def test_the_final_pick_takes_the_best_hypothesis_the_episode_reached(tmp_path_factory):
-    """With pick_success among the scores, the pick at the last operation is taken at the
+    """With final_pick_best and pick_success among the scores, the pick at the last operation is taken at the
     hypothesis of highest pick score reached when the current one scores lower (info
     "picked_best"); when the current one is the best it is picked as it is."""
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "perception_config" / "config" / "pick_success_pipeline.yaml")
-    env = make_env(tmp_path_factory, text.read_text(), "pick_success.yaml", max_ops=4)
+    env = make_env(tmp_path_factory, text.read_text(), "pick_success.yaml", max_ops=4, final_pick_best=True)
     regenerate, pick = env.action_names.index("regenerate"), env.action_names.index("pick")
     seen = {True: 0, False: 0}
     for ep_seed in range(12):

@@ -15,7 +15,7 @@ def test_settings_round_trip_and_defaults():
     assert EnvSettings().to_json() == {"max_ops": 10, "failed_pick_cost": 2.0, "truncation_cost": 10.0,
                                        "time_mode": "cost_table", "cost_table": {}, "min_visib_fract": 0.3,
                                        "lambda_range": [0.1, 1.0], "loop_mask": True, "final_pick": True,
-                                       "converge_tol": 0.0}
+                                       "final_pick_best": False, "converge_tol": 0.0}
     # a policy written before loop_mask, final_pick and converge_tol existed loads with the rules on
     old = {k: v for k, v in s.to_json().items() if k not in ("loop_mask", "final_pick", "converge_tol")}
     assert EnvSettings.from_json(old).loop_mask is True and EnvSettings.from_json(old).final_pick is True
@@ -30,7 +30,8 @@ def test_settings_round_trip_and_defaults():
     ({"time_mode": "fast"}, "time_mode"), ({"cost_table": {"d2co": float("nan")}}, "cost_table"),
     ({"min_visib_fract": 1.5}, "min_visib_fract"), ({"lambda_range": (0.5, 0.1)}, "low <= high"),
     ({"lambda_range": (0.0, 9.0)}, "lambda_range high"), ({"loop_mask": "yes"}, "loop_mask"),
-    ({"final_pick": 1}, "final_pick"), ({"converge_tol": -0.1}, "converge_tol"),
+    ({"final_pick": 1}, "final_pick"), ({"final_pick_best": "on"}, "final_pick_best"),
+    ({"converge_tol": -0.1}, "converge_tol"),
     ({"converge_tol": float("nan")}, "converge_tol"),
     ({"cost_table": {"action:icp_fine@3": -0.1}}, "action:icp_fine@3"),
 ])

@@ -37,7 +37,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.validation_fraction = RECIPE_VALIDATION_FRACTION if args.agent in LEARNING_AGENTS else 0.0
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None
     settings = EnvSettings().replace(time_mode=args.time_mode, max_ops=args.max_ops, lambda_range=lambda_range,
-                                     loop_mask=args.loop_mask, final_pick=args.final_pick)
+                                     loop_mask=args.loop_mask, final_pick=args.final_pick,
+                                     final_pick_best=args.final_pick_best, converge_tol=args.converge_tol)
     if args.seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
@@ -169,6 +170,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--no-final-pick", dest="final_pick", action="store_false",
                     help="do not make the last of the max-ops operations a pick (the final-pick rule, "
                          "docs/concepts/environment.md)")
+    tr.add_argument("--final-pick-best", action="store_true",
+                    help="take that last pick at the best hypothesis the episode reached by the pick_success "
+                         "score (pipelines that score it; docs/concepts/environment.md)")
+    tr.add_argument("--converge-tol", type=float, default=None, metavar="F",
+                    help="the loop rule also masks an action whose latest call moved no point of the object by "
+                         f"more than F x diameter (default {env.converge_tol:g}: off)")
     tr.add_argument("--test-fraction", type=float, default=DEFAULT_TEST_FRACTION,
                     help="share of image ids held out for evaluation")
     tr.add_argument("--split-seed", type=int, default=DEFAULT_SPLIT_SEED)

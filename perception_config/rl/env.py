@@ -60,10 +60,11 @@ Final-pick rule (`settings.final_pick`, on by default): the last of the `max_ops
 a pick: every other action is masked there (they could only end the episode truncated, at the
 truncation charge; a pick may succeed), unless the pick cannot run itself (it just failed on this
 hypothesis). It binds every agent, fixed pipelines included; `info["loop_mask"]` does not mark it.
-With a pipeline that scores `pick_success` (the calibrated probability that a pick succeeds),
-that last pick is taken at the best hypothesis the episode reached by that score, when it scores
-higher than the current one (an anytime answer: refiners can drift from a right pose; a
-hypothesis a pick failed on is not kept); `info["picked_best"]` is True when it was.
+With `settings.final_pick_best` (default off) and a pipeline that scores `pick_success` (the
+calibrated probability that a pick succeeds), that last pick is taken at the best hypothesis the
+episode reached by that score, when it scores higher than the current one (an anytime answer:
+refiners can drift from a right pose; a hypothesis a pick failed on is not kept);
+`info["picked_best"]` is True when it was.
 
 Time: `time_mode="cost_table"` by default: fixed seconds per action and per scoring pass (the
 settings' `cost_table`, a `perception-config calibrate` output, keyed `action:<name>@<obj_id>`,
@@ -78,8 +79,9 @@ Gymnasium's `check_env` asks: it passes on `gymnasium.make("PerceptionConfig-v0"
 twice); evaluation reports the measured wall time of the same episodes beside the charged one.
 
 Settings: one `EnvSettings` (rl/settings.py: max_ops, failed_pick_cost, truncation_cost,
-time_mode, cost_table, min_visib_fract, lambda_range, loop_mask, final_pick); keyword arguments of the same names
-override single fields (`gymnasium.make("PerceptionConfig-v0", dataset=..., max_ops=5)`).
+time_mode, cost_table, min_visib_fract, lambda_range, loop_mask, final_pick, final_pick_best,
+converge_tol); keyword arguments of the same names override single fields
+(`gymnasium.make("PerceptionConfig-v0", dataset=..., max_ops=5)`).
 """
 from __future__ import annotations
 
@@ -264,8 +266,8 @@ class PerceptionConfigEnv(gym.Env):
     def _final_pick_at_best(self, block: Any) -> bool:
         """Before a pick at the last operation: make the best hypothesis reached the current one
         when it scores higher (module docstring: the final-pick rule); whether it did."""
-        if not (self.settings.final_pick and block.kind == Kind.PICK and self.steps == self.max_ops - 1
-                and self._best is not None):
+        if not (self.settings.final_pick and self.settings.final_pick_best and block.kind == Kind.PICK
+                and self.steps == self.max_ops - 1 and self._best is not None):
             return False
         current = self.last_outcome.scores.get(PICK_SCORE) if self.last_outcome is not None else None
         if current is not None and math.isfinite(current) and current >= self._best[0]:

@@ -47,6 +47,7 @@ class EnvSettings:
     lambda_range: tuple[float, float] = (0.1, 1.0)  # lambda ~ U(range) when a reset names none
     loop_mask: bool = True  # mask actions already taken at the current hypothesis (rl/pose_memory.py)
     final_pick: bool = True  # the last of max_ops operations is a pick (rl/env.py: the final-pick rule)
+    final_pick_best: bool = False  # that last pick at the best hypothesis reached by pick_success (rl/env.py)
     converge_tol: float = 0.0  # loop rule: mask an action whose latest call moved no point > this x diameter
 
     def __post_init__(self) -> None:
@@ -81,7 +82,7 @@ class EnvSettings:
         if lo > hi:
             raise ValueError(f"lambda_range must satisfy low <= high, got {self.lambda_range!r}")
         object.__setattr__(self, "lambda_range", (lo, hi))
-        for name in ("loop_mask", "final_pick"):
+        for name in ("loop_mask", "final_pick", "final_pick_best"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
 
@@ -100,7 +101,8 @@ class EnvSettings:
             "truncation_cost": self.truncation_cost, "time_mode": self.time_mode,
             "cost_table": dict(self.cost_table), "min_visib_fract": self.min_visib_fract,
             "lambda_range": list(self.lambda_range), "loop_mask": self.loop_mask,
-            "final_pick": self.final_pick, "converge_tol": self.converge_tol,
+            "final_pick": self.final_pick, "final_pick_best": self.final_pick_best,
+            "converge_tol": self.converge_tol,
         }
 
     @classmethod
