@@ -16,7 +16,7 @@ called again it keeps nudging the pose by a few thousandths of the diameter, mor
 `POSE_TOL`, far less than a pick can tell apart (trained policies spent 3-6 such calls waiting for
 the nudges to fade). `converged(pose, tol)` names the actions whose latest call moved no point of
 the object by more than `tol` x diameter (`surface_move`) and left the hypothesis within that of
-where it is: the environment masks them too (`EnvSettings.converge_tol`).
+where it is: with `EnvSettings.converge_tol` > 0 (off by default) the environment masks them too.
 
 `loop_steps` counts the steps of a played episode that took a stale action (the evaluation's loop
 count).
