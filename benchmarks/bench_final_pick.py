@@ -1,13 +1,15 @@
-"""The final-pick rule on trained policies: a study's seeds and best_static with the rule off and on.
+"""An environment rule on trained policies: a study's seeds and best_static with the rule off and on.
 
-    python benchmarks/bench_final_pick.py [--study runs/bench-study/default-pick_success/study]
-        [--dataset data/default] [--eval-episodes 60] [--lambdas 0.3,0.5,0.7]
+    python benchmarks/bench_final_pick.py [--rule final_pick|final_pick_best]
+        [--study runs/bench-study/default-pick_success/study] [--dataset data/default]
+        [--eval-episodes 60] [--lambdas 0.3,0.5,0.7]
 
 Evaluates the study's pg policies (seed-*/policy.safetensors) and the best static pipeline (searched
-again under each setting) on the same test episodes, once with `final_pick=False` and once with
-`final_pick=True` (rl/env.py: the last of max_ops operations is a pick), and counts per lambda the
-seeds beating best_static (lower mean episode cost, success not lower). The policies keep their
-training; only the environment's rule changes. Writes benchmarks/results/final_pick.json.
+again under each setting) on the same test episodes, once with the rule off and once on (rl/env.py:
+`final_pick`, the last of max_ops operations is a pick; `final_pick_best`, that pick taken at the
+best hypothesis reached by the pick-success score), and counts per lambda the seeds beating
+best_static (lower mean episode cost, success not lower). The policies keep their training; only
+the environment's rule changes. Writes benchmarks/results/<rule>.json.
 """
 from __future__ import annotations
 
@@ -45,31 +47,37 @@ def figures(results: list[dict]) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rule", choices=("final_pick", "final_pick_best"), default="final_pick")
     ap.add_argument("--study", type=Path, default=ROOT / "runs" / "bench-study" / "default-pick_success" / "study")
     ap.add_argument("--dataset", type=Path, default=ROOT / "data" / "default")
     ap.add_argument("--eval-episodes", type=int, default=60)
     ap.add_argument("--lambdas", default="0.3,0.5,0.7")
-    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-final-pick")
+    ap.add_argument("--out", type=Path, default=None, help="evaluation folders (runs/bench-<rule>)")
     args = ap.parse_args()
+    out = args.out or ROOT / "runs" / f"bench-{args.rule.replace('_', '-')}"
+    # final_pick_best acts only through the final pick: that rule stays on in both of its evaluations
+    fixed = {"final_pick": True} if args.rule == "final_pick_best" else {}
     policies = sorted(str(p) for p in args.study.glob("seed-*/policy.safetensors"))
     if not policies:
         raise SystemExit(f"no seed-*/policy.safetensors in {args.study}: run benchmarks/bench_study.py first")
     lams = [float(x) for x in args.lambdas.split(",")]
-    record: dict = {"study": str(args.study), "dataset": str(args.dataset), "eval_episodes": args.eval_episodes,
-                    "date": time.strftime("%Y-%m-%d"), "load_1min": os.getloadavg()[0]}
+    record: dict = {"rule": args.rule, "study": str(args.study), "dataset": str(args.dataset),
+                    "eval_episodes": args.eval_episodes, "date": time.strftime("%Y-%m-%d"),
+                    "load_1min": os.getloadavg()[0]}
     for rule in (False, True):
         name = "on" if rule else "off"
-        path = args.out / name / "results.json"
+        path = out / name / "results.json"
         if not path.exists():  # an evaluation already made is reused (the benchmark resumes)
-            evaluate(args.dataset, [*policies, "best_static"], lambdas=lams, out=args.out / name,
+            evaluate(args.dataset, [*policies, "best_static"], lambdas=lams, out=out / name,
                      episodes_per_lambda=args.eval_episodes, seed=0, include_baselines=False, plots=False,
-                     store_episodes=False, final_pick=rule)
-        record[f"final_pick_{name}"] = figures(json.loads(path.read_text()))
+                     store_episodes=False, **{**fixed, args.rule: rule})
+        record[f"{args.rule}_{name}"] = figures(json.loads(path.read_text()))
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "final_pick.json").write_text(json.dumps(record, indent=1) + "\n")
+    (RESULTS / f"{args.rule}.json").write_text(json.dumps(record, indent=1) + "\n")
+    off, on = record[f"{args.rule}_off"], record[f"{args.rule}_on"]
     for lam in map(str, lams):
-        print(f"lambda {lam}: pg beats best_static in {record['final_pick_off'][lam]['k_beats']} (rule off) / "
-              f"{record['final_pick_on'][lam]['k_beats']} (rule on) of {record['final_pick_on'][lam]['n_seeds']}")
+        print(f"lambda {lam}: pg beats best_static in {off[lam]['k_beats']} (rule off) / {on[lam]['k_beats']} "
+              f"(rule on) of {on[lam]['n_seeds']}")
     return 0
 
 
