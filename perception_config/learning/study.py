@@ -152,8 +152,9 @@ def seed_state(run: Path, agent: str, episodes: int, settings: EnvSettings, pipe
                                 f"{validation_fraction}")
             if bool(extra.get("use_depth", True)) != bool(use_depth):
                 problems.append(f"use_depth {extra.get('use_depth')}, this study has {use_depth}")
-            if runs_shipped_from(run) != restarts:
-                problems.append(f"the best of {runs_shipped_from(run)} runs, this study has restarts {restarts}")
+            shipped_from = runs_shipped_from(run)
+            if shipped_from != restarts:
+                problems.append(f"the best of {shipped_from} runs, this study has restarts {restarts}")
             if problems:
                 raise ValueError(f"{policy} was trained with other settings than this study ({'; '.join(problems)}): "
                                  f"give the study another --out, or remove {run} to train that seed again")

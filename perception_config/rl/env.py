@@ -256,7 +256,10 @@ class PerceptionConfigEnv(gym.Env):
 
     # -- the final pick's hypothesis ------------------------------------------------------
     def _note_best(self, outcome: StepOutcome) -> None:
-        """Remember the hypothesis of the highest pick score reached (the final-pick rule)."""
+        """Remember the hypothesis of the highest pick score reached (the final-pick rule; only
+        with `final_pick_best`: nothing is copied on every step otherwise)."""
+        if not (self.settings.final_pick and self.settings.final_pick_best):
+            return
         score = outcome.scores.get(PICK_SCORE)
         if outcome.pose is None or score is None or not math.isfinite(score):
             return
