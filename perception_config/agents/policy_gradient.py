@@ -25,6 +25,12 @@ sampling policy's. The value network keeps one step per batch. K = 1 is plain RE
 Diagnostics: `update` also reports, read off without changing the step, the gradient norms before
 clipping, the learning rate used and the approximate KL between the policy before and after the
 step over the batch (CleanRL's approx_kl); training.py writes them to history.csv.
+Warm start (`warm_start` = "best_static" or "hindsight", default "none"): before the first update,
+training (learning/warm_start.py) has a teacher play `warm_start_episodes` train episodes, and
+`imitate` fits the policy to its actions by cross-entropy (behaviour cloning, `imitation_epochs`
+full-batch Adam steps at `lr`, targets smoothed by `imitation_smoothing` over the allowed actions
+so the policy keeps exploring) and the value network to their returns; reinforcement learning
+goes on from there.
 Acting: sample from pi while training (explore=True); argmax when evaluating a loaded policy.
 Action mask (`info["action_mask"]`): the logits of the actions that cannot run are -inf, when
 acting and in the update's log pi and entropy (the masks of every step are in the trajectory),
@@ -44,6 +50,7 @@ from .base import Agent, EnvSpec
 from .hparams import SEED, Choice, Float, Int
 
 MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare
+WARM_STARTS = ("none", "hindsight", "best_static")  # the teachers of a warm start (module docstring)
 
 
 class PolicyNet(nn.Module):
@@ -87,7 +94,9 @@ class PolicyGradientAgent(Agent):
                      "gamma": Float(0.0, 1.0), "batch_episodes": Int(1, 10_000), "entropy_coef": Float(0.0, 100.0),
                      "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
                      "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9),
-                     "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0), "seed": SEED}
+                     "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0),
+                     "warm_start": Choice(WARM_STARTS), "warm_start_episodes": Int(1, 100_000),
+                     "imitation_epochs": Int(1, 100_000), "imitation_smoothing": Float(0.0, 0.99), "seed": SEED}
 
     @classmethod
     def expected_tensors(cls, spec: EnvSpec, hparams: dict[str, Any]) -> dict[str, tuple[int, ...]]:
@@ -98,7 +107,8 @@ class PolicyGradientAgent(Agent):
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
                  baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, lr_half_life: float = 0.0,
-                 update_epochs: int = 1, clip: float = 0.2, seed: int = 0) -> None:
+                 update_epochs: int = 1, clip: float = 0.2, warm_start: str = "none", warm_start_episodes: int = 48,
+                 imitation_epochs: int = 300, imitation_smoothing: float = 0.1, seed: int = 0) -> None:
         super().__init__(spec, seed)
         if baseline not in ("value", "mean"):
             raise ValueError(f"baseline must be 'value' or 'mean', got {baseline!r}")
@@ -115,6 +125,13 @@ class PolicyGradientAgent(Agent):
         if int(update_epochs) < 1 or not clip > 0:
             raise ValueError(f"need update_epochs >= 1 and clip > 0, got {update_epochs}, {clip}")
         self.update_epochs, self.clip = int(update_epochs), float(clip)
+        if warm_start not in WARM_STARTS:
+            raise ValueError(f"warm_start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
+        if int(warm_start_episodes) < 1 or int(imitation_epochs) < 1 or not 0.0 <= imitation_smoothing < 1.0:
+            raise ValueError("need warm_start_episodes >= 1, imitation_epochs >= 1 and 0 <= imitation_smoothing < 1; "
+                             f"got {warm_start_episodes}, {imitation_epochs}, {imitation_smoothing}")
+        self.warm_start, self.warm_start_episodes = warm_start, int(warm_start_episodes)
+        self.imitation_epochs, self.imitation_smoothing = int(imitation_epochs), float(imitation_smoothing)
         gen = torch.Generator().manual_seed(int(seed))
         self.policy = PolicyNet(spec.obs_dim, spec.n_actions, self.hidden)
         self.value = PolicyNet(spec.obs_dim, 1, self.hidden)
@@ -254,12 +271,56 @@ class PolicyGradientAgent(Agent):
                 "grad_norm": grad_norm.item(), **figures, "lr": float(self.optimizer.param_groups[0]["lr"]),
                 "approx_kl": approx_kl.item()}
 
+    def imitate(self, demos: list[Trajectory]) -> dict[str, float]:
+        """Behaviour cloning on a teacher's episodes (module docstring: warm start): the policy's
+        cross-entropy to the teacher's actions (smoothed over each state's allowed actions; a step
+        whose action the mask forbade is left out), the value network's MSE to their returns.
+        Returns the final loss, the share of steps where the greedy policy takes the teacher's
+        action (`imitation_accuracy`) and the number of steps."""
+        trajs = [t for t in demos if t.steps > 0]
+        if not trajs:
+            raise ValueError("imitation needs at least one demonstrated step")
+        n = self.spec.n_actions
+        allowed = np.concatenate([t.allowed_actions(n) for t in trajs])
+        actions = np.concatenate([t.actions for t in trajs]).astype(np.int64)
+        keep = allowed[np.arange(len(actions)), actions]
+        obs = torch.as_tensor(np.concatenate([t.obs for t in trajs])[keep], dtype=torch.float32)
+        allowed, actions = torch.as_tensor(allowed[keep]), torch.as_tensor(actions[keep])
+        returns = torch.as_tensor(np.concatenate([returns_to_go(t.rewards, self.gamma) for t in trajs])[keep],
+                                  dtype=torch.float32)
+        if len(actions) == 0:
+            raise ValueError("imitation: every demonstrated action was masked")
+        target = allowed.float() / allowed.sum(-1, keepdim=True) * self.imitation_smoothing
+        target[torch.arange(len(actions)), actions] += 1.0 - self.imitation_smoothing
+        # Optimizers of its own: reinforcement learning starts with fresh moments (and its lr schedule).
+        opt = torch.optim.Adam(self.policy.parameters(), lr=self.lr)
+        value_opt = torch.optim.Adam(self.value.parameters(), lr=self.value_lr)
+        for _ in range(self.imitation_epochs):
+            logp = torch.log_softmax(self.policy(obs).masked_fill(~allowed, -torch.inf), -1)
+            loss = -(target * torch.where(allowed, logp, torch.zeros(()))).sum(-1).mean()
+            opt.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(self.policy.parameters(), self.grad_clip)
+            opt.step()
+            if self.baseline == "value":
+                value_loss = ((self.value(obs).squeeze(-1) - returns) ** 2).mean()
+                value_opt.zero_grad()
+                value_loss.backward()
+                nn.utils.clip_grad_norm_(self.value.parameters(), self.grad_clip * 10)
+                value_opt.step()
+        with torch.no_grad():
+            greedy = self.policy(obs).masked_fill(~allowed, -torch.inf).argmax(-1)
+        return {"imitation_loss": loss.item(), "imitation_accuracy": float((greedy == actions).float().mean()),
+                "imitation_steps": int(len(actions))}
+
     # -- persistence ----------------------------------------------------------------------
     def hparams(self) -> dict[str, Any]:
         return {"hidden": self.hidden, "lr": self.lr, "value_lr": self.value_lr, "gamma": self.gamma,
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
                 "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
                 "lr_half_life": self.lr_half_life, "update_epochs": self.update_epochs, "clip": self.clip,
+                "warm_start": self.warm_start, "warm_start_episodes": self.warm_start_episodes,
+                "imitation_epochs": self.imitation_epochs, "imitation_smoothing": self.imitation_smoothing,
                 "seed": self.seed}
 
     def tensors(self) -> dict[str, np.ndarray]:

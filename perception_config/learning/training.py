@@ -221,6 +221,7 @@ def train(
     rng = np.random.default_rng(seed)
     done = 0
     selection = Selection()
+    saved: dict[str, Any] = {}  # a resumed run's recorded extra
     if resume:
         meta, tensors = read_file(ckpt_path)
         check_compatible(meta, spec, ckpt_path)
@@ -299,9 +300,12 @@ def train(
         return play_round(env, [actor], options, act_seeds[None, :], runner, recipe_ref)[0]
 
     def validation_due() -> bool:
-        """Every `validate_every` episodes (the first round past each multiple) and at the end."""
+        """Every `validate_every` episodes (the first round past each multiple) and at the end;
+        after a warm start also before the first round (the imitating policy is a candidate)."""
         if not val_options or selection.last_episode == done:
             return False
+        if done == 0 and "warm_start" in training_info:
+            return True
         return done >= episodes or done // validate_every > max(selection.last_episode, 0) // validate_every
 
     writer = StoreWriter(out / STORE_NAME, lambda line: _quietly(print, line, file=sys.stderr, flush=True)) \
@@ -318,6 +322,24 @@ def train(
     runner = RayRunner(workers, ray_address) \
         if ray_wanted(workers, ray_address) and (done < episodes or validation_due()) else None
     recipe_ref = runner.put(recipe) if runner is not None else None
+    if resume and "warm_start" in saved:
+        training_info["warm_start"] = saved["warm_start"]
+    elif not resume and getattr(learner, "warm_start", "none") != "none":
+        from .warm_start import warm_start
+
+        try:
+            with _reproducible_threads(settings):
+                training_info["warm_start"] = report = warm_start(learner, env, train_idx, settings, seed,
+                                                                  runner=runner, recipe_ref=recipe_ref,
+                                                                  progress=progress)
+        except BaseException:
+            if runner is not None:
+                runner.close()
+            raise
+        if progress:
+            _quietly(print, f"warm start: imitated the {report['teacher']} on {report['episodes_demonstrated']} "
+                            f"train episodes ({report['imitation_accuracy']:.0%} of its actions) in "
+                            f"{report['seconds']:.0f} s", flush=True)
     stops = StopSignals()
     lo, hi = settings.lambda_range
     last_ckpt = done
