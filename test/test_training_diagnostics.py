@@ -111,3 +111,25 @@ def test_pg_further_passes_use_the_clipped_ratio(batch):
     for bad in ({"update_epochs": 0}, {"clip": 0.0}):
         with pytest.raises(ValueError, match="update_epochs|clip"):
             make_agent("pg", env, seed=0, **bad)
+
+
+def test_generalised_advantages_span_td_to_monte_carlo(batch):
+    env, trajs = batch
+    agent = make_agent("pg", env, seed=0, gae_lambda=0.5)
+    values = np.random.default_rng(0).normal(size=sum(t.steps for t in trajs))
+    starts = np.cumsum([0] + [t.steps for t in trajs])
+
+    def per_episode(adv):
+        return [adv[a:b] for a, b in zip(starts[:-1], starts[1:])]
+
+    agent.gae_lambda = 1.0  # Monte Carlo: the return to go minus the value
+    for t, adv, v in zip(trajs, per_episode(agent._gae(trajs, values)), per_episode(values)):
+        np.testing.assert_allclose(adv, np.cumsum(t.rewards[::-1])[::-1] - v, rtol=1e-12, atol=1e-12)
+    agent.gae_lambda = 0.0  # one-step TD errors, V = 0 after the last step
+    for t, adv, v in zip(trajs, per_episode(agent._gae(trajs, values)), per_episode(values)):
+        np.testing.assert_allclose(adv, t.rewards + np.append(v[1:], 0.0) - v, rtol=1e-12, atol=1e-12)
+    agent.gae_lambda = 0.5
+    figures = agent.update([trajs])
+    assert np.isfinite([figures["loss"], figures["value_loss"], figures["grad_norm"]]).all()
+    with pytest.raises(ValueError, match="gae_lambda"):
+        make_agent("pg", env, gae_lambda=0.5, baseline="mean")

@@ -10,6 +10,9 @@ time an episode still needs, which a constant cannot. `baseline="mean"` uses ins
 One update per batch of `batch_episodes` complete episodes (sampled with the current policy):
     G_t   = sum_{k >= t} gamma^(k-t) r_k                  (returns to go; r = minus seconds)
     A_t   = G_t - b(s_t), then normalised over the batch   (advantage)
+            (value baseline with `gae_lambda` = l < 1: A_t = sum_k (gamma l)^k delta_{t+k},
+             delta_t = r_t + gamma V(s_{t+1}) - V(s_t), V = 0 after the last step: generalised
+             advantage estimation, Schulman et al. 2016; l = 1 is G_t - V(s_t), op for op as before)
     loss  = -mean_t[ log pi(a_t | s_t) A_t ] - entropy_coef * mean_t[ H(pi(. | s_t)) ]
     Adam step on the policy; Adam step on the value network's MSE (value baseline).
 Learning rate: constant by default; `lr_half_life` = H > 0 halves the policy's every H training
@@ -95,6 +98,7 @@ class PolicyGradientAgent(Agent):
                      "baseline": Choice(("value", "mean")), "mean_decay": Float(0.0, 1.0),
                      "grad_clip": Float(0.0, 1e6), "lr_half_life": Float(0.0, 1e9),
                      "update_epochs": Int(1, 100), "clip": Float(0.0, 10.0),
+                     "gae_lambda": Float(0.0, 1.0),
                      "warm_start": Choice(WARM_STARTS), "warm_start_episodes": Int(1, 100_000),
                      "imitation_epochs": Int(1, 100_000), "imitation_smoothing": Float(0.0, 0.99), "seed": SEED}
 
@@ -107,7 +111,8 @@ class PolicyGradientAgent(Agent):
     def __init__(self, spec: EnvSpec, hidden: int = 32, lr: float = 0.02, value_lr: float = 0.01,
                  gamma: float = 1.0, batch_episodes: int = 8, entropy_coef: float = 0.01,
                  baseline: str = "value", mean_decay: float = 0.9, grad_clip: float = 1.0, lr_half_life: float = 0.0,
-                 update_epochs: int = 1, clip: float = 0.2, warm_start: str = "none", warm_start_episodes: int = 48,
+                 update_epochs: int = 1, clip: float = 0.2, gae_lambda: float = 1.0,
+                 warm_start: str = "none", warm_start_episodes: int = 48,
                  imitation_epochs: int = 300, imitation_smoothing: float = 0.1, seed: int = 0) -> None:
         super().__init__(spec, seed)
         if baseline not in ("value", "mean"):
@@ -125,6 +130,10 @@ class PolicyGradientAgent(Agent):
         if int(update_epochs) < 1 or not clip > 0:
             raise ValueError(f"need update_epochs >= 1 and clip > 0, got {update_epochs}, {clip}")
         self.update_epochs, self.clip = int(update_epochs), float(clip)
+        if not 0.0 <= gae_lambda <= 1.0 or (gae_lambda < 1.0 and baseline != "value"):
+            raise ValueError(f"gae_lambda must be in [0, 1], and 1 unless the baseline is 'value'; got {gae_lambda} "
+                             f"with baseline {baseline!r}")
+        self.gae_lambda = float(gae_lambda)
         if warm_start not in WARM_STARTS:
             raise ValueError(f"warm_start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
         if int(warm_start_episodes) < 1 or int(imitation_epochs) < 1 or not 0.0 <= imitation_smoothing < 1.0:
@@ -201,6 +210,20 @@ class PolicyGradientAgent(Agent):
             return logp, -(logp_all.exp() * safe).sum(-1).mean()
         return logp, -(logp_all.exp() * logp_all).sum(-1).mean()
 
+    def _gae(self, trajs: list[Trajectory], values: np.ndarray) -> np.ndarray:
+        """Generalised advantage estimates (module docstring), the batch's steps in order."""
+        out, start = [], 0
+        for t in trajs:
+            v = np.append(values[start:start + t.steps].astype(np.float64), 0.0)
+            delta = t.rewards + self.gamma * v[1:] - v[:-1]
+            adv, running = np.zeros(t.steps), 0.0
+            for k in range(t.steps - 1, -1, -1):
+                running = delta[k] + self.gamma * self.gae_lambda * running
+                adv[k] = running
+            out.append(adv)
+            start += t.steps
+        return np.concatenate(out)
+
     def update(self, trajectories: list[list[Trajectory]]) -> dict[str, float]:
         """One REINFORCE step on the round's episodes (module docstring); returns its figures:
         loss, value_loss (MSE, seconds^2), entropy (nats, mean over states), grad_norm and
@@ -221,7 +244,8 @@ class PolicyGradientAgent(Agent):
         value_loss = torch.zeros(())
         if self.baseline == "value":
             v = self.value(obs).squeeze(-1)
-            advantages = returns - v.detach()
+            advantages = returns - v.detach() if self.gae_lambda == 1.0 else \
+                torch.as_tensor(self._gae(trajs, v.detach().numpy()), dtype=torch.float32)
             value_loss = ((v - returns) ** 2).mean()
             self.value_optimizer.zero_grad()
             value_loss.backward()
@@ -319,7 +343,8 @@ class PolicyGradientAgent(Agent):
                 "batch_episodes": self.batch_episodes, "entropy_coef": self.entropy_coef,
                 "baseline": self.baseline, "mean_decay": self.mean_decay, "grad_clip": self.grad_clip,
                 "lr_half_life": self.lr_half_life, "update_epochs": self.update_epochs, "clip": self.clip,
-                "warm_start": self.warm_start, "warm_start_episodes": self.warm_start_episodes,
+                "gae_lambda": self.gae_lambda, "warm_start": self.warm_start,
+                "warm_start_episodes": self.warm_start_episodes,
                 "imitation_epochs": self.imitation_epochs, "imitation_smoothing": self.imitation_smoothing,
                 "seed": self.seed}
 
