@@ -54,11 +54,11 @@ def test_the_teachers_choose_from_the_search_costs():
     costs = np.array([[12.0, 0.5, 0.4],   # b then pick is cheapest here
                       [0.1, 0.3, 0.3],    # pick at once
                       [12.0, 13.0, 11.0]])  # nothing succeeds
-    assert ws.teacher_sequences(seqs, costs, "hindsight", np.full(3, 10.0)) == [("b", "pick"), ("pick",), None]
+    assert ws.teacher_sequences(seqs, costs, "hindsight", 10.0) == [("b", "pick"), ("pick",), None]
     # best_static: the lowest mean cost (a: 13.8 / 3 against b's 11.7 / 3), on every episode
-    assert ws.teacher_sequences(seqs, costs, "best_static", np.full(3, 10.0)) == [("b", "pick")] * 3
+    assert ws.teacher_sequences(seqs, costs, "best_static", 10.0) == [("b", "pick")] * 3
     with pytest.raises(ValueError, match="unknown teacher"):
-        ws.teacher_sequences(seqs, costs, "human", np.full(3, 10.0))
+        ws.teacher_sequences(seqs, costs, "human", 10.0)
 
 
 def test_the_demonstrations_replay_the_searched_costs(tmp_path_factory):
@@ -68,7 +68,7 @@ def test_the_demonstrations_replay_the_searched_costs(tmp_path_factory):
     plan = ws.demonstration_plan(list(range(len(env.source.episodes))), 4, (0.6, 1.2), seed=5)
     assert plan == ws.demonstration_plan(list(range(len(env.source.episodes))), 4, (0.6, 1.2), seed=5)
     costs, _ = search_costs(env, seqs, plan)
-    chosen = ws.teacher_sequences(seqs, costs, "hindsight", np.full(len(plan), 10.0))
+    chosen = ws.teacher_sequences(seqs, costs, "hindsight", 10.0)
     demos = ws._play(env, spec, chosen, plan, None, None)
     kept = [k for k, c in enumerate(chosen) if c is not None]
     assert kept and len(demos) == len(kept)

@@ -60,19 +60,19 @@ def demonstration_plan(train_idx: Sequence[int], n: int, lambda_range: tuple[flo
 
 
 def teacher_sequences(sequences: Sequence[Sequence[str]], costs: np.ndarray, teacher: str,
-                      success_cost: np.ndarray) -> list[tuple[str, ...] | None]:
+                      success_cost: float) -> list[tuple[str, ...] | None]:
     """Per episode (a row of `costs`), the sequence the teacher plays, None where it shows
-    nothing. `success_cost[k]`: the highest cost of a successful play on episode k (a cost above
-    it failed: a truncation charge or failed picks; the caller derives it from the settings)."""
+    nothing. `success_cost`: the highest cost of a successful play (a cost above it failed: the
+    truncation charge; the caller takes it from the settings)."""
     if teacher == "best_static":
         best = tuple(sequences[rank(sequences, costs)[0]])
         return [best] * len(costs)
     if teacher != "hindsight":
         raise ValueError(f"unknown teacher {teacher!r}; teachers: {', '.join(TEACHERS)}")
     out: list[tuple[str, ...] | None] = []
-    for k, row in enumerate(costs):
+    for row in costs:
         j = rank(sequences, row[None, :])[0]
-        out.append(tuple(sequences[j]) if row[j] <= success_cost[k] else None)
+        out.append(tuple(sequences[j]) if row[j] <= success_cost else None)
     return out
 
 
@@ -131,8 +131,7 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
             bar.close()
     # A successful play costs less than a truncation charge; no time budget reaches it (max_ops
     # operations of seconds each, far below the default 10 s, are what the search plays).
-    success_cost = np.full(len(plan), float(settings.truncation_cost))
-    chosen = teacher_sequences(sequences, costs, teacher, success_cost)
+    chosen = teacher_sequences(sequences, costs, teacher, float(settings.truncation_cost))
     demos = _play(env, spec, chosen, plan, runner, recipe_ref)
     if teacher == "hindsight":
         demos = [t for t in demos if t.success]
