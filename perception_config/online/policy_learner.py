@@ -85,7 +85,14 @@ from ..util.versions import PolicyVersionError, PolicyVersions
 from .learner_link import LearnerEnd
 from .learner_state import write_state
 from .pick_labels import PickLabels, robot_labels
-from .promotion_gate import CHECK_FRACTION, MIN_CHECK_EPISODES, MIN_CHECK_FRAMES, is_check_frame, paired_gate
+from .promotion_gate import (
+    CHECK_EPISODES,
+    CHECK_FRACTION,
+    MIN_CHECK_EPISODES,
+    MIN_CHECK_FRAMES,
+    is_check_frame,
+    paired_gate,
+)
 from .score_learner import SCORES, format_score_result, pick_success_block, refit_score_once
 
 __all__ = ["PolicyVersions", "LearnerSettings", "learn_once", "run_learner", "format_result"]
@@ -108,7 +115,7 @@ class LearnerSettings:
     margin: float = 0.05
     every: int = 20
     train_episodes: int = 200
-    check_episodes: int = 60
+    check_episodes: int = CHECK_EPISODES
     check_fraction: float = CHECK_FRACTION
     seed: int = 0
     poll_seconds: float = 0.25

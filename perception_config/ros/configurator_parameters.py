@@ -10,6 +10,7 @@ import math
 
 from ..agents.fixed import DEFAULT_SEQUENCE
 from ..core.geometry import LAMBDA_MAX
+from ..online.promotion_gate import CHECK_EPISODES
 from ..rl.settings import MAX_OPS_LIMIT
 from ..store.episode_store import PICK_SOURCES
 from .camera_frames import CAMERA_QOS
@@ -95,9 +96,10 @@ PARAMETERS = (
     NodeParameter("learn_train_episodes", 200,
                   "(learn) training episodes per cycle (the learner continues its weights while one version serves)",
                   limits=(0, INT_MAX), read_only=True),
-    NodeParameter("learn_check_episodes", 60, "(learn) a candidate's replay check: at most the newest this many "
-                  "stored episodes of the held-out check frames (never trained on); at least 15 on 5 frames are "
-                  "needed", limits=(1, INT_MAX), read_only=True),
+    NodeParameter("learn_check_episodes", CHECK_EPISODES,
+                  "(learn) a candidate's replay check: at most the newest this many stored episodes of the "
+                  "held-out check frames (never trained on); at least 15 on 5 frames are needed",
+                  limits=(1, INT_MAX), read_only=True),
     NodeParameter("policy_version", "", "(learn) pin a kept version at run time (`ros2 param set ... "
                   "policy_version v0002`); \"\" = the newest promoted; an unknown version is refused with the kept "
                   "ones"),
