@@ -8,7 +8,7 @@ dataset's images under new stamps, as a cell sees its bin again; the frame ring'
 default), every object of each estimated by the fixed pipeline of the cell pipeline in-process,
 its picks answered by an honest simulated robot (`pick_source` robot, frames without ground
 truth). Then times `learn_once` (the learner's cycle with the configurator's defaults: 200
-training episodes, up to 60 check episodes, both replayed) `--cycles` times in a row with one
+training episodes, up to 200 check episodes, both replayed) `--cycles` times in a row with one
 environment (as the learner process keeps it: the first cycle pays the generators' searches,
 the next ones reuse them), and the same on a learn_dir whose frames keep their ground truth.
 Writes results/learner_cycle.json.

@@ -130,14 +130,15 @@ def own_ray_task_processes(title: str) -> dict[int, int]:
 
 
 # What an evaluation measures on the wall clock (different in every run by nature): the measured
-# wall time of the episodes beside the charged time, and the seconds best_static's search took.
+# wall time of the episodes beside the charged time, and the seconds best_static's and
+# best_threshold's searches took.
 WALL_FIELDS = ("measured_time", "measured_time_to_success", "measured_episode_time", "seconds")
 
 
 def _without_wall_clock(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _without_wall_clock(v) for k, v in value.items()
-                if not (k in WALL_FIELDS and (k != "seconds" or "sequences" in value))}
+                if not (k in WALL_FIELDS and (k != "seconds" or "sequences" in value or "rules" in value))}
     if isinstance(value, list):
         return [_without_wall_clock(v) for v in value]
     return value

@@ -95,7 +95,8 @@ def test_the_agent_plays_each_lambdas_sequence_and_survives_a_snapshot(searched)
 
 def test_evaluate_searches_train_images_only_and_reports_the_sequence(tmp_path_factory, tmp_path):
     out = tmp_path / "ev"
-    results = evaluate(tiny_dataset(tmp_path_factory), ["best_static", "best_static_single", "random"], [0.3, 1.2], out,
+    agents = ["best_static", "best_static_single", "best_threshold", "random"]
+    results = evaluate(tiny_dataset(tmp_path_factory), agents, [0.3, 1.2], out,
                        episodes_per_lambda=2, pipeline=pipeline_file(tmp_path_factory), time_mode="cost_table",
                        max_ops=4, include_baselines=False, progress=False, plots=False, store_episodes=False,
                        best_static_length=2, best_static_episodes=3)
@@ -125,6 +126,17 @@ def test_evaluate_searches_train_images_only_and_reports_the_sequence(tmp_path_f
     assert s["mean_cost"] >= np.mean([r["search"]["mean_cost"] for r in mine]) - 1e-9
     played = [e for e in episodes if e["agent"] == "best_static_single"]
     assert played and all(e["actions"][0] == single[0]["sequence"][0] for e in played)
+    # best_threshold: one rule for both lambdas, from the same 2 x 3 train episodes; it is at
+    # least as cheap there as the rules it beat, and it plays as it says
+    rule = [r for r in records if r["agent"] == "best_threshold"]
+    assert [r["lambda"] for r in rule] == [0.3, 1.2] and all(r["kind"] == "best_threshold" for r in rule)
+    assert rule[0]["rule"] == rule[1]["rule"] and rule[0]["rule"].startswith("pick at psi_d >= ")
+    s = rule[0]["search"]
+    assert s["episodes"] == 6 and s["rules"] == 16 * 5 and s["runner_up_cost"] >= s["mean_cost"]
+    assert s["images"] and not {tuple(k) for k in s["images"]} & test_images
+    loop = rule[0]["rule"].split(", else ")[1].split(" > ")
+    played = [e for e in episodes if e["agent"] == "best_threshold"]
+    assert played and all(a in loop + ["pick"] for e in played for a in e["actions"][:-1])
 
 
 def test_bad_options_give_clear_errors(tmp_path_factory, tmp_path, capsys):

@@ -77,7 +77,7 @@ def run(dataset: Path, tmp_path_factory) -> dict:
 
 def expected_agents() -> set[str]:
     fixed = {"fixed:" + "+".join(s) for s in fixed_sequences(load_pipeline(), DEFAULT_FIXED_SEQUENCES)}
-    return {"uniform", "oracle", "best_static", "best_static_single", "random"} | fixed
+    return {"uniform", "oracle", "best_static", "best_static_single", "best_threshold", "random"} | fixed
 
 
 def test_results_json_has_a_record_per_agent_and_lambda_with_the_schema(run):

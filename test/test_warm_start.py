@@ -12,6 +12,7 @@ import pytest
 
 from perception_config.agents import EnvSpec, make_agent
 from perception_config.agents.best_static import search_costs, static_sequences
+from perception_config.agents.fixed import FixedAgent
 from perception_config.agents.policy_io import read_file
 from perception_config.learning import warm_start as ws
 from perception_config.learning.training import VALIDATION_CSV, train
@@ -69,7 +70,8 @@ def test_the_demonstrations_replay_the_searched_costs(tmp_path_factory):
     assert plan == ws.demonstration_plan(list(range(len(env.source.episodes))), 4, (0.6, 1.2), seed=5)
     costs, _ = search_costs(env, seqs, plan)
     chosen = ws.teacher_sequences(seqs, costs, "hindsight", 10.0)
-    demos = ws._play(env, spec, chosen, plan, None, None)
+    teachers = {c: FixedAgent(spec, list(c), after="repeat") for c in set(chosen) if c is not None}
+    demos = ws._play(env, spec, [teachers.get(c) for c in chosen], plan, None, None)
     kept = [k for k, c in enumerate(chosen) if c is not None]
     assert kept and len(demos) == len(kept)
     for k, t in zip(kept, demos):  # cost-table time: the replay is charged the search's cost, bit for bit

@@ -148,9 +148,15 @@ def search_costs(env: Any, sequences: Sequence[Sequence[str]], episodes: Sequenc
     every (reset options, acting seed) episode: float64 (len(episodes), len(sequences)); and the
     (scene_id, im_id) of each episode's image. `on_episode()` is called after each episode (a
     progress bar). The env's operators are wrapped in a `StateMemo` while it runs."""
+    spec = EnvSpec.from_env(getattr(env, "unwrapped", env))
+    return search_players(env, [FixedAgent(spec, list(s), after="repeat") for s in sequences], episodes, on_episode)
+
+
+def search_players(env: Any, players: Sequence[Agent], episodes: Sequence[tuple[dict[str, Any], int]],
+                   on_episode: Any = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """`search_costs` for any deterministic players (each decides from the obs and info of its
+    own path: FixedAgent, agents/threshold.ThresholdAgent): (len(episodes), len(players))."""
     env_ = getattr(env, "unwrapped", env)
-    spec = EnvSpec.from_env(env_)
-    players = [FixedAgent(spec, list(s), after="repeat") for s in sequences]
     out = np.empty((len(episodes), len(players)))
     images: list[tuple[int, int]] = []
     ops = env_.ops

@@ -75,6 +75,15 @@ class StrList:
             raise ValueError(f"hyper-parameter {name} must be a list of 1..{self.max_len} names, got {v!r}"[:300])
 
 
+@dataclass(frozen=True)
+class Name:
+    max_len: int = 256
+
+    def check(self, name: str, v: Any) -> None:
+        if not isinstance(v, str) or not 1 <= len(v) <= self.max_len:
+            raise ValueError(f"hyper-parameter {name} must be a name of 1..{self.max_len} characters, got {v!r}"[:300])
+
+
 SEED = Int(0, MAX_SEED)
 
 

@@ -28,7 +28,7 @@ sampling policy's. The value network keeps one step per batch. K = 1 is plain RE
 Diagnostics: `update` also reports, read off without changing the step, the gradient norms before
 clipping, the learning rate used and the approximate KL between the policy before and after the
 step over the batch (CleanRL's approx_kl); training.py writes them to history.csv.
-Warm start (`warm_start` = "best_static" or "hindsight", default "none"): before the first update,
+Warm start (`warm_start` = "best_static", "hindsight" or "threshold", default "none"): before the first update,
 training (learning/warm_start.py) has a teacher play `warm_start_episodes` train episodes, and
 `imitate` fits the policy to its actions by cross-entropy (behaviour cloning, `imitation_epochs`
 full-batch Adam steps at `lr`, targets smoothed by `imitation_smoothing` over the allowed actions
@@ -53,7 +53,7 @@ from .base import Agent, EnvSpec
 from .hparams import SEED, Choice, Float, Int
 
 MAX_HIDDEN = 4096  # units of the hidden layer a policy file may declare
-WARM_STARTS = ("none", "hindsight", "best_static")  # the teachers of a warm start (module docstring)
+WARM_STARTS = ("none", "hindsight", "best_static", "threshold")  # the teachers of a warm start (module docstring)
 
 
 class PolicyNet(nn.Module):

@@ -11,6 +11,7 @@ from .fixed import FixedAgent
 from .oracle import OracleAgent
 from .random import RandomAgent
 from .simple import SimpleAgent
+from .threshold import ThresholdAgent
 
 
 def _policy_gradient() -> type[Agent]:
@@ -51,6 +52,7 @@ AGENTS: Mapping[str, type[Agent]] = _Agents({
     "fixed": FixedAgent,
     "oracle": OracleAgent,
     "best_static": BestStaticAgent,
+    "threshold": ThresholdAgent,
 })
 
 

@@ -191,7 +191,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help=f"episodes between two validation checks ({DEFAULT_VALIDATE_EVERY})")
     tr.add_argument("--agent-param", action="append", metavar="KEY=VALUE",
                     help="an agent hyper-parameter (repeatable), e.g. pg's entropy_coef=0.02 batch_episodes=16 "
-                         "warm_start=best_static gae_lambda=0.8; "
+                         "warm_start=threshold gae_lambda=0.8; "
                          "over the recipe's (pg: entropy_coef=0.05 lr_half_life=2000) "
                          "(checked against the agent's bounds; ignored by --resume, which keeps the checkpoint's)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")

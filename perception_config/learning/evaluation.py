@@ -29,7 +29,11 @@ episode_cost over all the lambdas' search episodes together (one pipeline for th
 range, as a configurator like SMAC would fix it; neither it nor the learned agent is told the
 noise level). Their records carry `sequence` and `search` (episodes, sequences, max_length,
 mean_cost of the chosen, runner_up and runner_up_cost, seconds); meta.json's `best_static` the
-search settings (learning/evaluation_best_static.py).
+search settings (learning/evaluation_best_static.py). On the same search episodes, `best_threshold`:
+the threshold rule (agents/threshold.py: pick once the pick-success score clears a threshold,
+else refine along a loop) of the lowest mean episode_cost over every lambda together; its
+records carry `rule` and `search`. It reads the scores, as the learned agent does: the strongest
+simple dynamic baseline.
 
 Outputs in `out/`:
 - results.json   list of records, one per (agent, lambda) (schema in `summarise`)
@@ -74,6 +78,7 @@ import numpy as np
 from ..agents.base import EnvRecipe, EnvSpec
 from ..agents.best_static import BestStaticAgent
 from ..agents.policy_settings import policy_settings
+from ..agents.threshold import ThresholdAgent
 from ..blocks.pipeline import Pipeline, load_pipeline, pipeline_reference
 from ..core.geometry import LAMBDA_MAX, check_noise_lambda
 from ..datasets.bop import BopDataset
@@ -83,11 +88,12 @@ from ..rl.episodes import EpisodeSource, split_image_keys
 from ..store.episode_store import STORE_NAME, StoreWriter, store_episode
 from ..util.atomic_file import atomic_write
 from ..util.open3d_threads import open3d_single_thread
-from .evaluation_agents import DEFAULT_FIXED_SEQUENCES, EvalAgent, build_agents
+from .evaluation_agents import DEFAULT_FIXED_SEQUENCES, SEARCHED, EvalAgent, build_agents
 from .evaluation_best_static import (
     DEFAULT_EPISODES,
     DEFAULT_MAX_LENGTH,
     best_static_agent,
+    best_threshold_agent,
     check_options,
     search_seed,
     single_sequence_agent,
@@ -189,12 +195,15 @@ def evaluate(
     source = EpisodeSource(ds, test_keys, min_visib_fract=env_settings.min_visib_fract)
     env = PerceptionConfigEnv(source, pipe, env_settings)
     wants_best_static = best_static_episodes > 0 and (
-        include_baselines or any(p in ("best_static", "best_static_single") for p in policies if isinstance(p, str)))
+        include_baselines or any(p in SEARCHED for p in policies if isinstance(p, str)))
     # the searched agents replace these stand-ins before the sweep; building the agents first finds bad
     # policies before the search
-    stand_in = BestStaticAgent(EnvSpec.from_env(env)) if wants_best_static else None
-    single_stand_in = BestStaticAgent(EnvSpec.from_env(env)) if wants_best_static else None
-    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget, stand_in, single_stand_in)
+    spec = EnvSpec.from_env(env)
+    stand_in = BestStaticAgent(spec) if wants_best_static else None
+    single_stand_in = BestStaticAgent(spec) if wants_best_static else None
+    rule_stand_in = ThresholdAgent(spec) if wants_best_static and spec.pick_actions else None
+    agents = build_agents(env, policies, seed, include_baselines, fixed, oracle_budget, stand_in, single_stand_in,
+                          rule_stand_in)
     plan = episode_plan(len(source), episodes_per_lambda, seed)
     recipe = None
     if ray_wanted(workers, ray_address):
@@ -233,11 +242,19 @@ def evaluate(
                     train_env, lams, episode_plan(len(train_env.source), best_static_episodes, search_seed(seed)),
                     best_static_length, seed, runner, train_recipe, progress)
                 single = single_sequence_agent(searched)
+                rule = None
+                if any(ea.agent is rule_stand_in for ea in agents):
+                    rule = best_threshold_agent(
+                        train_env, lams, episode_plan(len(train_env.source), best_static_episodes, search_seed(seed)),
+                        seed, runner, train_recipe, progress)
+                    best_static_meta["best_threshold"] = {"rule": rule.describe(), **rule.search}
                 for ea in agents:
                     if ea.agent is stand_in:
                         ea.agent = searched
                     elif ea.agent is single_stand_in:
                         ea.agent = single
+                    elif ea.agent is rule_stand_in:
+                        ea.agent = rule
             if progress:
                 from tqdm import tqdm
 
@@ -251,7 +268,10 @@ def evaluate(
                 eps = [{"agent": ea.name, **rec} for rec in sweep[(ea.name, lam)]]
                 per_episode.extend(eps)
                 records.append({**summarise(ea.name, lam, eps), "kind": ea.kind})
-                if ea.kind in ("best_static", "best_static_single"):
+                if ea.kind == "best_threshold":
+                    records[-1]["rule"] = ea.agent.describe()
+                    records[-1]["search"] = dict(ea.agent.search)
+                elif ea.kind in ("best_static", "best_static_single"):
                     records[-1]["sequence"] = ea.agent.sequence_for(lam)
                     if lam in ea.agent.search:
                         records[-1]["search"] = ea.agent.search[lam].to_json()

@@ -1,7 +1,7 @@
 """The agents of an evaluation (learning/evaluation.py): the policies and agent names given, then
 the baselines: the hindsight oracle, the engineer pipelines the pipeline's actions allow
-(`fixed_sequences`), the best static pipeline (searched on the train images:
-learning/evaluation_best_static.py) and the untrained random agent."""
+(`fixed_sequences`), the best static pipeline and the best threshold rule (searched on the train
+images: learning/evaluation_best_static.py) and the untrained random agent."""
 from __future__ import annotations
 
 import os
@@ -26,6 +26,9 @@ DEFAULT_FIXED_SEQUENCES: tuple[tuple[str, ...], ...] = (
     ("icp_coarse", "icp_fine", "pick", "ppf"),
     ("icp_coarse", "icp_fine", "pick", "global_registration"),
 )
+
+
+SEARCHED = ("best_static", "best_static_single", "best_threshold")  # baselines searched on the train images
 
 
 @dataclass
@@ -55,14 +58,15 @@ def _policy_name(path: Path, kind: str) -> str:
 def build_agents(
     env: PerceptionConfigEnv, policies: Sequence[Any], seed: int, include_baselines: bool = True,
     sequences: Iterable[Sequence[str]] = DEFAULT_FIXED_SEQUENCES, oracle_budget: int | None = None,
-    best_static: Any = None, best_static_single: Any = None,
+    best_static: Any = None, best_static_single: Any = None, best_threshold: Any = None,
 ) -> list[EvalAgent]:
     """The agents to evaluate: policy files (checked against the env's action set), agent
     names, or (name, agent) pairs / objects with `act`; then the baselines (oracle, the fixed
     pipelines, the best static pipeline, random) unless already given; `oracle_budget`: the
     oracle's operator calls per episode (its `node_budget`; default 2000). `best_static`: the
     searched BestStaticAgent (the name "best_static" among `policies` is this agent; None: no
-    best_static baseline); `best_static_single`: its one sequence for every lambda (likewise)."""
+    best_static baseline); `best_static_single`: its one sequence for every lambda (likewise);
+    `best_threshold`: the searched threshold rule (likewise)."""
     from .. import agents
 
     out: list[EvalAgent] = []
@@ -74,8 +78,9 @@ def build_agents(
         elif is_policy_file(spec):
             agent = agents.load_agent(Path(spec), env)
             out.append(EvalAgent(_policy_name(Path(spec), agent.kind), agent.kind, agent, policy_version(spec)))
-        elif spec in ("best_static", "best_static_single"):
-            searched = best_static if spec == "best_static" else best_static_single
+        elif spec in SEARCHED:
+            searched = {"best_static": best_static, "best_static_single": best_static_single,
+                        "best_threshold": best_threshold}[spec]
             if searched is None:
                 raise ValueError(f"agent {spec!r} is the result of a search on the train images: "
                                  "give best_static_episodes > 0 (CLI: --best-static-episodes N)")
@@ -98,7 +103,8 @@ def build_agents(
             name = "fixed:" + "+".join(seq)
             if name not in names:
                 out.append(EvalAgent(name, "fixed", agents.make_agent("fixed", env=env, seed=seed, sequence=list(seq))))
-        for name, searched in (("best_static", best_static), ("best_static_single", best_static_single)):
+        for name, searched in (("best_static", best_static), ("best_static_single", best_static_single),
+                               ("best_threshold", best_threshold)):
             if searched is not None and name not in names:
                 out.append(EvalAgent(name, name, searched))
         if "random" not in names:

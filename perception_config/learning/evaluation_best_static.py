@@ -10,6 +10,11 @@ Two bars come out of the same searched costs:
 | `best_static_single` | one sequence: the lowest mean cost over all the   | no                   |
 |                      | lambdas' search episodes together                 |                      |
 
+| `best_threshold`     | one threshold rule (agents/threshold.py): pick   | no (reads the        |
+|                      | once the pick-success score clears a threshold,  | pick-success score)  |
+|                      | else refine along a loop; the lowest mean cost   |                      |
+|                      | over all the lambdas' search episodes together   |                      |
+
 `best_static_single` is Dynamic Algorithm Configuration's static reference (one configuration for
 the whole instance distribution, what SMAC or irace return for a cell): the noise level of a
 hypothesis is not observed by the learned agent, nor known in a cell. `best_static` selects a
@@ -31,7 +36,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..agents.base import EnvRecipe, EnvSpec
-from ..agents.best_static import BestStaticAgent, SearchResult, search_costs, static_sequences
+from ..agents.best_static import BestStaticAgent, SearchResult, search_costs, search_players, static_sequences
+from ..agents.threshold import ThresholdAgent, threshold_rules
 from ..rl.episode_loop import acting_seed
 from .ray_workers import RayRunner, chunks, worker_env
 
@@ -60,6 +66,61 @@ def search_chunk(recipe: EnvRecipe, sequences: Sequence[Sequence[str]],
     images (agents/best_static.search_costs)."""
     env, _spec = worker_env(recipe)
     return search_costs(env, sequences, episodes)
+
+
+def search_rules_chunk(recipe: EnvRecipe, rules: Sequence[dict[str, Any]],
+                       episodes: Sequence[tuple[dict[str, Any], int]]) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """A Ray task: the cost rows of some search episodes for the threshold rules (their hparams)
+    in the worker's train env."""
+    env, spec = worker_env(recipe)
+    return search_players(env, [ThresholdAgent(spec, **hp) for hp in rules], episodes)
+
+
+def best_threshold_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int, int]], seed: int = 0,
+                         runner: RayRunner | None = None, recipe: EnvRecipe | None = None,
+                         progress: bool = True) -> ThresholdAgent:
+    """`best_threshold` (module docstring): every rule of `threshold_rules` on the train episodes
+    of `plan` at every lambda of `lams`, pooled; the agent of the lowest mean cost (ties: the
+    first rule, shortest loop and lowest threshold first). Its `search` holds the figures."""
+    spec = EnvSpec.from_env(env)
+    rules = threshold_rules(spec)
+    if not plan:
+        raise ValueError("the best_threshold search needs at least one train episode")
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(lams) * len(plan), desc="best_threshold search", unit="ep", dynamic_ncols=True)
+    started = time.perf_counter()
+    rows: list[np.ndarray] = []
+    images: set[tuple[int, int]] = set()
+    try:
+        recipe_ref = runner.put(recipe) if runner is not None else None
+        hparams = [r.hparams() for r in rules]
+        for lam in lams:
+            episodes = [({"episode": int(i), "lambda": float(lam), "episode_seed": int(s)}, acting_seed(s))
+                        for i, s in plan]
+            if runner is None:
+                parts = [search_players(env, rules, episodes, bar.update if bar is not None else None)]
+            else:
+                calls = [(recipe_ref, hparams, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
+                parts = runner.map(search_rules_chunk, calls,
+                                   (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
+            rows.append(np.concatenate([r for r, _ in parts]))
+            images.update((int(a), int(b)) for _, keys in parts for a, b in keys)
+    finally:
+        if bar is not None:
+            bar.close()
+    costs = np.concatenate(rows)
+    mean = costs.sum(axis=0) / len(costs)
+    order = sorted(range(len(rules)), key=lambda j: round(float(mean[j]) / 1e-9))  # stable: ties keep rule order
+    best = rules[order[0]]
+    agent = ThresholdAgent(spec, **{**best.hparams(), "seed": int(seed)})
+    agent.search = {"rules": len(rules), "episodes": len(costs), "mean_cost": float(mean[order[0]]),
+                    "runner_up": rules[order[1]].describe() if len(order) > 1 else None,
+                    "runner_up_cost": float(mean[order[1]]) if len(order) > 1 else None,
+                    "seconds": time.perf_counter() - started, "images": [list(k) for k in sorted(images)]}
+    return agent
 
 
 def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int, int]], max_length: int,

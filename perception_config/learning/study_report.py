@@ -7,7 +7,9 @@ per lambda), else the best fixed pipeline (the `fixed` record flagged `best_fixe
 report says it fell back. Beside it, where the evaluation has it, `best_static_single` (one
 sequence for every lambda: the static reference of Dynamic Algorithm Configuration, not told
 the noise level, as the learned agent is not) gets its own k of N (`comparisons[i]["single"]`,
-and the verdict line). A seed beats the bar at a lambda when its mean episode cost is lower
+and the verdict line), and so does `best_threshold` (the searched threshold rule: it reads the
+pick-success score as the learned agent reads the scores; `comparisons[i]["threshold"]`).
+A seed beats the bar at a lambda when its mean episode cost is lower
 and its success not lower (point estimates, `study_stats.beats`); it beats it surely when, in
 addition, the 95 % interval of the paired cost difference (seed minus bar, episode by episode)
 lies below 0. The oracle comparison is the time ratio on the episodes both picked (the mean of
@@ -27,7 +29,7 @@ import numpy as np
 
 from . import study_stats as st
 
-BASELINE_KINDS = ("oracle", "fixed", "random", "best_static", "best_static_single")
+BASELINE_KINDS = ("oracle", "fixed", "random", "best_static", "best_static_single", "best_threshold")
 FIGURES = ("success", "first_pick_success", "episode_cost", "time_to_success")
 
 
@@ -104,6 +106,11 @@ def single_bar_name(records: Sequence[dict[str, Any]]) -> str | None:
     return next((r["agent"] for r in records if r.get("kind") == "best_static_single"), None)
 
 
+def threshold_name(records: Sequence[dict[str, Any]]) -> str | None:
+    """The evaluation's `best_threshold` agent (the searched threshold rule), None without it."""
+    return next((r["agent"] for r in records if r.get("kind") == "best_threshold"), None)
+
+
 def best_fixed_name(records: Sequence[dict[str, Any]]) -> str | None:
     return next((r["agent"] for r in records if r.get("best_fixed")), None)
 
@@ -175,6 +182,9 @@ def analyse(records: Sequence[dict[str, Any]], episodes: Sequence[dict[str, Any]
             comp["k_beats_surely"] = sum(1 for p in per_seed if p["beats_surely"])
         if single and single in arr:
             comp["single"] = _single_comparison(arr, learned, single, records, lam, **kw)
+        rule = threshold_name(records)
+        if rule and rule in arr:
+            comp["threshold"] = _single_comparison(arr, learned, rule, records, lam, **kw)
         comp["pooled_cost"] = pooled_fig["episode_cost"].to_json()
         comp["pooled_success"] = pooled_fig["success"].value
         if "oracle_ratio" in pooled_cmp:
@@ -192,7 +202,7 @@ def _single_comparison(arr: dict[str, dict[str, np.ndarray]], learned: Sequence[
     """The seeds against `best_static_single` at one lambda (one sequence for every lambda, not told
     the noise level, as the learned agent is not: learning/evaluation_best_static.py)."""
     per_seed = [compare(arr[a], arr[single], None, **kw) for a in learned]
-    sequence = next((r.get("sequence") for r in records
+    sequence = next((r.get("sequence") or r.get("rule") for r in records
                      if r["agent"] == single and float(r["lambda"]) == lam), None)
     return {"bar": single, "sequence": sequence, "k_beats": sum(1 for c in per_seed if c["beats"]),
             "k_beats_surely": sum(1 for c in per_seed if c["beats_surely"]),
@@ -228,6 +238,11 @@ def verdict_line(comp: dict[str, Any], label: str, bar: dict[str, Any]) -> str:
         text += (f"; beats {single['bar']} ({seq}, one sequence for every lambda) in {single['k_beats']} of "
                  f"{comp['n_seeds']} ({single['k_beats_surely']} surely; its cost "
                  f"{format_estimate(single['bar_cost'], '.3g')})")
+    rule = comp.get("threshold")
+    if rule:
+        text += (f"; beats {rule['bar']} ({rule.get('sequence')}) in {rule['k_beats']} of {comp['n_seeds']} "
+                 f"({rule['k_beats_surely']} surely; its cost {format_estimate(rule['bar_cost'], '.3g')}, success "
+                 f"{100 * rule['bar_success']:.1f} %)")
     ratio = comp.get("pooled_oracle_ratio")
     if ratio and ratio.get("mean") is not None:
         text += "; " + _oracle_text(ratio["mean"], ratio.get("lo"), ratio.get("hi"))

@@ -6,20 +6,25 @@ the trained agents of one recipe then differ more from each other than from the 
 (docs/results/configurator.md). A warm start gives every seed the same good beginning, and
 reinforcement learning goes on from there to what no teacher here shows: when to deviate.
 
-The teachers, both from one exhaustive search of the static sequences (agents/best_static.py:
-`search_costs`, sequences of 1..MAX_LENGTH actions, prefix-shared, in the env's own time) on the
-agent's `warm_start_episodes` TRAIN episodes, lambda drawn from the settings' lambda_range:
+The teachers come from one exhaustive, prefix-shared search (agents/best_static.py:
+`search_players`, in the env's own time) on the agent's `warm_start_episodes` TRAIN episodes,
+lambda drawn from the settings' lambda_range: of the static sequences of 1..MAX_LENGTH actions,
+or of the threshold rules (agents/threshold.py: pick once the pick-success score clears a
+threshold, else refine along a loop; every threshold of THRESHOLDS x every loop of 1..2 actions):
 
-| teacher       | plays on an episode                                  | knows the outcome |
-|---------------|------------------------------------------------------|-------------------|
-| `best_static` | the sequence with the lowest mean cost over them all | no                |
-| `hindsight`   | the cheapest sequence on this episode, if it picks   | yes (hindsight)   |
+| teacher       | plays on an episode                                  | knows the outcome | reads the scores |
+|---------------|------------------------------------------------------|-------------------|------------------|
+| `best_static` | the sequence with the lowest mean cost over them all | no                | no               |
+| `hindsight`   | the cheapest sequence on this episode, if it picks   | yes (hindsight)   | no               |
+| `threshold`   | the rule with the lowest mean cost over them all     | no                | one score        |
 
 The hindsight teacher's episodes where no sequence succeeds are left out (nothing to imitate).
-Each chosen sequence is played again as `FixedAgent(sequence, after="repeat")` on the same
-episode options and acting seed (the search's costs are those of this play, bit for bit in
-cost-table mode), and its trajectories are the demonstrations `PolicyGradientAgent.imitate`
-fits. The hindsight choices depend on what the policy cannot see (the ground truth): imitated,
+The chosen sequence is played again as `FixedAgent(sequence, after="repeat")` (the rule as its
+ThresholdAgent) on the same episode options and acting seed (the search's costs are those of
+this play, bit for bit in cost-table mode), and its trajectories are the demonstrations
+`PolicyGradientAgent.imitate` fits. The static sequences cannot stop early on a hypothesis that is
+already right; the threshold rule can, which is most of what separates the oracle's time from
+theirs. The hindsight choices depend on what the policy cannot see (the ground truth): imitated,
 they become the probability, given the scores, that an action is the right one, which the
 reward then sharpens.
 
@@ -34,14 +39,15 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..agents.base import Agent, EnvSpec
-from ..agents.best_static import rank, search_costs, static_sequences
+from ..agents.best_static import rank, search_players, static_sequences
 from ..agents.fixed import FixedAgent
+from ..agents.threshold import threshold_rules
 from ..rl.episode_loop import acting_seed, play_episode
 from ..rl.trajectory import Trajectory
-from .evaluation_best_static import search_chunk
+from .evaluation_best_static import search_chunk, search_rules_chunk
 from .ray_workers import RayRunner, chunks, play_chunk, snapshot
 
-TEACHERS = ("best_static", "hindsight")
+TEACHERS = ("best_static", "hindsight", "threshold")
 MAX_LENGTH = 3  # sequences searched, as the evaluation's best_static (evaluation_best_static.py)
 
 
@@ -76,28 +82,51 @@ def teacher_sequences(sequences: Sequence[Sequence[str]], costs: np.ndarray, tea
     return out
 
 
-def _play(env: Any, spec: EnvSpec, chosen: Sequence[tuple[str, ...] | None],
+def _play(env: Any, spec: EnvSpec, chosen: Sequence[Agent | None],
           plan: Sequence[tuple[dict[str, Any], int]], runner: RayRunner | None, recipe_ref: Any) -> list[Trajectory]:
-    by_seq: dict[tuple[str, ...], list[int]] = {}
-    for k, seq in enumerate(chosen):
-        if seq is not None:
-            by_seq.setdefault(seq, []).append(k)
+    """Each plan episode played by its chosen teacher (None: not played), in plan order."""
+    by_agent: dict[int, list[int]] = {}
+    agents: dict[int, Agent] = {}
+    for k, agent in enumerate(chosen):
+        if agent is not None:
+            by_agent.setdefault(id(agent), []).append(k)
+            agents[id(agent)] = agent
     out: dict[int, Trajectory] = {}
     if runner is None:
-        for seq, ks in by_seq.items():
-            agent = FixedAgent(spec, list(seq), after="repeat")
+        for key, ks in by_agent.items():
             for k in ks:
-                out[k] = play_episode(env, agent, plan[k][0], plan[k][1])
+                out[k] = play_episode(env, agents[key], plan[k][0], plan[k][1])
     else:
         calls, owners = [], []
-        for seq, ks in by_seq.items():
-            snap = runner.put(snapshot(FixedAgent(spec, list(seq), after="repeat")))
-            for lo, hi in chunks(len(ks), len(by_seq), runner.cpus):
+        for key, ks in by_agent.items():
+            snap = runner.put(snapshot(agents[key]))
+            for lo, hi in chunks(len(ks), len(by_agent), runner.cpus):
                 calls.append((recipe_ref, snap, [plan[k] for k in ks[lo:hi]]))
                 owners.append(ks[lo:hi])
         for ks, trajs in zip(owners, runner.map(play_chunk, calls)):
             out.update(zip(ks, trajs))
     return [out[k] for k in sorted(out)]
+
+
+def _search(env: Any, players: Any, plan: Sequence[tuple[dict[str, Any], int]], runner: RayRunner | None,
+            recipe_ref: Any, task: Any, desc: str, progress: bool) -> np.ndarray:
+    """The (episodes, players) cost rows of the search, in-process or as Ray tasks of `task`
+    over (recipe, players, episodes): `players` are agents in-process, their picklable
+    descriptions for the tasks."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(plan), desc=desc, unit="ep", dynamic_ncols=True)
+    try:
+        if runner is None:
+            return search_players(env, players, plan, bar.update if bar is not None else None)[0]
+        calls = [(recipe_ref, players, plan[lo:hi]) for lo, hi in chunks(len(plan), 1, runner.cpus)]
+        parts = runner.map(task, calls, (lambda _k, part: bar.update(len(part[1]))) if bar else None)
+        return np.concatenate([rows for rows, _ in parts])
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any, seed: int, *,
@@ -112,26 +141,32 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
         raise ValueError(f"warm_start must be one of {', '.join(TEACHERS)}, got {teacher!r}")
     started = time.perf_counter()
     spec = learner.spec
-    sequences = static_sequences(spec.action_names, spec.action_kinds, MAX_LENGTH)
     plan = demonstration_plan(train_idx, int(learner.warm_start_episodes), settings.lambda_range, seed)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(plan), desc=f"warm start: {teacher} search", unit="ep", dynamic_ncols=True)
-    try:
-        if runner is None:
-            costs, _ = search_costs(env, sequences, plan, bar.update if bar is not None else None)
-        else:
-            calls = [(recipe_ref, sequences, plan[lo:hi]) for lo, hi in chunks(len(plan), 1, runner.cpus)]
-            parts = runner.map(search_chunk, calls, (lambda _k, part: bar.update(len(part[1]))) if bar else None)
-            costs = np.concatenate([rows for rows, _ in parts])
-    finally:
-        if bar is not None:
-            bar.close()
-    # A successful play costs less than a truncation charge; no time budget reaches it (max_ops
-    # operations of seconds each, far below the default 10 s, are what the search plays).
-    chosen = teacher_sequences(sequences, costs, teacher, float(settings.truncation_cost))
+    if teacher == "threshold":
+        rules = threshold_rules(spec)
+        local, remote, task = rules, [r.hparams() for r in rules], search_rules_chunk
+    else:
+        sequences = static_sequences(spec.action_names, spec.action_kinds, MAX_LENGTH)
+        local = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences]
+        remote, task = sequences, search_chunk
+    costs = _search(env, local if runner is None else remote, plan, runner, recipe_ref, task,
+                    f"warm start: {teacher} search", progress)
+    taught: dict[str, int] = {}
+    if teacher == "threshold":
+        mean = costs.sum(axis=0) / len(costs)
+        best = rules[int(np.argmin(np.round(mean / 1e-9)))]  # ties: the first (shortest loop, lowest threshold)
+        chosen: list[Agent | None] = [best] * len(plan)
+        taught[best.describe()] = len(plan)
+        extra: dict[str, Any] = {"rules": len(rules), "rule": best.hparams(), "rule_cost": float(mean.min())}
+    else:
+        # A successful play costs less than a truncation charge; no time budget reaches it (max_ops
+        # operations of seconds each, far below the default 10 s, are what the search plays).
+        seqs = teacher_sequences(sequences, costs, teacher, float(settings.truncation_cost))
+        chosen = [local[sequences.index(seq)] if seq is not None else None for seq in seqs]
+        for seq in seqs:
+            if seq is not None:
+                taught[" ".join(seq)] = taught.get(" ".join(seq), 0) + 1
+        extra = {"max_length": MAX_LENGTH}
     demos = _play(env, spec, chosen, plan, runner, recipe_ref)
     if teacher == "hindsight":
         demos = [t for t in demos if t.success]
@@ -139,11 +174,8 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
         raise ValueError(f"warm start: the {teacher} teacher succeeded on none of the {len(plan)} train episodes "
                          "searched; raise warm_start_episodes or train without a warm start")
     figures = learner.imitate(demos)
-    taught: dict[str, int] = {}
-    for seq in chosen:
-        if seq is not None:
-            taught[" ".join(seq)] = taught.get(" ".join(seq), 0) + 1
     return {"teacher": teacher, "episodes_searched": len(plan), "episodes_demonstrated": len(demos),
             "demonstration_success": float(np.mean([t.success for t in demos])),
             "sequences_taught": dict(sorted(taught.items(), key=lambda kv: (-kv[1], kv[0]))),
-            "max_length": MAX_LENGTH, **figures, "seconds": round(time.perf_counter() - started, 3)}
+            **extra, **figures, "seconds": round(time.perf_counter() - started, 3)}
+
