@@ -29,9 +29,10 @@ episode_cost over all the lambdas' search episodes together (one pipeline for th
 range, as a configurator like SMAC would fix it; neither it nor the learned agent is told the
 noise level). Their records carry `sequence` and `search` (episodes, sequences, max_length,
 mean_cost of the chosen, runner_up and runner_up_cost, seconds); meta.json's `best_static` the
-search settings (learning/evaluation_best_static.py). On the same search episodes, `best_threshold`:
-the threshold rule (agents/threshold.py: pick once the pick-success score clears a threshold,
-else refine along a loop) of the lowest mean episode_cost over every lambda together; its
+search settings (learning/evaluation_best_static.py). On the same train episodes, twice each with
+the lambdas taken in turn, `best_threshold`: the threshold rule (agents/threshold.py: pick once
+the pick-success score clears a threshold, else refine along a loop) of the lowest mean
+episode_cost, one rule for every lambda; its
 records carry `rule` and `search`. It reads the scores, as the learned agent does: the strongest
 simple dynamic baseline.
 

@@ -13,7 +13,7 @@ Two bars come out of the same searched costs:
 | `best_threshold`     | one threshold rule (agents/threshold.py): pick   | no (reads the        |
 |                      | once the pick-success score clears a threshold,  | pick-success score)  |
 |                      | else refine along a loop; the lowest mean cost   |                      |
-|                      | over all the lambdas' search episodes together   |                      |
+|                      | on the search episodes, lambdas taken in turn    |                      |
 
 `best_static_single` is Dynamic Algorithm Configuration's static reference (one configuration for
 the whole instance distribution, what SMAC or irace return for a cell): the noise level of a
@@ -76,50 +76,54 @@ def search_rules_chunk(recipe: EnvRecipe, rules: Sequence[dict[str, Any]],
     return search_players(env, [ThresholdAgent(spec, **hp) for hp in rules], episodes)
 
 
+def threshold_episodes(lams: Sequence[float], plan: Sequence[tuple[int, int]]) -> list[tuple[dict[str, Any], int]]:
+    """The best_threshold search's episodes: the plan's episodes twice (once with one lambda, so
+    with two lambdas in all), the lambdas taken in turn: a rule for every lambda, searched on
+    twice the episodes of one lambda's best_static search rather than all of them."""
+    lams = [float(x) for x in lams]
+    return [({"episode": int(i), "lambda": lams[(k + r) % len(lams)], "episode_seed": int(s)}, acting_seed(s))
+            for r in range(min(2, len(lams))) for k, (i, s) in enumerate(plan)]
+
+
 def best_threshold_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int, int]], seed: int = 0,
                          runner: RayRunner | None = None, recipe: EnvRecipe | None = None,
                          progress: bool = True) -> ThresholdAgent:
     """`best_threshold` (module docstring): every rule of `threshold_rules` on the train episodes
-    of `plan` at every lambda of `lams`, pooled; the agent of the lowest mean cost (ties: the
-    first rule, shortest loop and lowest threshold first). Its `search` holds the figures."""
+    of `plan` (`threshold_episodes`: lambdas in turn); the agent of the lowest mean cost (ties:
+    the first rule, shortest loop and lowest threshold first). Its `search` holds the figures."""
     spec = EnvSpec.from_env(env)
     rules = threshold_rules(spec)
-    if not plan:
+    episodes = threshold_episodes(lams, plan)
+    if not episodes:
         raise ValueError("the best_threshold search needs at least one train episode")
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(lams) * len(plan), desc="best_threshold search", unit="ep", dynamic_ncols=True)
+        bar = tqdm(total=len(episodes), desc=f"best_threshold search ({len(rules)} rules)", unit="ep",
+                   dynamic_ncols=True)
     started = time.perf_counter()
-    rows: list[np.ndarray] = []
-    images: set[tuple[int, int]] = set()
     try:
-        recipe_ref = runner.put(recipe) if runner is not None else None
-        hparams = [r.hparams() for r in rules]
-        for lam in lams:
-            episodes = [({"episode": int(i), "lambda": float(lam), "episode_seed": int(s)}, acting_seed(s))
-                        for i, s in plan]
-            if runner is None:
-                parts = [search_players(env, rules, episodes, bar.update if bar is not None else None)]
-            else:
-                calls = [(recipe_ref, hparams, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
-                parts = runner.map(search_rules_chunk, calls,
-                                   (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
-            rows.append(np.concatenate([r for r, _ in parts]))
-            images.update((int(a), int(b)) for _, keys in parts for a, b in keys)
+        if runner is None:
+            parts = [search_players(env, rules, episodes, bar.update if bar is not None else None)]
+        else:
+            recipe_ref, hparams = runner.put(recipe), [r.hparams() for r in rules]
+            calls = [(recipe_ref, hparams, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
+            parts = runner.map(search_rules_chunk, calls,
+                               (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
     finally:
         if bar is not None:
             bar.close()
-    costs = np.concatenate(rows)
+    costs = np.concatenate([r for r, _ in parts])
     mean = costs.sum(axis=0) / len(costs)
     order = sorted(range(len(rules)), key=lambda j: round(float(mean[j]) / 1e-9))  # stable: ties keep rule order
     best = rules[order[0]]
     agent = ThresholdAgent(spec, **{**best.hparams(), "seed": int(seed)})
+    images = sorted({(int(a), int(b)) for _, keys in parts for a, b in keys})
     agent.search = {"rules": len(rules), "episodes": len(costs), "mean_cost": float(mean[order[0]]),
                     "runner_up": rules[order[1]].describe() if len(order) > 1 else None,
                     "runner_up_cost": float(mean[order[1]]) if len(order) > 1 else None,
-                    "seconds": time.perf_counter() - started, "images": [list(k) for k in sorted(images)]}
+                    "seconds": time.perf_counter() - started, "images": [list(k) for k in images]}
     return agent
 
 
