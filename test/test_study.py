@@ -137,6 +137,21 @@ def test_the_single_sequence_bar_is_counted_beside_best_static():
     assert "best_static_single" not in a["learned"]
 
 
+def test_the_threshold_rule_is_counted_beside_best_static():
+    """best_threshold (the searched threshold rule): its own k of N, its rule in the verdict; a
+    baseline, not a learned seed; the bar stays best_static."""
+    records, eps = _evaluation()
+    eps += _episodes("best_threshold", 0.5, [0.42] * 20, [1] * 20)
+    rule = "pick at pick_success >= 0.7, else regenerate > icp_point"
+    records += [{"agent": "best_threshold", "lambda": 0.5, "kind": "best_threshold", "rule": rule}]
+    a = analyse(records, eps, [f"pg:seed-{s}" for s in range(4)], seeds=range(4), resamples=500)
+    (c,) = a["comparisons"]
+    assert a["bar"]["name"] == "best_static" and c["k_beats"] == 2
+    # only seed 0 (0.40 s, every pick) is below 0.42 s without missing a pick
+    assert c["threshold"]["k_beats"] == 1 and c["threshold"]["sequence"] == rule
+    assert f"beats best_threshold ({rule}) in 1 of 4" in c["verdict"] and "best_threshold" not in a["learned"]
+
+
 def test_without_best_static_the_best_fixed_pipeline_is_the_bar_and_the_report_says_so():
     records, eps = _evaluation(with_best_static=False)
     a = analyse(records, eps, [f"pg:seed-{s}" for s in range(4)], resamples=200)
