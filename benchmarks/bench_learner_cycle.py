@@ -46,7 +46,14 @@ def build(learn_dir: Path, dataset: Path, frames: int, ground_truth: bool, seed:
     from perception_config.store.episode_store import STORE_NAME, StoreWriter, store_episode
     from perception_config.store.frames import save_frame
 
-    env = PerceptionConfigEnv(dataset, CELL, time_mode="cost_table", min_visib_fract=0.3)
+    from perception_config.blocks.pipeline import load_pipeline
+    from perception_config.rl.operators import InProcessOperators
+
+    # The blocks keep their time bounds, as in the cell that records such estimates (cost-table
+    # mode alone lifts them: an unbounded resting_pose search made the recording 16 s a frame).
+    pipeline = load_pipeline(CELL)
+    env = PerceptionConfigEnv(dataset, pipeline, time_mode="cost_table", min_visib_fract=0.3,
+                              operators=InProcessOperators(pipeline, time_bounded=True))
     agent = make_agent("fixed", env, sequence=["icp_fine", "pick", "next_candidate"])
     keys = sorted({(ek.scene_id, ek.im_id) for ek in env.source.episodes})
     writer = StoreWriter(learn_dir / STORE_NAME, print)
