@@ -5,7 +5,8 @@ or by ground truth.
 
 Builds a learn_dir as a cell without ground truth leaves it: `--frames` kept frames (the
 dataset's images under new stamps, as a cell sees its bin again; the frame ring's size, 300, by
-default), every object of each estimated by the fixed pipeline of the cell pipeline in-process,
+default), every object of each estimated by the fixed pipeline of the cell pipeline in-process
+(the blocks within their time bounds, as in the cell),
 its picks answered by an honest simulated robot (`pick_source` robot, frames without ground
 truth). Then times `learn_once` (the learner's cycle with the configurator's defaults: 200
 training episodes, up to 200 check episodes, both replayed) `--cycles` times in a row with one
@@ -40,14 +41,13 @@ def build(learn_dir: Path, dataset: Path, frames: int, ground_truth: bool, seed:
     from tqdm import tqdm
 
     from perception_config.agents import make_agent, save_agent
+    from perception_config.blocks.pipeline import load_pipeline
     from perception_config.online.policy_learner import FRAMES, POLICIES, PolicyVersions
     from perception_config.rl.env import PerceptionConfigEnv
     from perception_config.rl.episode_loop import acting_seed, play_episode
+    from perception_config.rl.operators import InProcessOperators
     from perception_config.store.episode_store import STORE_NAME, StoreWriter, store_episode
     from perception_config.store.frames import save_frame
-
-    from perception_config.blocks.pipeline import load_pipeline
-    from perception_config.rl.operators import InProcessOperators
 
     # The blocks keep their time bounds, as in the cell that records such estimates (cost-table
     # mode alone lifts them: an unbounded resting_pose search made the recording 16 s a frame).
