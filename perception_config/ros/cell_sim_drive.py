@@ -30,12 +30,14 @@ from .estimate_client import EstimateClient
 TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
 
 
-def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5, settle: float = 25.0) -> list[str]:
+def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5, settle: float = 45.0) -> list[str]:
     """The nodes of `names` on this ROS domain (another cell: a launch, a replay-check, a
     cell-sim): looked for during `wait` s of discovery; nodes seen must still be there after up to
     `settle` s (a cell that is stopping, e.g. a configurator waiting for its learner, leaves the
     graph within seconds; a process killed before it left stays announced for Fast DDS's lease
-    duration, 20 s). Two cells on one domain answer each other's requests."""
+    duration, 20 s, and its removal can come later still: with 25 s, a cell started right after
+    another cell-sim of the same process was refused for the first one's scoring node, in one
+    fresh-clone suite run of three). Two cells on one domain answer each other's requests."""
     def seen(seconds: float) -> set[str]:
         deadline = time.monotonic() + seconds
         found: set[str] = set()
