@@ -10,6 +10,7 @@ pick outcome as a robot program does.
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from collections import deque
 from typing import Callable
@@ -30,27 +31,39 @@ from .estimate_client import EstimateClient
 TRACE_WAIT_S = 2.0  # the trace is published before the answer is sent; it may arrive a moment after it
 
 
-def running_elsewhere(node: Node, names: tuple[str, ...], wait: float = 1.5, settle: float = 45.0) -> list[str]:
+def running_elsewhere(names: tuple[str, ...], wait: float = 2.0, settle: float = 45.0) -> list[str]:
     """The nodes of `names` on this ROS domain (another cell: a launch, a replay-check, a
     cell-sim): looked for during `wait` s of discovery; nodes seen must still be there after up to
     `settle` s (a cell that is stopping, e.g. a configurator waiting for its learner, leaves the
     graph within seconds; a process killed before it left stays announced for Fast DDS's lease
-    duration, 20 s, and its removal can come later still: with 25 s, a cell started right after
-    another cell-sim of the same process was refused for the first one's scoring node, in one
-    fresh-clone suite run of three). Two cells on one domain answer each other's requests."""
-    def seen(seconds: float) -> set[str]:
-        deadline = time.monotonic() + seconds
-        found: set[str] = set()
-        while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.1)
-            found |= {n for n in node.get_node_names() if n in names}
-        return found
+    duration, 20 s).
 
-    found = seen(wait)
-    deadline = time.monotonic() + settle
-    while found and time.monotonic() < deadline:
-        found = seen(0.5)
-    return sorted(found)
+    The graph is read by a participant of its own (a fresh rclpy context), not by this process's
+    long-lived one: that one's graph cache can keep a stopped node for good when the node's last
+    announcement arrives after its participant's removal (ros2/ros2#514), and a second cell-sim
+    run from one process was refused for the first one's nodes after they had exited. A fresh
+    participant learns only the participants alive now. Two cells on one domain answer each
+    other's requests."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node(f"cell_sim_graph_{os.getpid()}", context=context)
+    try:
+        def seen(seconds: float) -> set[str]:
+            deadline = time.monotonic() + seconds
+            found: set[str] = set()
+            while time.monotonic() < deadline:
+                time.sleep(0.1)
+                found |= {n for n in node.get_node_names() if n in names}
+            return found
+
+        found = seen(wait)
+        deadline = time.monotonic() + settle
+        while found and time.monotonic() < deadline:
+            found = seen(0.5)
+        return sorted(found)
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
 
 
 class CellNode:

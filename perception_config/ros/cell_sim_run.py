@@ -105,7 +105,7 @@ def run_phase(specs: list, out: Path, name: str, log: EstimateLog, *, quiet: boo
     log_dir = out / "logs" / name
     node = rclpy.create_node(f"cell_sim_{name}_{os.getpid()}")
     try:
-        clash = running_elsewhere(node, SERVICE_NODES)
+        clash = running_elsewhere(SERVICE_NODES)
         if clash:
             raise RuntimeError(f"{', '.join(clash)} already run on ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID')}: "
                                "another cell (a launch, a replay-check, a cell-sim) would answer this one's requests; "
