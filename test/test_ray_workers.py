@@ -88,6 +88,28 @@ def test_one_and_two_workers_give_the_same_bits(local_ray, pg_in_process, tmp_pa
         assert s1.query(query) == s2.query(query) and len(s2.query(query)) == len(agents) * 2 * 2
 
 
+def test_a_warm_start_searches_and_replays_on_the_workers_with_the_same_bits(local_ray, tmp_path_factory, tmp_path):
+    # The threshold teacher's search (rules as Ray tasks over chunks of episodes) and its replay.
+    kw = {"batch_episodes": 4, "warm_start": "threshold", "warm_start_episodes": 4}
+    runs = []
+    for workers in (1, 2):
+        out = tmp_path / f"ws{workers}"
+        train(tiny_dataset(tmp_path_factory), "pg", out, 4, settings=FAST, seed=3, workers=workers,
+              pipeline=pipeline_file(tmp_path_factory), progress=False, agent_kwargs=kw)
+        runs.append(out)
+    same_run(*runs)
+
+    def report(obj):  # the warm start's report in the checkpoint's metadata, without its seconds
+        if isinstance(obj, dict):
+            if isinstance(obj.get("warm_start"), dict) and "teacher" in obj["warm_start"]:
+                return {k: v for k, v in obj["warm_start"].items() if k != "seconds"}
+            return next((r for r in map(report, obj.values()) if r is not None), None)
+        return None
+
+    one, two = (report(read_file(r / CHECKPOINT)[0]) for r in runs)
+    assert one is not None and one == two and one["teacher"] == "threshold" and one["episodes_searched"] == 4
+
+
 def test_a_worker_killed_mid_round_is_retried_with_the_same_result(local_ray, pg_in_process, tmp_path_factory,
                                                                    tmp_path):
     killed: list[int] = []

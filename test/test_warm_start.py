@@ -71,7 +71,7 @@ def test_the_demonstrations_replay_the_searched_costs(tmp_path_factory):
     costs, _ = search_costs(env, seqs, plan)
     chosen = ws.teacher_sequences(seqs, costs, "hindsight", 10.0)
     teachers = {c: FixedAgent(spec, list(c), after="repeat") for c in set(chosen) if c is not None}
-    demos = ws._play(env, spec, [teachers.get(c) for c in chosen], plan, None, None)
+    demos = ws._play(env, [teachers.get(c) for c in chosen], plan, None, None)
     kept = [k for k, c in enumerate(chosen) if c is not None]
     assert kept and len(demos) == len(kept)
     for k, t in zip(kept, demos):  # cost-table time: the replay is charged the search's cost, bit for bit

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..agents.base import EnvRecipe, EnvSpec
 from ..agents.best_static import BestStaticAgent, SearchResult, search_costs, search_players, static_sequences
+from ..agents.fixed import FixedAgent
 from ..agents.threshold import ThresholdAgent, threshold_rules
 from ..rl.episode_loop import acting_seed
 from .ray_workers import RayRunner, chunks, worker_env
@@ -76,6 +77,30 @@ def search_rules_chunk(recipe: EnvRecipe, rules: Sequence[dict[str, Any]],
     return search_players(env, [ThresholdAgent(spec, **hp) for hp in rules], episodes)
 
 
+def search_rows(env: Any, players: Sequence[Any], episodes: Sequence[tuple[dict[str, Any], int]], *,
+                runner: RayRunner | None = None, recipe_ref: Any = None, task: Any = None, remote: Any = None,
+                bar: Any = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The (episodes, players) cost rows of a search and each episode's image: in this process
+    (`players`: agents, agents/best_static.search_players), or with `runner` as Ray tasks
+    `task(recipe, remote, chunk of episodes)` (`remote`: the players' picklable descriptions,
+    `recipe_ref`: the train env's recipe put in Ray), rows put together in episode order.
+    `bar`: a progress bar advanced per episode."""
+    if runner is None:
+        return search_players(env, players, episodes, bar.update if bar is not None else None)
+    calls = [(recipe_ref, remote, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
+    parts = runner.map(task, calls, (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
+    return np.concatenate([rows for rows, _ in parts]), [key for _, keys in parts for key in keys]
+
+
+def search_bar(total: int, desc: str, progress: bool) -> Any:
+    """The search's progress bar (tqdm), None without `progress`."""
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True)
+
+
 def threshold_episodes(lams: Sequence[float], plan: Sequence[tuple[int, int]]) -> list[tuple[dict[str, Any], int]]:
     """The best_threshold search's episodes: the plan's episodes twice (once with one lambda, so
     with two lambdas in all), the lambdas taken in turn: a rule for every lambda, searched on
@@ -96,30 +121,20 @@ def best_threshold_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[i
     episodes = threshold_episodes(lams, plan)
     if not episodes:
         raise ValueError("the best_threshold search needs at least one train episode")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(episodes), desc=f"best_threshold search ({len(rules)} rules)", unit="ep",
-                   dynamic_ncols=True)
+    bar = search_bar(len(episodes), f"best_threshold search ({len(rules)} rules)", progress)
     started = time.perf_counter()
     try:
-        if runner is None:
-            parts = [search_players(env, rules, episodes, bar.update if bar is not None else None)]
-        else:
-            recipe_ref, hparams = runner.put(recipe), [r.hparams() for r in rules]
-            calls = [(recipe_ref, hparams, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
-            parts = runner.map(search_rules_chunk, calls,
-                               (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
+        costs, keys = search_rows(env, rules, episodes, runner=runner, task=search_rules_chunk,
+                                  recipe_ref=runner.put(recipe) if runner is not None else None,
+                                  remote=[r.hparams() for r in rules], bar=bar)
     finally:
         if bar is not None:
             bar.close()
-    costs = np.concatenate([r for r, _ in parts])
     mean = costs.sum(axis=0) / len(costs)
     order = sorted(range(len(rules)), key=lambda j: round(float(mean[j]) / 1e-9))  # stable: ties keep rule order
     best = rules[order[0]]
     agent = ThresholdAgent(spec, **{**best.hparams(), "seed": int(seed)})
-    images = sorted({(int(a), int(b)) for _, keys in parts for a, b in keys})
+    images = sorted({(int(a), int(b)) for a, b in keys})
     agent.search = {"rules": len(rules), "episodes": len(costs), "mean_cost": float(mean[order[0]]),
                     "runner_up": rules[order[1]].describe() if len(order) > 1 else None,
                     "runner_up_cost": float(mean[order[1]]) if len(order) > 1 else None,
@@ -138,11 +153,8 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
     sequences = static_sequences(spec.action_names, spec.action_kinds, max_length)
     if not plan:
         raise ValueError("the best_static search needs at least one train episode")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(lams) * len(plan), desc="best_static search", unit="ep", dynamic_ncols=True)
+    bar = search_bar(len(lams) * len(plan), "best_static search", progress)
+    players = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences] if runner is None else []
     results: dict[float, SearchResult] = {}
     all_costs: list[np.ndarray] = []
     all_images: list[tuple[int, int]] = []
@@ -155,14 +167,8 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
             episodes = [({"episode": int(i), "lambda": float(lam), "episode_seed": int(s)}, acting_seed(s))
                         for i, s in plan]
             t0 = time.perf_counter()
-            if runner is None:
-                costs, images = search_costs(env, sequences, episodes, bar.update if bar is not None else None)
-            else:
-                calls = [(recipe_ref, sequences, episodes[lo:hi]) for lo, hi in chunks(len(episodes), 1, runner.cpus)]
-                parts = runner.map(search_chunk, calls,
-                                   (lambda _k, part: bar.update(len(part[1]))) if bar is not None else None)
-                costs = np.concatenate([rows for rows, _ in parts])
-                images = [key for _, keys in parts for key in keys]
+            costs, images = search_rows(env, players, episodes, runner=runner, recipe_ref=recipe_ref,
+                                        task=search_chunk, remote=sequences, bar=bar)
             results[lam] = SearchResult.from_costs(sequences, costs, max_length, time.perf_counter() - t0, images)
             all_costs.append(costs)
             all_images.extend(images)

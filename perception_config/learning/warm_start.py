@@ -38,13 +38,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..agents.base import Agent, EnvSpec
-from ..agents.best_static import rank, search_players, static_sequences
+from ..agents.base import Agent
+from ..agents.best_static import rank, static_sequences
 from ..agents.fixed import FixedAgent
 from ..agents.threshold import threshold_rules
 from ..rl.episode_loop import acting_seed, play_episode
 from ..rl.trajectory import Trajectory
-from .evaluation_best_static import search_chunk, search_rules_chunk
+from .evaluation_best_static import search_bar, search_chunk, search_rows, search_rules_chunk
 from .ray_workers import RayRunner, chunks, play_chunk, snapshot
 
 TEACHERS = ("best_static", "hindsight", "threshold")
@@ -82,7 +82,7 @@ def teacher_sequences(sequences: Sequence[Sequence[str]], costs: np.ndarray, tea
     return out
 
 
-def _play(env: Any, spec: EnvSpec, chosen: Sequence[Agent | None],
+def _play(env: Any, chosen: Sequence[Agent | None],
           plan: Sequence[tuple[dict[str, Any], int]], runner: RayRunner | None, recipe_ref: Any) -> list[Trajectory]:
     """Each plan episode played by its chosen teacher (None: not played), in plan order."""
     by_agent: dict[int, list[int]] = {}
@@ -108,27 +108,6 @@ def _play(env: Any, spec: EnvSpec, chosen: Sequence[Agent | None],
     return [out[k] for k in sorted(out)]
 
 
-def _search(env: Any, players: Any, plan: Sequence[tuple[dict[str, Any], int]], runner: RayRunner | None,
-            recipe_ref: Any, task: Any, desc: str, progress: bool) -> np.ndarray:
-    """The (episodes, players) cost rows of the search, in-process or as Ray tasks of `task`
-    over (recipe, players, episodes): `players` are agents in-process, their picklable
-    descriptions for the tasks."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(plan), desc=desc, unit="ep", dynamic_ncols=True)
-    try:
-        if runner is None:
-            return search_players(env, players, plan, bar.update if bar is not None else None)[0]
-        calls = [(recipe_ref, players, plan[lo:hi]) for lo, hi in chunks(len(plan), 1, runner.cpus)]
-        parts = runner.map(task, calls, (lambda _k, part: bar.update(len(part[1]))) if bar else None)
-        return np.concatenate([rows for rows, _ in parts])
-    finally:
-        if bar is not None:
-            bar.close()
-
-
 def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any, seed: int, *,
                runner: RayRunner | None = None, recipe_ref: Any = None, progress: bool = True) -> dict[str, Any]:
     """Search, replay the teacher's choices and let `learner` imitate them (module docstring).
@@ -149,8 +128,13 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
         sequences = static_sequences(spec.action_names, spec.action_kinds, MAX_LENGTH)
         local = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences]
         remote, task = sequences, search_chunk
-    costs = _search(env, local if runner is None else remote, plan, runner, recipe_ref, task,
-                    f"warm start: {teacher} search", progress)
+    bar = search_bar(len(plan), f"warm start: {teacher} search", progress)
+    try:
+        costs = search_rows(env, local, plan, runner=runner, recipe_ref=recipe_ref, task=task, remote=remote,
+                            bar=bar)[0]
+    finally:
+        if bar is not None:
+            bar.close()
     taught: dict[str, int] = {}
     if teacher == "threshold":
         mean = costs.sum(axis=0) / len(costs)
@@ -167,7 +151,7 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
             if seq is not None:
                 taught[" ".join(seq)] = taught.get(" ".join(seq), 0) + 1
         extra = {"max_length": MAX_LENGTH}
-    demos = _play(env, spec, chosen, plan, runner, recipe_ref)
+    demos = _play(env, chosen, plan, runner, recipe_ref)
     if teacher == "hindsight":
         demos = [t for t in demos if t.success]
     if not demos:
