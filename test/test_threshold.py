@@ -73,10 +73,12 @@ def test_the_rules_searched():
     loops = {tuple(r.loop) for r in rules}
     assert len(loops) == 9 and ("icp", "icp") not in loops and ("regenerate", "icp") in loops
     assert len(rules) == 9 * len(THRESHOLDS)
-    # without it: the pipeline's first score
+    # without it: each of the pipeline's scores (a rule's own default is the first)
     plain = EnvSpec(SPEC.action_names, SPEC.action_kinds, ("score:psi_d", "score:psi_c", "missing:psi_d",
                                                            "missing:psi_c"), 6)
-    assert {r.score for r in threshold_rules(plain)} == {"psi_d"}
+    searched = threshold_rules(plain)
+    assert [r.score for r in searched[::9 * len(THRESHOLDS)]] == ["psi_d", "psi_c"] and len(searched) == 2 * len(rules)
+    assert ThresholdAgent(plain, loop=["icp"]).score == "psi_d"
 
 
 def test_search_cost_is_the_rules_played_cost_bit_for_bit(tmp_path_factory):

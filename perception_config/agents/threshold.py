@@ -22,7 +22,8 @@ where it comes. When no loop action can run, the rule picks; when the pick canno
 final-pick rule makes the last of `max_ops` operations a pick whatever the rule says.
 
 The warm start's `threshold` teacher (learning/warm_start.py) searches the rules of THRESHOLDS x
-every loop of 1..MAX_LOOP non-pick actions (`threshold_rules`) on train episodes, with the same
+every loop of 1..MAX_LOOP non-pick actions (`threshold_rules`; x every score where the pipeline has
+no pick-success score) on train episodes, with the same
 prefix-shared search as best_static (agents/best_static.py: `search_players`), and teaches the
 cheapest.
 """
@@ -110,13 +111,17 @@ def threshold_rules(spec: EnvSpec, thresholds: Sequence[float] = THRESHOLDS,
                     max_loop: int = MAX_LOOP) -> list[ThresholdAgent]:
     """Every rule of the search (module docstring): thresholds x loops of 1..max_loop non-pick
     actions (shortest loops first, in the pipeline's order), on the pick-success score; a
-    pipeline without it: on its first score (uncalibrated, mapped to [0, 1])."""
-    score = ThresholdAgent(spec, None, loop=[n for n, k in zip(spec.action_names, spec.action_kinds)
-                                             if k != "pick"][:1]).score
+    pipeline without it: on each of its scores in turn (uncalibrated, in [0, 1]: which one tells
+    a pickable pose best is what the search finds out)."""
+    scores = _scores(spec)
+    if DEFAULT_SCORE in scores or not scores:
+        scores = [ThresholdAgent(spec, None, loop=[n for n, k in zip(spec.action_names, spec.action_kinds)
+                                                   if k != "pick"][:1]).score]
     refiners = [n for n, k in zip(spec.action_names, spec.action_kinds) if k != "pick"]
     loops = [loop for length in range(1, int(max_loop) + 1) for loop in itertools.product(refiners, repeat=length)
              if not _repeats_shorter(loop)]
-    return [ThresholdAgent(spec, score, float(t), list(loop)) for loop in loops for t in thresholds]
+    return [ThresholdAgent(spec, score, float(t), list(loop)) for score in scores for loop in loops
+            for t in thresholds]
 
 
 def _scores(spec: EnvSpec) -> list[str]:
