@@ -52,13 +52,8 @@ class ThresholdAgent(Agent):
     def __init__(self, spec: EnvSpec, score: str | None = None, threshold: float = 0.8,
                  loop: Sequence[str] | None = None, seed: int = 0) -> None:
         super().__init__(spec, seed)
-        scores = _scores(spec)
-        if score is None:  # the pick-success score where the pipeline has it, else its first score
-            score = DEFAULT_SCORE if DEFAULT_SCORE in scores or not scores else scores[0]
-        score = str(score)
+        score = scored_by(spec, score)
         key = f"score:{score}"
-        if key not in spec.observation_layout:
-            raise ValueError(f"threshold rule: the pipeline scores no {score!r}; its scores are {scores}")
         if not spec.pick_actions:
             raise ValueError("threshold rule: the pipeline has no pick action")
         if not 0.0 <= float(threshold) <= 1.0:
@@ -110,18 +105,31 @@ class ThresholdAgent(Agent):
 def threshold_rules(spec: EnvSpec, thresholds: Sequence[float] = THRESHOLDS,
                     max_loop: int = MAX_LOOP) -> list[ThresholdAgent]:
     """Every rule of the search (module docstring): thresholds x loops of 1..max_loop non-pick
-    actions (shortest loops first, in the pipeline's order), on the pick-success score; a
-    pipeline without it: on each of its scores in turn (uncalibrated, in [0, 1]: which one tells
-    a pickable pose best is what the search finds out)."""
-    scores = _scores(spec)
-    if DEFAULT_SCORE in scores or not scores:
-        scores = [ThresholdAgent(spec, None, loop=[n for n, k in zip(spec.action_names, spec.action_kinds)
-                                                   if k != "pick"][:1]).score]
+    actions (shortest loops first, in the pipeline's order), on each of `searched_scores`."""
     refiners = [n for n, k in zip(spec.action_names, spec.action_kinds) if k != "pick"]
     loops = [loop for length in range(1, int(max_loop) + 1) for loop in itertools.product(refiners, repeat=length)
              if not _repeats_shorter(loop)]
-    return [ThresholdAgent(spec, score, float(t), list(loop)) for score in scores for loop in loops
+    return [ThresholdAgent(spec, score, float(t), list(loop)) for score in searched_scores(spec) for loop in loops
             for t in thresholds]
+
+
+def scored_by(spec: EnvSpec, score: str | None = None) -> str:
+    """The score a rule reads: `score`, checked against the pipeline's; None: the pick-success
+    score where the pipeline has it, else its first score."""
+    scores = _scores(spec)
+    if score is None:
+        score = DEFAULT_SCORE if DEFAULT_SCORE in scores or not scores else scores[0]
+    if f"score:{score}" not in spec.observation_layout:
+        raise ValueError(f"threshold rule: the pipeline scores no {score!r}; its scores are {scores}")
+    return str(score)
+
+
+def searched_scores(spec: EnvSpec) -> list[str]:
+    """The scores a search tries: the pick-success score where the pipeline has it, else each of
+    its scores in turn (uncalibrated, in [0, 1]: which one tells a pickable pose best is what the
+    search finds out)."""
+    scores = _scores(spec)
+    return [scored_by(spec)] if DEFAULT_SCORE in scores or not scores else scores
 
 
 def _scores(spec: EnvSpec) -> list[str]:

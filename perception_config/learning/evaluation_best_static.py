@@ -38,6 +38,7 @@ import numpy as np
 from ..agents.base import EnvRecipe, EnvSpec
 from ..agents.best_static import BestStaticAgent, SearchResult, search_costs, search_players, static_sequences
 from ..agents.fixed import FixedAgent
+from ..agents.registry import AGENTS
 from ..agents.threshold import ThresholdAgent, threshold_rules
 from ..rl.episode_loop import acting_seed
 from .ray_workers import RayRunner, chunks, worker_env
@@ -69,12 +70,12 @@ def search_chunk(recipe: EnvRecipe, sequences: Sequence[Sequence[str]],
     return search_costs(env, sequences, episodes)
 
 
-def search_rules_chunk(recipe: EnvRecipe, rules: Sequence[dict[str, Any]],
+def search_rules_chunk(recipe: EnvRecipe, rules: Sequence[tuple[str, dict[str, Any]]],
                        episodes: Sequence[tuple[dict[str, Any], int]]) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """A Ray task: the cost rows of some search episodes for the threshold rules (their hparams)
-    in the worker's train env."""
+    """A Ray task: the cost rows of some search episodes for deterministic rules given as (agent
+    kind, hparams) (the threshold rules) in the worker's train env."""
     env, spec = worker_env(recipe)
-    return search_players(env, [ThresholdAgent(spec, **hp) for hp in rules], episodes)
+    return search_players(env, [AGENTS[kind](spec, **hp) for kind, hp in rules], episodes)
 
 
 def search_rows(env: Any, players: Sequence[Any], episodes: Sequence[tuple[dict[str, Any], int]], *,
@@ -126,7 +127,7 @@ def best_threshold_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[i
     try:
         costs, keys = search_rows(env, rules, episodes, runner=runner, task=search_rules_chunk,
                                   recipe_ref=runner.put(recipe) if runner is not None else None,
-                                  remote=[r.hparams() for r in rules], bar=bar)
+                                  remote=[(r.kind, r.hparams()) for r in rules], bar=bar)
     finally:
         if bar is not None:
             bar.close()

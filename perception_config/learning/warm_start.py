@@ -123,7 +123,7 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
     plan = demonstration_plan(train_idx, int(learner.warm_start_episodes), settings.lambda_range, seed)
     if teacher == "threshold":
         rules = threshold_rules(spec)
-        local, remote, task = rules, [r.hparams() for r in rules], search_rules_chunk
+        local, remote, task = rules, [(r.kind, r.hparams()) for r in rules], search_rules_chunk
     else:
         sequences = static_sequences(spec.action_names, spec.action_kinds, MAX_LENGTH)
         local = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences]
