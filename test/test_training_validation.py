@@ -229,3 +229,16 @@ def test_agent_params_from_the_command_line_are_checked_against_the_agents_bound
                       (["novalue"], "expected KEY=VALUE")):
         with pytest.raises(ValueError, match=says):
             agent_params("pg", bad)
+
+
+def test_the_recipe_warm_starts_where_the_pipeline_scores_the_pick_success_probability():
+    from perception_config.cli.train import RECIPES, SCORED_RECIPES, recipe_params
+
+    scored = recipe_params("pg", None, "pick_success")
+    assert scored == SCORED_RECIPES["pg"] and scored["warm_start"] == "threshold"
+    for plain in ("default", "cell", None):  # no calibrated score for the rule to read
+        assert recipe_params("pg", None, plain) == RECIPES["pg"] and "warm_start" not in RECIPES["pg"]
+    # an --agent-param wins over the recipe; agents without a recipe get only theirs
+    assert recipe_params("pg", ["warm_start=none", "lr=0.02"], "pick_success") == {**scored, "warm_start": "none",
+                                                                                  "lr": 0.02}
+    assert recipe_params("es", None, "pick_success") == {}

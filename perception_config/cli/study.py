@@ -37,7 +37,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
         restarts=args.restarts, episodes=args.episodes, eval_episodes=args.eval_episodes, lambdas=lambdas,
         workers=args.workers, ray_address=args.ray_address,
         cost_table=args.cost_table, validation_fraction=args.validation_fraction,
-        agent_kwargs=recipe_params(args.agent, args.agent_param), eval_seed=args.eval_seed, use_depth=args.use_depth,
+        agent_kwargs=recipe_params(args.agent, args.agent_param, args.pipeline), eval_seed=args.eval_seed,
+        use_depth=args.use_depth,
         evaluate_kwargs={k: v for k, v in (("best_static_length", args.best_static_length),
                                            ("best_static_episodes", args.best_static_episodes)) if v is not None},
         progress=not args.quiet, command=_command(args))

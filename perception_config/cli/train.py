@@ -14,17 +14,30 @@ from ..rl.settings import CALIBRATION_EPISODES, TIME_MODES, EnvSettings
 from .args import add_dataset_args, add_ray_args
 from .notices import rgb_only_warning, warn
 
-# The recipe that measured best (docs/results/learning.md): pg with more entropy early and a
-# learning rate that halves every 2000 episodes, the validation-best policy shipped. An
-# --agent-param of the same name wins; --validation-fraction 0 ships the last policy.
+# The recipe that measured best (docs/results/configurator.md): pg with more entropy early and a
+# learning rate that halves every 2000 episodes, the validation-best policy shipped; on a pipeline
+# that scores the pick-success probability, first a warm start from the best threshold rule
+# (searched on 48 train episodes) and then a gentler rate that keeps what the imitation learned
+# (800 episodes are enough: the demo's). An --agent-param of the same name wins;
+# --validation-fraction 0 ships the last policy.
 RECIPES: dict[str, dict[str, Any]] = {"pg": {"entropy_coef": 0.05, "lr_half_life": 2000.0}}
+SCORED_RECIPES: dict[str, dict[str, Any]] = {"pg": {"entropy_coef": 0.01, "lr": 0.005, "lr_half_life": 2000.0,
+                                                    "warm_start": "threshold", "warm_start_episodes": 48}}
+SCORE_OF_SCORED_RECIPES = "pick_success"
 LEARNING_AGENTS = ("pg", "es", "simple")
 RECIPE_VALIDATION_FRACTION = 0.2
 
 
-def recipe_params(agent: str, items: list[str] | None) -> dict[str, Any]:
-    """The agent's hyper-parameters of a command-line run: the recipe (RECIPES), then --agent-param."""
-    return {**RECIPES.get(agent, {}), **agent_params(agent, items)}
+def recipe_params(agent: str, items: list[str] | None, pipeline: str | None = None) -> dict[str, Any]:
+    """The agent's hyper-parameters of a command-line run: the recipe (SCORED_RECIPES where the
+    pipeline scores the pick-success probability, else RECIPES), then --agent-param."""
+    recipes = RECIPES
+    if agent in SCORED_RECIPES:
+        from ..blocks.pipeline import load_pipeline
+
+        if SCORE_OF_SCORED_RECIPES in load_pipeline(pipeline).score_names:
+            recipes = SCORED_RECIPES
+    return {**recipes.get(agent, {}), **agent_params(agent, items)}
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -43,7 +56,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     if args.seeds > 1 and args.validation_fraction <= 0:  # before the cost model is measured
         raise ValueError("seed selection compares the runs' validation costs: validation_fraction must be > 0")
-    agent_kwargs = recipe_params(args.agent, args.agent_param)
+    agent_kwargs = recipe_params(args.agent, args.agent_param, args.pipeline)
     note = rgb_only_warning(args.dataset, args.pipeline, use_depth=args.use_depth)
     if note:  # once, before the calibration and the episodes that play without those actions
         warn(note)
@@ -192,7 +205,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--agent-param", action="append", metavar="KEY=VALUE",
                     help="an agent hyper-parameter (repeatable), e.g. pg's entropy_coef=0.02 batch_episodes=16 "
                          "warm_start=threshold gae_lambda=0.8; "
-                         "over the recipe's (pg: entropy_coef=0.05 lr_half_life=2000) "
+                         "over the recipe's (pg: entropy_coef=0.05 lr_half_life=2000; on a pipeline scoring "
+                         "pick_success: warm_start=threshold warm_start_episodes=48 lr=0.005 entropy_coef=0.01 "
+                         "lr_half_life=2000) "
                          "(checked against the agent's bounds; ignored by --resume, which keeps the checkpoint's)")
     tr.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     tr.add_argument("--overwrite", action="store_true", help="start again over an existing run in --out")
