@@ -30,6 +30,7 @@ driver, so the choice is the same bits for 1 and N workers).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any, Sequence
 
@@ -94,9 +95,10 @@ def search_rows(env: Any, players: Sequence[Any], episodes: Sequence[tuple[dict[
 
 
 def search_bar(total: int, desc: str, progress: bool) -> Any:
-    """The search's progress bar (tqdm), None without `progress`."""
+    """The search's progress bar as a context (tqdm, closed on leaving); without `progress` a
+    context that gives None."""
     if not progress:
-        return None
+        return contextlib.nullcontext(None)
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True)
@@ -122,15 +124,11 @@ def best_threshold_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[i
     episodes = threshold_episodes(lams, plan)
     if not episodes:
         raise ValueError("the best_threshold search needs at least one train episode")
-    bar = search_bar(len(episodes), f"best_threshold search ({len(rules)} rules)", progress)
     started = time.perf_counter()
-    try:
+    with search_bar(len(episodes), f"best_threshold search ({len(rules)} rules)", progress) as bar:
         costs, keys = search_rows(env, rules, episodes, runner=runner, task=search_rules_chunk,
                                   recipe_ref=runner.put(recipe) if runner is not None else None,
                                   remote=[(r.kind, r.hparams()) for r in rules], bar=bar)
-    finally:
-        if bar is not None:
-            bar.close()
     mean = costs.sum(axis=0) / len(costs)
     order = sorted(range(len(rules)), key=lambda j: round(float(mean[j]) / 1e-9))  # stable: ties keep rule order
     best = rules[order[0]]
@@ -154,14 +152,13 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
     sequences = static_sequences(spec.action_names, spec.action_kinds, max_length)
     if not plan:
         raise ValueError("the best_static search needs at least one train episode")
-    bar = search_bar(len(lams) * len(plan), "best_static search", progress)
     players = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences] if runner is None else []
     results: dict[float, SearchResult] = {}
     all_costs: list[np.ndarray] = []
     all_images: list[tuple[int, int]] = []
     started = time.perf_counter()
-    try:
-        recipe_ref = runner.put(recipe) if runner is not None else None
+    recipe_ref = runner.put(recipe) if runner is not None else None
+    with search_bar(len(lams) * len(plan), "best_static search", progress) as bar:
         for lam in lams:
             if bar is not None:
                 bar.set_postfix_str(f"lambda={lam:g} {len(sequences)} sequences")
@@ -173,9 +170,6 @@ def best_static_agent(env: Any, lams: Sequence[float], plan: Sequence[tuple[int,
             results[lam] = SearchResult.from_costs(sequences, costs, max_length, time.perf_counter() - t0, images)
             all_costs.append(costs)
             all_images.extend(images)
-    finally:
-        if bar is not None:
-            bar.close()
     agent = BestStaticAgent(spec, {lam: r.sequence for lam, r in results.items()}, seed=seed)
     agent.search = results
     # the same costs pooled over the lambdas (rows in lambda order): one sequence for all of them

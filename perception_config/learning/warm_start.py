@@ -128,13 +128,9 @@ def warm_start(learner: Agent, env: Any, train_idx: Sequence[int], settings: Any
         sequences = static_sequences(spec.action_names, spec.action_kinds, MAX_LENGTH)
         local = [FixedAgent(spec, list(seq), after="repeat") for seq in sequences]
         remote, task = sequences, search_chunk
-    bar = search_bar(len(plan), f"warm start: {teacher} search", progress)
-    try:
+    with search_bar(len(plan), f"warm start: {teacher} search", progress) as bar:
         costs = search_rows(env, local, plan, runner=runner, recipe_ref=recipe_ref, task=task, remote=remote,
                             bar=bar)[0]
-    finally:
-        if bar is not None:
-            bar.close()
     taught: dict[str, int] = {}
     if teacher == "threshold":
         mean = costs.sum(axis=0) / len(costs)
