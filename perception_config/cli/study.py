@@ -4,9 +4,9 @@ EVAL_DIR` prints the one-line verdict of an evaluation folder's agent instead.""
 from __future__ import annotations
 
 import argparse
-import signal
 from pathlib import Path
 
+from ..util.stop_signals import arm_interrupt_once
 from .args import add_ray_args
 from .notices import rgb_only_warning, warn
 
@@ -24,7 +24,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from .train import recipe_params
 
     # As train: Ctrl-C stops the study with its work saved, also when started with SIGINT ignored.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    arm_interrupt_once()
     try:
         lambdas = [float(x) for x in args.lambdas.split(",") if x.strip()]
     except ValueError:

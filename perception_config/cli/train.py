@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 from pathlib import Path
 from typing import Any
 
 # Light imports only (numpy): the command imports the rest it needs.
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, DEFAULT_VALIDATE_EVERY
 from ..rl.settings import CALIBRATION_EPISODES, TIME_MODES, EnvSettings
+from ..util.stop_signals import arm_interrupt_once
 from .args import add_dataset_args, add_ray_args
 from .notices import rgb_only_warning, warn
 
@@ -45,7 +45,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     # Also when started with SIGINT ignored (a background job of a script inherits that): Ctrl-C
     # and `kill -INT` must stop the run with its work saved. SIGHUP ignored (nohup) stays ignored.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    arm_interrupt_once()
     if args.validation_fraction is None:
         args.validation_fraction = RECIPE_VALIDATION_FRACTION if args.agent in LEARNING_AGENTS else 0.0
     lambda_range = tuple(args.lambda_range) if args.lambda_range else None

@@ -6,7 +6,9 @@ raise `Interrupted` at once. Everywhere else (a learning step, writing files) si
 recorded and the job checks `received` when it is safe: a second Ctrl-C during a save never
 aborts the save. A signal whose disposition is SIG_IGN when installing is left ignored (`nohup`
 sets SIGHUP so); a command that must react to SIGINT even when started as a background job of
-a script (which inherits SIGINT ignored) restores it first, as `perception-config train` does.
+a script (which inherits SIGINT ignored) installs `interrupt_once` first, as `perception-config
+train` does: once a stop is on its way out (the job saved its work and raised StopRequested), one
+more Ctrl-C is dropped rather than replacing the stop with death by SIGINT.
 
 Exit codes (128 + the signal number, the shell's convention): 130 SIGINT, 143 SIGTERM, 129 SIGHUP.
 """
@@ -18,6 +20,7 @@ import threading
 from typing import Any, Iterator
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_stop_on_its_way = False  # a stop was raised: further SIGINTs to `interrupt_once` are dropped
 
 
 class Interrupted(BaseException):
@@ -67,6 +70,8 @@ class StopSignals:
             yield self
         finally:
             self._armed = False
+            if self.received:  # the job stops: the handlers restored below must not raise over it
+                _mark_stop_on_its_way()
             for sig, previous in self._previous.items():
                 signal.signal(sig, previous if previous is not None else signal.SIG_DFL)
             self._previous = {}
@@ -87,3 +92,27 @@ class StopSignals:
         if self._armed:
             self._armed = False
             raise Interrupted
+
+
+def arm_interrupt_once() -> None:
+    """Make SIGINT raise KeyboardInterrupt (also when the process started with it ignored), through
+    `interrupt_once`."""
+    global _stop_on_its_way
+    _stop_on_its_way = False
+    signal.signal(signal.SIGINT, interrupt_once)
+
+
+def interrupt_once(signum: int, frame: Any) -> None:
+    """SIGINT handler of a command: the first Ctrl-C raises KeyboardInterrupt; once a stop is on
+    its way out (raised here, or by a job under `StopSignals` that a signal stopped), further ones
+    are dropped. Python runs a handler between any two bytecodes, also in the `except` clause that
+    reports the stop: a second KeyboardInterrupt raised there would end the process by SIGINT."""
+    if _stop_on_its_way:
+        return
+    _mark_stop_on_its_way()
+    raise KeyboardInterrupt
+
+
+def _mark_stop_on_its_way() -> None:
+    global _stop_on_its_way
+    _stop_on_its_way = True
