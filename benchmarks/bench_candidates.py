@@ -38,8 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.blocks.base import BlockInput, create  # noqa: E402
-from perception_config.core.metrics import pose_mssd  # noqa: E402
+from perception_config.blocks.base import create  # noqa: E402
 from perception_config.util.atomic_file import atomic_write  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "lmo"
@@ -65,39 +64,21 @@ def frames_of(root: Path, test_split: bool) -> list:
 
 
 def pipeline_params(pipeline: str | None) -> dict[str, dict]:
-    """Each generator's parameters as `pipeline` sets them (its generator and actions, by block
-    name; the first wins), e.g. the cell's ppf at 1 s; {} without a pipeline (the defaults)."""
-    if not pipeline:
-        return {}
+    """Each generator's parameters as `pipeline` sets them (bench/generators.py); {} without one."""
+    from perception_config.bench.generators import pipeline_params as params_of
     from perception_config.blocks.pipeline import load_pipeline
 
-    pipe = load_pipeline(pipeline)
-    params: dict[str, dict] = {}
-    for block in [pipe.generator] + [a.block for a in pipe.actions]:
-        params.setdefault(block.name, dict(block.config))
-    return params
+    return params_of(load_pipeline(pipeline)) if pipeline else {}
 
 
 def evaluate(name: str, frames: list, min_visib: float, confident: float, params: dict | None = None) -> list[dict]:
-    block = create(name, **(params or {}))
-    rows = []
-    for frame in frames:
-        cache: dict = {}
-        for o in frame.objects:
-            if o.gt is None or o.model is None or (o.visib_fract is not None and o.visib_fract < min_visib):
-                continue
-            r = block(BlockInput(frame=frame, model=o.model, rng=np.random.default_rng(0), cache=cache))
-            d = o.model.diameter
-            cands = r.candidates
-            errors = [pose_mssd(p, o.gt, o.model) / d for _, p in cands]
-            first = next((k for k, e in enumerate(errors) if e <= 0.1), -1)
-            top_conf = float(cands[0][0]) if cands else 0.0
-            rows.append({
-                "scene_id": frame.scene_id, "im_id": frame.im_id, "obj_id": o.obj_id, "visib_fract": o.visib_fract,
-                "ok": r.ok, "rank": first, "top1_mssd_d": errors[0] if errors else None, "top1_confidence": top_conf,
-                "confident_wrong": bool(cands and top_conf >= confident and errors[0] > 0.3),
-                "seconds": r.elapsed, "reason": r.reason,
-            })
+    """bench/generators.py's rows, with the declared symmetries' figures under this file's keys."""
+    from perception_config.bench.generators import generator_rows
+
+    rows = generator_rows(name, frames, params, min_visib, confident)
+    for r in rows:
+        r.update(rank=r["rank_declared"], top1_mssd_d=r["top1_mssd_d_declared"],
+                 confident_wrong=r["confident_wrong_declared"])
     return rows
 
 

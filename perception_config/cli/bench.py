@@ -1,5 +1,5 @@
-"""`perception-config bench blocks | convergence | real`: benchmarks of the building blocks, on one
-core."""
+"""`perception-config bench blocks | convergence | real | generators`: benchmarks of the building
+blocks, on one core."""
 from __future__ import annotations
 
 import argparse
@@ -54,6 +54,23 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_generators(args: argparse.Namespace) -> int:
+    one_core()
+    from ..bench.generators import bench_generators, format_generators, save_generators
+    from ..blocks.pipeline import load_pipeline
+
+    generators = [g for g in args.generators.split(",") if g]
+    if not generators:
+        raise ValueError("--generators: name at least one generation block")
+    result = bench_generators(args.dataset, generators, load_pipeline(args.pipeline) if args.pipeline else None,
+                              n_frames=args.frames, min_visib=args.min_visib, confident=args.confident,
+                              split=args.split, use_depth=args.use_depth, seed=args.seed, progress=not args.quiet)
+    paths = save_generators(result, args.out)
+    print(format_generators(result))
+    print(f"wrote {paths[0]} and {paths[1]}")
+    return 0
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     be = sub.add_parser("bench", help="benchmarks of the building blocks (one core)")
     besub = be.add_subparsers(dest="bench_command", required=True)
@@ -93,3 +110,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--split", default="test")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=_cmd_bench_real)
+    c = besub.add_parser("generators", help="the generators' ranked candidates against the annotations: top-1, "
+                                            "top-5 and confident wrong, per object, with declared and derived "
+                                            "symmetries")
+    add_dataset_args(c)
+    c.add_argument("--out", type=Path, required=True,
+                   help="folder for generators.json and generators.png, or a .json file")
+    c.add_argument("--generators", default="resting_pose,ppf,global_registration",
+                   help="comma-separated generation blocks (default: the cell's three)")
+    c.add_argument("--pipeline", default=None,
+                   help="run each generator with the parameters this pipeline gives it (YAML, or a shipped name, "
+                        "e.g. cell); default: the blocks' own defaults")
+    c.add_argument("--frames", type=int, default=None, help="number of images to use (default: all)")
+    c.add_argument("--min-visib", type=float, default=0.0, help="smallest visib_fract of an object")
+    c.add_argument("--confident", type=float, default=0.5,
+                   help="a first candidate's confidence from which a wrong answer counts as confidently wrong")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--split", default="test")
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=_cmd_bench_generators)

@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from .geometry import Pose
 from .models import ObjectModel
 from .render import projected_box, render
-from .symmetry import symmetries_from_info
+from .symmetry import DEFAULT_SYM_TOLERANCE, declared_or_derived_symmetries, symmetries_from_info
 
 # BOP 2019+ evaluation settings, converted to metres where they carry a unit.
 VSD_DELTA = 0.015  # m: tolerance of the visibility test (BOP: 15 mm)
@@ -323,6 +323,37 @@ def pose_mssd(est: Pose, gt: Pose, model: ObjectModel) -> float:
     return mssd(est.R, est.t, gt.R, gt.t, model.hull_points, eval_symmetries(model))
 
 
+_DERIVED_SYMS: "weakref.WeakKeyDictionary[ObjectModel, dict[tuple[float, float], list[Pose]]]" = (
+    weakref.WeakKeyDictionary())
+_DERIVED_SYMS_LOCK = threading.Lock()
+
+
+def derived_eval_symmetries(model: ObjectModel, tolerance: float = DEFAULT_SYM_TOLERANCE,
+                            max_sym_disc_step: float = MAX_SYM_DISC_STEP) -> list[Pose]:
+    """The symmetries to evaluate errors with when near-symmetries count: those the model
+    declares (as `eval_symmetries` samples them) if it declares any, else those derived from its
+    surface (core/symmetry.py: declared_or_derived_symmetries, within tolerance x diameter;
+    a continuous one sampled as finely as `eval_symmetries` samples declared ones). Cached per
+    model and settings."""
+    if len(model.symmetries) > 1:
+        return eval_symmetries(model, max_sym_disc_step)
+    key = (float(tolerance), float(max_sym_disc_step))
+    with _DERIVED_SYMS_LOCK:
+        per_model = _DERIVED_SYMS.setdefault(model, {})
+        if key not in per_model:
+            steps = int(math.ceil(math.pi / max_sym_disc_step))
+            per_model[key] = declared_or_derived_symmetries(model, tolerance, cont_step_deg=360.0 / steps)
+        return per_model[key]
+
+
+def pose_mssd_derived(est: Pose, gt: Pose, model: ObjectModel, tolerance: float = DEFAULT_SYM_TOLERANCE) -> float:
+    """MSSD (m) as `pose_mssd`, but over the symmetries the model declares or, declaring none,
+    over those derived from its geometry (`derived_eval_symmetries`): a 180-degree flip of a
+    nearly symmetric box scores about its asymmetry here (at most ~tolerance x diameter), not
+    the box's size as in `pose_mssd` (which the simulated pick keeps)."""
+    return mssd(est.R, est.t, gt.R, gt.t, model.hull_points, derived_eval_symmetries(model, tolerance))
+
+
 def pose_errors(
     est: Pose,
     gt: Pose,
@@ -403,7 +434,7 @@ def average_recall_vsd(errors: Sequence[Sequence[float]] | np.ndarray,
 
 __all__ = [
     "add", "adi", "mssd", "mspd", "re", "te", "vsd", "depth_to_distance", "eval_symmetries", "pose_mssd",
-    "pose_errors",
+    "derived_eval_symmetries", "pose_mssd_derived", "pose_errors",
     "recall", "average_recall_mssd", "average_recall_mspd", "average_recall_vsd",
     "VSD_DELTA", "VSD_TAUS", "VSD_THRESHOLDS", "MSSD_THRESHOLDS", "MSPD_THRESHOLDS", "MAX_SYM_DISC_STEP",
 ]
