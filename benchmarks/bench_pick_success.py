@@ -34,8 +34,9 @@ from perception_config.blocks.features import pick_features  # noqa: E402
 from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model  # noqa: E402
 from perception_config.core.geometry import perturb  # noqa: E402
 from perception_config.core.metrics import pose_mssd  # noqa: E402
+from perception_config.core.score_metrics import auc, score_metrics  # noqa: E402
 from perception_config.datasets.bop import BopDataset  # noqa: E402
-from perception_config.learning.pick_success_fit import auc, plot_reliability, score_metrics  # noqa: E402
+from perception_config.learning.pick_success_fit import plot_reliability  # noqa: E402
 from perception_config.util.atomic_file import atomic_write  # noqa: E402
 from perception_config.vision.pick_features import FEATURE_NAMES  # noqa: E402
 

@@ -41,8 +41,8 @@ if str(REPO) not in sys.path:
 
 from perception_config.agents import make_agent  # noqa: E402
 from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model, resolve_model_path  # noqa: E402
+from perception_config.core.score_metrics import score_metrics  # noqa: E402
 from perception_config.learning.pick_success_data import featurise  # noqa: E402
-from perception_config.learning.pick_success_fit import score_metrics  # noqa: E402
 from perception_config.online.score_learner import format_score_result, refit_score_once, score_versions  # noqa: E402
 from perception_config.rl.env import PerceptionConfigEnv  # noqa: E402
 from perception_config.rl.episode_loop import acting_seed, play_episode  # noqa: E402

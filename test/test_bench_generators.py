@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from perception_config.bench.generators import bench_generators, format_generators, judge_candidates
+from perception_config.bench.generators import bench_generators, format_generators, judge_candidates, verifier_figures
 from perception_config.blocks.base import GROUND_TRUTH, MODEL, Block, BlockInput, BlockResult, Kind, register
 from perception_config.cli import main
 from perception_config.core.geometry import Pose
@@ -70,7 +70,7 @@ def test_a_flip_of_a_box_that_declares_no_symmetry_is_wrong_to_bop_and_right_for
     assert judge_candidates([], obj) == {"candidates": 0, "top1_confidence": 0.0, "rank_declared": -1,
                                        "top1_mssd_d_declared": None, "confident_wrong_declared": False,
                                        "rank_derived": -1, "top1_mssd_d_derived": None,
-                                       "confident_wrong_derived": False}
+                                       "confident_wrong_derived": False, "mssd_d_derived": []}
 
 
 def test_bench_generators_judges_every_query_and_writes_json_png_and_table(synthetic_dataset, tmp_path, capsys):
@@ -111,3 +111,35 @@ def test_the_table_reads_both_symmetry_columns():
     line = next(ln for ln in text.splitlines() if ln.startswith("g "))
     assert line.split()[2:10] == ["2", "50%", "0%", "50%", "50%", "50%", "100%", "0%"], line
     assert "linemod: not run" in text
+
+
+def test_the_verifier_is_judged_on_the_candidates_and_ranks_and_refuses_them():
+    rows = [  # three queries: candidates' probabilities and MSSD / diameter (derived symmetries)
+        {"verifier": [0.2, 0.9], "mssd_d_derived": [0.8, 0.05]},  # ranked by it: right, answered
+        {"verifier": [0.7, 0.1], "mssd_d_derived": [0.5, 0.02]},  # answered, confidently wrong
+        {"verifier": [0.3], "mssd_d_derived": [0.01]},  # right but refused (p < 0.5)
+    ]
+    v = verifier_figures(rows)
+    assert v["n"] == 5 and v["positives"] == 3
+    # pairs (right, wrong): (0.9 > 0.2), (0.9 > 0.7), (0.1 < 0.2), (0.1 < 0.7), (0.3 > 0.2), (0.3 < 0.7): 3 of 6
+    assert v["auc"] == pytest.approx(0.5)
+    assert v["brier"] == pytest.approx(np.mean([0.2**2, 0.1**2, 0.7**2, 0.9**2, 0.7**2]))
+    assert v["ranked"] == {"refuse_below": 0.5, "offered": pytest.approx(2 / 3), "top1": pytest.approx(1 / 3),
+                           "confident_wrong": pytest.approx(1 / 3)}
+
+
+def test_bench_generators_with_the_shipped_verifier(synthetic_dataset, tmp_path, capsys):
+    out = tmp_path / "gens.json"
+    assert main(["bench", "generators", "--dataset", str(synthetic_dataset), "--out", str(out), "--quiet",
+                 "--generators", "test_gen_truth_first", "--verifier", "shipped"]) == 0
+    result = json.loads(out.read_text())
+    rows = result["generators"]["test_gen_truth_first"]["rows"]
+    assert all(len(r["verifier"]) == len(r["mssd_d_derived"]) == 2 for r in rows)
+    v = result["generators"]["test_gen_truth_first"]["summary"]["verifier"]
+    assert v["n"] == 2 * len(rows) and v["positives"] == len(rows)
+    assert v["auc"] > 0.9  # the annotated pose against one a diameter aside
+    assert result["verifier_all"]["n"] == v["n"] and result["verifier"] == "shipped"
+    assert "AUC" in capsys.readouterr().out
+    assert main(["bench", "generators", "--dataset", str(synthetic_dataset), "--out", str(out), "--quiet",
+                 "--generators", "test_gen_truth_first", "--verifier", str(tmp_path / "no-such-model")]) == 2
+    assert "no-such-model" in capsys.readouterr().err

@@ -14,9 +14,9 @@ from perception_config.blocks.features import pick_features
 from perception_config.blocks.pipeline import PipelineError, load_pipeline, pipeline_from_dict
 from perception_config.core.geometry import Pose, perturb
 from perception_config.core.metrics import pose_mssd
+from perception_config.core.score_metrics import auc, score_metrics
 from perception_config.datasets.bop import BopDataset
 from perception_config.learning.pick_success_data import featurise, pick_label
-from perception_config.learning.pick_success_fit import auc, score_metrics
 from perception_config.vision.pick_features import FEATURE_NAMES, NEEDS_DEPTH, rgb_only
 from perception_config.vision.pick_success_model import (
     MODEL_FILE,

@@ -21,6 +21,15 @@ queries confidently wrong under the derived symmetries too.
 
 `any` (with two generators or more): a query counts in top5 when any generator has a right
 candidate in its top five (the cell's agent can call each of them).
+
+With a verifier (`verifier`: the pick-success model, `shipped` or a fit-score folder) every
+candidate is also scored by it (the probability that the pose is within the pick tolerance),
+and each generator's summary gets `verifier`: its AUC, Brier score and expected calibration
+error over all candidates (labels: right under the declared or derived symmetries;
+core/score_metrics.py), and what the generator would answer if it ranked by the verifier and
+refused below `refuse_below`: `offered` (share of queries answered), `top1` (answered and
+right) and `confident_wrong` (answered and more than 0.3 d off). `verifier_all`: the same
+metrics over every generator's candidates.
 Per generator, overall and per object id. Shapes: plain dicts and lists, JSON-able.
 """
 from __future__ import annotations
@@ -36,6 +45,7 @@ from ..blocks.base import GROUND_TRUTH, BlockInput, create
 from ..blocks.pipeline import Pipeline
 from ..core.metrics import pose_mssd, pose_mssd_derived
 from ..core.scene import Frame
+from ..core.score_metrics import score_metrics
 from ..datasets.bop import BopDataset
 
 DEFAULT_GENERATORS = ("resting_pose", "ppf", "global_registration")
@@ -43,6 +53,7 @@ TOLERANCE = 0.1  # x diameter: the simulated pick's test
 WRONG = 0.3  # x diameter: far off
 CONFIDENT = 0.5  # a first candidate's confidence counted as confident
 SYMMETRIES = ("declared", "derived")  # judged with the declared symmetries / declared or derived
+REFUSE_BELOW = 0.5  # a generator ranking by the verifier answers only from this probability
 
 
 def pipeline_params(pipeline: Pipeline | None) -> dict[str, dict[str, Any]]:
@@ -66,6 +77,8 @@ def judge_candidates(candidates: Sequence[tuple[float, Any]], obj: Any, confiden
     out: dict[str, Any] = {"candidates": len(candidates), "top1_confidence": top_conf}
     for sym, err in (("declared", pose_mssd), ("derived", pose_mssd_derived)):
         errors = [err(p, obj.gt, obj.model) / d for _, p in candidates]
+        if sym == "derived":
+            out["mssd_d_derived"] = errors  # of every candidate, best first
         out[f"rank_{sym}"] = next((k for k, e in enumerate(errors) if e <= tolerance), -1)
         out[f"top1_mssd_d_{sym}"] = errors[0] if errors else None
         out[f"confident_wrong_{sym}"] = bool(errors and top_conf >= confident and errors[0] > WRONG)
@@ -74,8 +87,10 @@ def judge_candidates(candidates: Sequence[tuple[float, Any]], obj: Any, confiden
 
 def generator_rows(name: str, frames: Iterable[Frame], params: dict[str, Any] | None = None,
                    min_visib: float = 0.0, confident: float = CONFIDENT, tolerance: float = TOLERANCE,
-                   seed: int = 0, on_frame: Any = None) -> list[dict[str, Any]]:
-    """One row per query of generator `name` on `frames` (module doc); `on_frame()` after each frame."""
+                   seed: int = 0, on_frame: Any = None, verifier: Any = None) -> list[dict[str, Any]]:
+    """One row per query of generator `name` on `frames` (module doc); `on_frame()` after each
+    frame. `verifier`: a pick_success block whose probability of each candidate goes in the
+    row's `verifier` list."""
     block = create(name, **(params or {}))
     rows = []
     for frame in frames:
@@ -88,12 +103,42 @@ def generator_rows(name: str, frames: Iterable[Frame], params: dict[str, Any] | 
             rng = np.random.default_rng([seed, frame.scene_id, frame.im_id, index])
             r = block(BlockInput(frame=frame, model=o.model, rng=rng, cache=cache,
                                  ground_truth=o.gt if GROUND_TRUTH in block.inputs else None))
-            rows.append({"scene_id": frame.scene_id, "im_id": frame.im_id, "obj_id": o.obj_id,
-                         "visib_fract": o.visib_fract, "ok": bool(r.ok), "reason": r.reason, "seconds": r.elapsed,
-                         **judge_candidates(r.candidates, o, confident, tolerance)})
+            row = {"scene_id": frame.scene_id, "im_id": frame.im_id, "obj_id": o.obj_id,
+                   "visib_fract": o.visib_fract, "ok": bool(r.ok), "reason": r.reason, "seconds": r.elapsed,
+                   **judge_candidates(r.candidates, o, confident, tolerance)}
+            if verifier is not None:
+                row["verifier"] = [_probability(verifier, frame, o.model, pose, cache) for _, pose in r.candidates]
+            rows.append(row)
         if on_frame is not None:
             on_frame()
     return rows
+
+
+def _probability(verifier: Any, frame: Frame, model: Any, pose: Any, cache: dict) -> float:
+    r = verifier(BlockInput(frame=frame, model=model, pose=pose, cache=cache))
+    return float(r.scores["pick_success"]) if r.ok else 0.0
+
+
+def verifier_figures(rows: list[dict[str, Any]], refuse_below: float = REFUSE_BELOW,
+                     tolerance: float = TOLERANCE) -> dict[str, Any]:
+    """The verifier on the rows' candidates (module doc): AUC, Brier and ECE over every
+    candidate, and the answers of a generator that ranks by it and refuses below `refuse_below`."""
+    p = np.array([x for r in rows for x in r["verifier"]], float)
+    e = np.array([x for r in rows for x in r["mssd_d_derived"]], float)
+    out = {k: v for k, v in score_metrics(p, e <= tolerance).items() if k != "bins"}
+    offered = right = wrong = 0
+    for r in rows:
+        if not r["verifier"]:
+            continue
+        k = int(np.argmax(r["verifier"]))
+        if r["verifier"][k] >= refuse_below:
+            offered += 1
+            right += r["mssd_d_derived"][k] <= tolerance
+            wrong += r["mssd_d_derived"][k] > WRONG
+    n = max(1, len(rows))
+    out["ranked"] = {"refuse_below": refuse_below, "offered": offered / n, "top1": right / n,
+                     "confident_wrong": wrong / n}
+    return out
 
 
 def _figures(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -114,6 +159,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     out["p90_s"] = float(np.percentile([r["seconds"] for r in rows], 90))
     out["per_object"] = {str(obj): _figures([r for r in rows if r["obj_id"] == obj])
                          for obj in sorted({r["obj_id"] for r in rows})}
+    if all("verifier" in r for r in rows):
+        out["verifier"] = verifier_figures(rows)
     return out
 
 
@@ -136,9 +183,10 @@ def any_generator(rows_by_generator: dict[str, list[dict[str, Any]]]) -> dict[st
 def bench_generators(dataset: str | Path, generators: Sequence[str] = DEFAULT_GENERATORS,
                      pipeline: Pipeline | None = None, n_frames: int | None = None, min_visib: float = 0.0,
                      confident: float = CONFIDENT, split: str = "test", use_depth: bool = True, seed: int = 0,
-                     progress: bool = True) -> dict[str, Any]:
+                     verifier: str | None = None, progress: bool = True) -> dict[str, Any]:
     """The generators benchmark on the dataset's first `n_frames` images (all by default); a
-    JSON-able dict: per generator its summary and rows, and `any` (module doc)."""
+    JSON-able dict: per generator its summary and rows, and `any` (module doc). `verifier`: a
+    pick-success model (`shipped`, or a fit-score folder) scoring every candidate."""
     from tqdm import tqdm
 
     load_all()
@@ -149,6 +197,9 @@ def bench_generators(dataset: str | Path, generators: Sequence[str] = DEFAULT_GE
         raise ValueError(f"{dataset}: no images in split {split!r}")
     frames = [ds.load_frame(s, i) for s, i in keys]
     params = pipeline_params(pipeline)
+    judge = None
+    if verifier is not None:
+        judge = create("pick_success", **({} if verifier == "shipped" else {"model": str(verifier)}))
     runnable = [g for g in generators if not create(g, **params.get(g, {})).frame_lacks(frames[0])]
     skipped = sorted(set(generators) - set(runnable))
     rows_by: dict[str, list[dict[str, Any]]] = {}
@@ -156,10 +207,11 @@ def bench_generators(dataset: str | Path, generators: Sequence[str] = DEFAULT_GE
         for g in runnable:
             bar.set_postfix_str(g)
             rows_by[g] = generator_rows(g, frames, params.get(g), min_visib, confident, seed=seed,
-                                        on_frame=lambda: bar.update(1))
+                                        on_frame=lambda: bar.update(1), verifier=judge)
     result: dict[str, Any] = {
         "dataset": str(dataset), "split": split, "images": len(frames), "use_depth": use_depth,
         "min_visib": min_visib, "confident": confident, "tolerance": TOLERANCE, "wrong": WRONG, "seed": seed,
+        "verifier": verifier,
         "skipped": {g: "the frames lack what it needs" for g in skipped},
         "generators": {g: {"params": params.get(g, {}), "summary": summarize(rows), "rows": rows}
                        for g, rows in rows_by.items()},
@@ -167,6 +219,8 @@ def bench_generators(dataset: str | Path, generators: Sequence[str] = DEFAULT_GE
     }
     if len(rows_by) >= 2 and all(rows_by.values()):
         result["any"] = any_generator(rows_by)
+    if judge is not None and any(rows_by.values()):
+        result["verifier_all"] = verifier_figures([r for rows in rows_by.values() for r in rows])
     return result
 
 
@@ -203,7 +257,22 @@ def format_generators(result: dict[str, Any], per_object: bool = True) -> str:
                      f"{_pct(a['declared']['top5']):>5} {'':>10}   {'':>8} {'':>5} {_pct(a['derived']['top5']):>5}")
     for g, why in result["skipped"].items():
         lines.append(f"{g}: not run ({why})")
+    judged = [(g, r["summary"]["verifier"]) for g, r in result["generators"].items() if "verifier" in r["summary"]]
+    if judged:
+        lines.append(f"verifier {result['verifier']} on the candidates (right: within {result['tolerance']} d, "
+                     f"declared or derived symmetries); ranked by it, answering from p >= {REFUSE_BELOW}:")
+        lines.append(f"{'generator':<20} {'candidates':>10} {'AUC':>6} {'Brier':>6} {'ECE':>6}   {'answered':>8} "
+                     f"{'right':>6} {'conf.wrong':>10}")
+        for g, v in judged + ([("all", result["verifier_all"])] if "verifier_all" in result else []):
+            k = v["ranked"]
+            lines.append(f"{g:<20} {v['n']:>10} {_f3(v.get('auc')):>6} {_f3(v.get('brier')):>6} "
+                         f"{_f3(v.get('ece')):>6}   {_pct(k['offered']):>8} {_pct(k['top1']):>6} "
+                         f"{_pct(k['confident_wrong']):>10}")
     return "\n".join(lines)
+
+
+def _f3(x: float | None) -> str:
+    return "-" if x is None or not np.isfinite(x) else f"{x:.3f}"
 
 
 def plot_generators(result: dict[str, Any], path: str | Path) -> Path:

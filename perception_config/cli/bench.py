@@ -64,7 +64,8 @@ def _cmd_bench_generators(args: argparse.Namespace) -> int:
         raise ValueError("--generators: name at least one generation block")
     result = bench_generators(args.dataset, generators, load_pipeline(args.pipeline) if args.pipeline else None,
                               n_frames=args.frames, min_visib=args.min_visib, confident=args.confident,
-                              split=args.split, use_depth=args.use_depth, seed=args.seed, progress=not args.quiet)
+                              split=args.split, use_depth=args.use_depth, seed=args.seed, verifier=args.verifier,
+                              progress=not args.quiet)
     paths = save_generators(result, args.out)
     print(format_generators(result))
     print(f"wrote {paths[0]} and {paths[1]}")
@@ -125,6 +126,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--min-visib", type=float, default=0.0, help="smallest visib_fract of an object")
     c.add_argument("--confident", type=float, default=0.5,
                    help="a first candidate's confidence from which a wrong answer counts as confidently wrong")
+    c.add_argument("--verifier", default=None, metavar="MODEL",
+                   help="also score every candidate with this pick-success model ('shipped', or a fit-score folder): "
+                        "its AUC, Brier and calibration error on the candidates, and the answers ranked by it")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--split", default="test")
     c.add_argument("--quiet", action="store_true")

@@ -12,65 +12,18 @@ against the observed success rate per bin. Model, plot and metrics.json are writ
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from ..core.score_metrics import score_metrics
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from ..util.atomic_file import atomic_write
 from ..vision.pick_success_model import MODEL_FILE, PickSuccessModel, encode, fit_mlp, fit_platt, robust_scaling
 from .pick_success_data import FeatureTable
 
 CALIBRATION_FRACTION = 0.25  # share of the training images kept for calibration
-N_BINS = 10
-
-
-def auc(p: np.ndarray, y: np.ndarray) -> float:
-    """Area under the ROC curve (Mann-Whitney, ties half); NaN with one class only."""
-    p, y = np.asarray(p, float), np.asarray(y, bool)
-    n1, n0 = int(y.sum()), int((~y).sum())
-    if n1 == 0 or n0 == 0:
-        return math.nan
-    order = np.argsort(p, kind="mergesort")
-    ranks = np.empty(len(p))
-    sp = p[order]
-    i = 0
-    while i < len(sp):  # average ranks over ties
-        j = i
-        while j + 1 < len(sp) and sp[j + 1] == sp[i]:
-            j += 1
-        ranks[order[i:j + 1]] = 0.5 * (i + j) + 1
-        i = j + 1
-    return float((ranks[y].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
-
-
-def calibration_bins(p: np.ndarray, y: np.ndarray, n_bins: int = N_BINS) -> list[dict[str, float]]:
-    """Per equal-width probability bin: count, mean predicted probability, observed success rate."""
-    p, y = np.asarray(p, float), np.asarray(y, float)
-    idx = np.minimum((p * n_bins).astype(int), n_bins - 1)
-    out = []
-    for k in range(n_bins):
-        sel = idx == k
-        n = int(sel.sum())
-        out.append({"low": k / n_bins, "high": (k + 1) / n_bins, "count": n,
-                    "predicted": float(p[sel].mean()) if n else math.nan,
-                    "observed": float(y[sel].mean()) if n else math.nan})
-    return out
-
-
-def score_metrics(p: np.ndarray, y: np.ndarray) -> dict[str, Any]:
-    """AUC, Brier, ECE, log loss, counts and the base rate of predictions p for labels y."""
-    p, y = np.asarray(p, float), np.asarray(y, bool)
-    if len(p) == 0:
-        return {"n": 0}
-    bins = calibration_bins(p, y)
-    ece = sum(b["count"] * abs(b["predicted"] - b["observed"]) for b in bins if b["count"]) / len(p)
-    q = np.clip(p, 1e-7, 1 - 1e-7)
-    return {"n": int(len(p)), "positives": int(y.sum()), "base_rate": float(y.mean()), "auc": auc(p, y),
-            "brier": float(np.mean((p - y) ** 2)), "ece": float(ece),
-            "log_loss": float(-np.mean(np.where(y, np.log(q), np.log(1 - q)))), "bins": bins}
 
 
 def split_images(table: FeatureTable, test_fraction: float = DEFAULT_TEST_FRACTION, seed: int = DEFAULT_SPLIT_SEED,
@@ -201,5 +154,5 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["auc", "score_metrics", "calibration_bins", "split_images", "fit_model", "fit_score", "plot_reliability",
+__all__ = ["split_images", "fit_model", "fit_score", "plot_reliability",
            "format_metrics"]

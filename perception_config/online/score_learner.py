@@ -43,8 +43,9 @@ from typing import Any
 import numpy as np
 
 from ..blocks.pick_success import PickSuccess, load_model, resolve_model_path
+from ..core.score_metrics import score_metrics
 from ..learning.pick_success_data import featurise, load_step_rows
-from ..learning.pick_success_fit import fit_model, score_metrics, split_images
+from ..learning.pick_success_fit import fit_model, split_images
 from ..store.episode_store import STORE_NAME, EpisodeStoreError
 from ..util.confine import confined
 from ..util.versions import PolicyVersionError, PolicyVersions
