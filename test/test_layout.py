@@ -35,7 +35,7 @@ LAYERS = ("config", "util", "core", "datasets", "vision", "blocks", "rl", "bench
           "online", "launcher", "ros", "cli")
 MAX_ROOT_MODULES = 8
 MAX_LINES = 500
-BLOCKS_INFRASTRUCTURE = ("__init__", "base", "pipeline", "features")
+BLOCKS_INFRASTRUCTURE = ("__init__", "base", "pipeline", "features", "verified")
 
 
 def module_files() -> dict[str, Path]:

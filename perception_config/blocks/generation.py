@@ -55,6 +55,7 @@ from ..vision.features import (
 from ..vision.segmentation import Cluster, frame_segmentation, too_small
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import DEPTH, GROUND_TRUTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
+from .verified import VERIFIER_PARAMS, RanksByVerifier
 
 # --------------------------------------------------------------------------- simulated init
 
@@ -110,7 +111,7 @@ MAX_SCORE_POINTS = 300  # cluster points each RANSAC hypothesis is scored on
 
 
 @register
-class GlobalRegistration(Block):
+class GlobalRegistration(RanksByVerifier, Block):
     """Model-only detection and pose generation from an RGB-D frame (see the module docstring).
 
     Steps: (1) segment_scene (cached per frame); clusters whose robust size is between
@@ -167,7 +168,7 @@ class GlobalRegistration(Block):
         Param("top_k", 5, 1, 50, doc="ranked candidates returned (BlockResult.candidates)"),
         Param("max_seconds", 2.0, 0.01, 120.0,
               doc="time budget, after the model's features are at hand (checked between steps)"),
-    )
+    ) + VERIFIER_PARAMS
 
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config

@@ -30,12 +30,13 @@ from ..vision.ppf import cluster_poses, ppf_model, scene_cloud, vote
 from ..vision.segmentation import frame_segmentation, too_small
 from ..vision.verification import verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
+from .verified import VERIFIER_PARAMS, RanksByVerifier
 
 _SCORE_NAMES = ("gen_verification",)
 
 
 @register
-class PointPairFeatures(Block):
+class PointPairFeatures(RanksByVerifier, Block):
     """Point pair feature voting with render-and-compare verification (see the module docstring)."""
 
     kind = Kind.GENERATION
@@ -63,7 +64,7 @@ class PointPairFeatures(Block):
         Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
         Param("max_seconds", 2.0, 0.01, 120.0,
               doc="time budget after the model's table is at hand (checked between candidates)"),
-    )
+    ) + VERIFIER_PARAMS
 
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config

@@ -46,6 +46,7 @@ from ..vision.resting_poses import (
 from ..vision.segmentation import frame_segmentation, too_small
 from ..vision.verification import ranked_candidates, verify, verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
+from .verified import VERIFIER_PARAMS, RanksByVerifier
 
 _RESTS: dict[tuple[ObjectModel, int], list[RestingPose]] = {}  # models are shared and compare by identity
 _LOCK = threading.Lock()
@@ -62,7 +63,7 @@ def _rests(model: ObjectModel, max_rests: int) -> list[RestingPose]:
 
 
 @register
-class RestingPoseGenerator(Block):
+class RestingPoseGenerator(RanksByVerifier, Block):
     """Stable faces on the support plane under each fitting region (see the module docstring)."""
 
     kind = Kind.GENERATION
@@ -97,7 +98,7 @@ class RestingPoseGenerator(Block):
         Param("top_k", 5, 1, 50, doc="ranked candidates returned"),
         Param("min_verification", 0.3, -1.0, 1.0, doc="below this the best candidate is not accepted (ok=False)"),
         Param("max_seconds", 2.0, 0.01, 120.0, doc="time budget (checked between hypotheses)"),
-    )
+    ) + VERIFIER_PARAMS
 
     def run(self, inp: BlockInput) -> BlockResult:
         c = self.config
