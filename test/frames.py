@@ -29,6 +29,19 @@ def box_mesh(size: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
     return v, np.array(faces, dtype=np.int32)
 
 
+def cylinder_mesh(radius: float = 0.03, height: float = 0.05, n: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """A closed n-gon prism about z, centred (metres): (vertices, faces)."""
+    a = 2 * np.pi * np.arange(n) / n
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], axis=1)
+    v = np.concatenate([np.c_[ring, np.full(n, -height / 2)], np.c_[ring, np.full(n, height / 2)],
+                        [[0, 0, -height / 2], [0, 0, height / 2]]])
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [(i, j, n + j), (i, n + j, n + i), (2 * n, j, i), (2 * n + 1, n + i, n + j)]
+    return v, np.array(faces)
+
+
 def box_model(obj_id: int = 1, size=(0.08, 0.05, 0.03)) -> ObjectModel:
     """A closed box model (metres) with sharp edges."""
     v, f = box_mesh(size)

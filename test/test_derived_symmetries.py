@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from frames import box_mesh
+from frames import box_mesh, cylinder_mesh
 from perception_config.core import metrics as M
 from perception_config.core.geometry import MM, Pose, exp_so3, log_so3, rotation_angle
 from perception_config.core.mesh import sample_surface
@@ -66,15 +66,8 @@ def box(size, obj_id: int = 1) -> ObjectModel:
 
 def cylinder(radius: float = 0.03, height: float = 0.08, n: int = 64) -> ObjectModel:
     """A closed n-gon prism about z (no declared symmetry)."""
-    a = 2 * np.pi * np.arange(n) / n
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], axis=1)
-    v = np.concatenate([np.c_[ring, np.full(n, -height / 2)], np.c_[ring, np.full(n, height / 2)],
-                        [[0, 0, -height / 2], [0, 0, height / 2]]])
-    faces = []
-    for i in range(n):
-        j = (i + 1) % n
-        faces += [(i, j, n + j), (i, n + j, n + i), (2 * n, j, i), (2 * n + 1, n + i, n + j)]
-    return make_model(2, v, np.array(faces))
+    v, faces = cylinder_mesh(radius, height, n)
+    return make_model(2, v, faces)
 
 
 def box_with_bump(at=(0.02, 0.01)) -> ObjectModel:

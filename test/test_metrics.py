@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from frames import K_LINEMOD, box_mesh, box_model, default_pose, synthetic_frame
+from frames import K_LINEMOD, box_mesh, box_model, cylinder_mesh, default_pose, synthetic_frame
 from perception_config.core import metrics as M
 from perception_config.core.geometry import Pose, exp_so3
 from perception_config.core.models import make_model
@@ -25,16 +25,9 @@ def symmetric_box():
 
 def cylinder(radius: float = 0.03, height: float = 0.05, n: int = 64):
     """A closed n-gon prism about z with a declared continuous symmetry (BOP models_info, mm)."""
-    a = 2 * np.pi * np.arange(n) / n
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], axis=1)
-    v = np.concatenate([np.c_[ring, np.full(n, -height / 2)], np.c_[ring, np.full(n, height / 2)],
-                        [[0, 0, -height / 2], [0, 0, height / 2]]])
-    faces = []
-    for i in range(n):
-        j = (i + 1) % n
-        faces += [(i, j, n + j), (i, n + j, n + i), (2 * n, j, i), (2 * n + 1, n + i, n + j)]
+    v, faces = cylinder_mesh(radius, height, n)
     info = {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
-    return make_model(8, v, np.array(faces), info=info, n_points=500)
+    return make_model(8, v, faces, info=info, n_points=500)
 
 
 def errors_on_corners(est: Pose, gt: Pose, syms=None) -> dict[str, float]:
