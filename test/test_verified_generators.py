@@ -2,6 +2,8 @@
 (blocks/verified.py), on a generator of known behaviour and on the shipped generators' params."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,7 @@ class FarFirst(RanksByVerifier, Block):
     params = VERIFIER_PARAMS
 
     def run(self, inp: BlockInput) -> BlockResult:
+        time.sleep(0.3)  # a search (longer than the verifier takes for two candidates)
         gt = inp.ground_truth
         far = Pose(gt.R, gt.t + np.array([inp.model.diameter, 0.0, 0.0]))
         return BlockResult(ok=True, pose=far, scores={"gen_verification": 0.9}, candidates=[(0.9, far), (0.2, gt)])
@@ -54,6 +57,7 @@ def test_the_verifier_ranks_the_right_candidate_first_and_gives_its_probability(
     assert np.allclose(first.t, obj.gt.t) and p_first > 0.5 > p_second  # the annotated pose, now first
     assert r.pose is first and r.info["own_confidence"] == [0.2, 0.9] and r.info["verifier"] == "shipped"
     assert r.scores == {"gen_verification": 0.9}  # the generator's own score stays for the agent
+    assert r.elapsed >= 0.3  # the generator's search and the verifier's scoring
 
 
 def test_below_refuse_below_the_call_is_refused_with_the_ranked_candidates_kept(query):
@@ -64,7 +68,7 @@ def test_below_refuse_below_the_call_is_refused_with_the_ranked_candidates_kept(
 
 def test_a_verifier_that_cannot_be_loaded_fails_the_call_with_its_name(query, tmp_path):
     r = _call(create("test_gen_far_first", verifier=str(tmp_path / "no-model")), query)
-    assert not r.ok and "no-model" in r.reason
+    assert not r.ok and "no-model" in r.reason and r.elapsed >= 0.3
 
 
 @pytest.mark.parametrize("name", ["ppf", "resting_pose", "global_registration"])

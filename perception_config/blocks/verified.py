@@ -45,12 +45,12 @@ class RanksByVerifier:
         result = super().__call__(inp)  # type: ignore[misc]
         if not self.config.get("verifier") or not result.candidates:
             return result
-        start = time.perf_counter()
+        spent, start = result.elapsed, time.perf_counter()
         try:
             result = self._rank(result, inp)
         except Exception as exc:  # a block never raises on bad data
             result = BlockResult.fail(f"{self.name}: the verifier failed: {type(exc).__name__}: {exc}")
-        result.elapsed += time.perf_counter() - start
+        result.elapsed = spent + time.perf_counter() - start  # the generator's time and the verifier's
         return result
 
     def _verifier(self) -> Block:
