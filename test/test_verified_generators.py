@@ -71,7 +71,7 @@ def test_a_verifier_that_cannot_be_loaded_fails_the_call_with_its_name(query, tm
     assert not r.ok and "no-model" in r.reason and r.elapsed >= 0.3
 
 
-@pytest.mark.parametrize("name", ["ppf", "resting_pose", "global_registration"])
+@pytest.mark.parametrize("name", ["ppf", "resting_pose", "global_registration", "linemod"])
 def test_the_cells_generators_take_a_verifier(name):
     block = create(name, verifier="shipped", refuse_below=0.2)
     assert isinstance(block, RanksByVerifier) and block.config["refuse_below"] == 0.2

@@ -34,10 +34,11 @@ from ..vision.linemod import (
 from ..vision.segmentation import dominant_label, frame_segmentation
 from ..vision.verification import icp_polish, icp_target, ranked_candidates, verify
 from .base import MODEL, RGB, Block, BlockInput, BlockResult, Kind, Param, create, register
+from .verified import VERIFIER_PARAMS, RanksByVerifier
 
 
 @register
-class LineMod(Block):
+class LineMod(RanksByVerifier, Block):
     """LINE-MOD template matching with verification and polishing (see the module docstring)."""
 
     kind = Kind.GENERATION
@@ -80,7 +81,7 @@ class LineMod(Block):
         Param("min_contrast", 2.0, 0.0, 255.0, doc="grey-level standard deviation below which the image is blank"),
         Param("max_seconds", 1.0, 0.01, 120.0,
               doc="time budget after the templates are at hand (checked between candidates)"),
-    )
+    ) + VERIFIER_PARAMS
 
     def template_params(self) -> TemplateParams:
         c = self.config

@@ -1,11 +1,12 @@
 """Generators that rank their candidates by a verifier and refuse rather than guess.
 
-A ground-truth-free generator ranks its candidates by its own render-and-compare verification,
-whose value is not a probability: on real RGB-D frames a confident first candidate can be far
-off (a box half a turn away, a mug on the wrong side). With `verifier` set to a pick-success
-model (`shipped`, or a folder of `perception-config fit-score`: blocks/pick_success.py), every
-candidate the generator returns is scored by it, the probability that picking it succeeds
-(symmetry-aware MSSD <= 0.1 x diameter), and
+A ground-truth-free generator (resting_pose, ppf, global_registration; linemod on RGB-only
+frames, where the pick-success model reads the RGB features) ranks its candidates by its own
+render-and-compare verification, whose value is not a probability: on real RGB-D frames a
+confident first candidate can be far off (a box half a turn away, a mug on the wrong side). With
+`verifier` set to a pick-success model (`shipped`, or a folder of `perception-config fit-score`:
+blocks/pick_success.py), every candidate the generator returns is scored by it, the probability
+that picking it succeeds (symmetry-aware MSSD <= 0.1 x diameter), and
 
 - the candidates are ranked by that probability, which becomes their confidence (the
   generator's own verification stays in its scores and in `info["own_confidence"]`);
