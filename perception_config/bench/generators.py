@@ -43,6 +43,7 @@ import numpy as np
 from ..blocks import load_all
 from ..blocks.base import GROUND_TRUTH, BlockInput, create
 from ..blocks.pipeline import Pipeline
+from ..blocks.verified import probability, verifier_block
 from ..core.metrics import pose_mssd, pose_mssd_derived
 from ..core.scene import Frame
 from ..core.score_metrics import score_metrics
@@ -101,22 +102,18 @@ def generator_rows(name: str, frames: Iterable[Frame], params: dict[str, Any] | 
             if block.frame_lacks(frame):
                 continue
             rng = np.random.default_rng([seed, frame.scene_id, frame.im_id, index])
-            r = block(BlockInput(frame=frame, model=o.model, rng=rng, cache=cache,
-                                 ground_truth=o.gt if GROUND_TRUTH in block.inputs else None))
+            inp = BlockInput(frame=frame, model=o.model, rng=rng, cache=cache,
+                             ground_truth=o.gt if GROUND_TRUTH in block.inputs else None)
+            r = block(inp)
             row = {"scene_id": frame.scene_id, "im_id": frame.im_id, "obj_id": o.obj_id,
                    "visib_fract": o.visib_fract, "ok": bool(r.ok), "reason": r.reason, "seconds": r.elapsed,
                    **judge_candidates(r.candidates, o, confident, tolerance)}
             if verifier is not None:
-                row["verifier"] = [_probability(verifier, frame, o.model, pose, cache) for _, pose in r.candidates]
+                row["verifier"] = [probability(verifier, inp, pose) for _, pose in r.candidates]
             rows.append(row)
         if on_frame is not None:
             on_frame()
     return rows
-
-
-def _probability(verifier: Any, frame: Frame, model: Any, pose: Any, cache: dict) -> float:
-    r = verifier(BlockInput(frame=frame, model=model, pose=pose, cache=cache))
-    return float(r.scores["pick_success"]) if r.ok else 0.0
 
 
 def verifier_figures(rows: list[dict[str, Any]], refuse_below: float = REFUSE_BELOW,
@@ -199,7 +196,7 @@ def bench_generators(dataset: str | Path, generators: Sequence[str] = DEFAULT_GE
     params = pipeline_params(pipeline)
     judge = None
     if verifier is not None:
-        judge = create("pick_success", **({} if verifier == "shipped" else {"model": str(verifier)}))
+        judge = verifier_block(verifier)
     runnable = [g for g in generators if not create(g, **params.get(g, {})).frame_lacks(frames[0])]
     skipped = sorted(set(generators) - set(runnable))
     rows_by: dict[str, list[dict[str, Any]]] = {}

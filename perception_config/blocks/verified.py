@@ -35,6 +35,19 @@ VERIFIER_PARAMS = (
 )
 
 
+def verifier_block(name: str) -> Block:
+    """The pick_success block a verifier name stands for: `shipped` (the packaged model) or a
+    model file or fit-score folder."""
+    return create("pick_success", **({} if name == "shipped" else {"model": str(name)}))
+
+
+def probability(verifier: Block, inp: BlockInput, pose: Any) -> float:
+    """The verifier's probability that `pose` is within the pick tolerance, for the frame and
+    model of `inp` (its cache shared); 0 when the verifier cannot score it."""
+    r = verifier(BlockInput(frame=inp.frame, model=inp.model, pose=pose, cache=inp.cache))
+    return float(r.scores["pick_success"]) if r.ok else 0.0
+
+
 class RanksByVerifier:
     """Mixin for a generation Block (listed before Block): the candidates of each call ranked by
     the `verifier` and the call refused below `refuse_below` (module docstring)."""
@@ -58,16 +71,13 @@ class RanksByVerifier:
         name = self.config["verifier"]
         cached = getattr(self, "_verifier_block", None)
         if cached is None or cached[0] != name:
-            cached = (name, create("pick_success", **({} if name == "shipped" else {"model": name})))
+            cached = (name, verifier_block(name))
             self._verifier_block = cached
         return cached[1]
 
     def _rank(self, result: BlockResult, inp: BlockInput) -> BlockResult:
         judge = self._verifier()
-        scored = []
-        for own, pose in result.candidates:
-            r = judge(BlockInput(frame=inp.frame, model=inp.model, pose=pose, cache=inp.cache))
-            scored.append((float(r.scores["pick_success"]) if r.ok else 0.0, float(own), pose))
+        scored = [(probability(judge, inp, pose), float(own), pose) for own, pose in result.candidates]
         scored.sort(key=lambda c: -c[0])  # stable: equal probabilities keep the generator's order
         candidates = [(p, pose) for p, _, pose in scored]
         info = {**result.info, "own_confidence": [own for _, own, _ in scored],
@@ -80,4 +90,4 @@ class RanksByVerifier:
         return BlockResult(ok=True, pose=candidates[0][1], scores=result.scores, info=info, candidates=candidates)
 
 
-__all__ = ["VERIFIER_PARAMS", "RanksByVerifier"]
+__all__ = ["VERIFIER_PARAMS", "RanksByVerifier", "verifier_block", "probability"]
