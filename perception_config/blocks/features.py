@@ -8,10 +8,13 @@ import math
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
 from ..core.geometry import Pose
 from ..core.models import ObjectModel
 from ..core.scene import Frame
 from ..vision.pick_features import SCORE_FEATURES, features_from_scores
+from ..vision.verifier_crop import CHANNELS, CROP, DEPTH_CHANNELS, verifier_crop
 from .base import BlockInput, create
 
 _scorers: dict[str, Any] = {}
@@ -53,3 +56,15 @@ def pick_features(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | No
         cache = {}  # the caches hold depth-derived entries keyed by pose only
     scores, rgb_info = pipeline_scores(frame, model, pose, cache)
     return features_from_scores(frame, model, pose, scores, rgb_info, cache)
+
+
+def hypothesis_crop(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | None = None,
+                    use_depth: bool = True) -> np.ndarray:
+    """The rendered-against-observed crop of the hypothesis (vision/verifier_crop.py), zeros when
+    nothing is rendered; `use_depth=False`: the depth channels zero, as on an RGB-only frame."""
+    crop = verifier_crop(frame, model, pose, cache)
+    if crop is None:
+        return np.zeros((len(CHANNELS), CROP, CROP), np.float32)
+    if not use_depth:
+        crop[list(DEPTH_CHANNELS)] = 0.0
+    return crop

@@ -30,7 +30,7 @@ from typing import Any
 from ..util.versions import PolicyVersionError, PolicyVersions
 from ..vision.pick_success_model import PickSuccessModel, PickSuccessModelError
 from .base import MODEL, POSE, RGB, Block, BlockInput, BlockResult, Kind, Param, register
-from .features import pick_features
+from .features import hypothesis_crop, pick_features
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 SHIPPED_MODEL = "pick_success/pick_success.safetensors"  # in CONFIG_DIR: fitted on the synthetic default dataset
@@ -120,7 +120,8 @@ class PickSuccess(Block):
         assert inp.frame is not None and inp.pose is not None
         self.refresh()
         features = pick_features(inp.frame, inp.model, inp.pose, inp.cache)
-        p = self.model.predict_one(features)
+        crop = hypothesis_crop(inp.frame, inp.model, inp.pose, inp.cache) if self.model.uses_crop else None
+        p = self.model.predict_one(features, crop)
         info = {"features": features, "version": self.version}
         if self._problem:
             info["problem"] = self._problem

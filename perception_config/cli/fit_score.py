@@ -4,13 +4,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION
 from .args import one_core
+
+CROP_EPOCHS = 12  # --crops: passes over the fit images' hypotheses
 
 
 def _cmd_fit_score(args: argparse.Namespace) -> int:
     one_core()
-    from ..learning.pick_success_data import collect_step_rows, featurise, load_step_rows
+    from ..learning.pick_success_data import collect_candidate_rows, collect_step_rows, featurise, load_step_rows
     from ..learning.pick_success_fit import fit_score, format_metrics
 
     if args.store is None and args.dataset is None:
@@ -27,9 +31,17 @@ def _cmd_fit_score(args: argparse.Namespace) -> int:
 
             keys, _ = split_image_keys(BopDataset(args.dataset).image_keys(), args.test_fraction, args.split_seed)
         rows = collect_step_rows(args.dataset, args.episodes, lambdas, seed=args.seed, max_steps=args.max_steps,
-                                 progress=not args.quiet, image_keys=keys)
+                                 progress=not args.quiet, image_keys=keys, pipeline=args.pipeline)
+        if args.candidates:
+            from ..datasets.bop import BopDataset
+
+            pool = keys if keys is not None else BopDataset(args.dataset).image_keys()
+            pick = np.random.default_rng(args.seed).permutation(len(pool))[:args.candidates]
+            rows += collect_candidate_rows(args.dataset, args.candidates_pipeline, seed=args.seed,
+                                           image_keys=[tuple(pool[i]) for i in sorted(pick)], progress=not args.quiet)
         source = {"dataset": str(args.dataset), "episodes": args.episodes, "lambdas": lambdas, "seed": args.seed,
-                  "max_steps": args.max_steps, "policy": "random (masked)",
+                  "max_steps": args.max_steps, "policy": "random (masked)", "pipeline": args.pipeline,
+                  "candidates": args.candidates_pipeline if args.candidates else None,
                   "images": "all" if keys is None else {"train_of_split": [args.split_seed, args.test_fraction],
                                                         "image_keys": [list(k) for k in keys]}}
     source["command"] = " ".join(["perception-config fit-score", *(_argv_of(args))])
@@ -39,15 +51,19 @@ def _cmd_fit_score(args: argparse.Namespace) -> int:
     models = args.models if args.models is not None else (
         Path(args.dataset) / "models" if args.dataset is not None else None)
     table = featurise(rows, dataset=args.dataset if args.store is not None else None, progress=not args.quiet,
-                      frames_dir=frames, models_dir=models)
-    hidden = tuple(int(x) for x in args.hidden.split(",") if x.strip())
+                      frames_dir=frames, models_dir=models, crops=args.crops, symmetries=args.symmetries)
+    hidden = tuple(int(x) for x in (args.hidden or ("64" if args.crops else "32,16")).split(",") if x.strip())
+    epochs = args.epochs if args.epochs is not None else (CROP_EPOCHS if args.crops else 300)
     base = None
     if args.recalibrate is not None:
         from ..blocks.pick_success import load_model
 
         base = load_model(str(args.recalibrate))
         source["recalibrated"] = str(args.recalibrate)
-    metrics = fit_score(table, args.out, hidden=hidden, epochs=args.epochs, seed=args.seed, source=source, base=base)
+    if base is not None and base.uses_crop and not args.crops:
+        raise ValueError(f"{args.recalibrate} has a crop branch: recalibrate it with --crops")
+    metrics = fit_score(table, args.out, hidden=hidden, epochs=epochs, seed=args.seed, source=source, base=base,
+                        progress=not args.quiet)
     print(format_metrics(metrics))
     print(f"wrote {metrics['model']}, {metrics['reliability']} and {metrics['metrics_file']}")
     return 0
@@ -63,12 +79,18 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
             out += [flag, str(value)]
     if args.store is None:
         out += ["--episodes", str(args.episodes), "--lambdas", args.lambdas, "--max-steps", str(args.max_steps)]
+        out += ["--pipeline", str(args.pipeline)] if args.pipeline is not None else []
+        out += ["--candidates", str(args.candidates), "--candidates-pipeline", str(args.candidates_pipeline)
+                ] if args.candidates else []
         out += ["--all-images"] if args.all_images else ["--split-seed", str(args.split_seed), "--test-fraction",
                                                          str(args.test_fraction)]
     if args.recalibrate is not None:
         out += ["--recalibrate", str(args.recalibrate)]
-    return out + ["--hidden", args.hidden, "--epochs", str(args.epochs), "--seed", str(args.seed),
-                  "--out", str(args.out)]
+    out += ["--crops"] if args.crops else []
+    out += ["--symmetries", args.symmetries] if args.symmetries != "declared" else []
+    out += ["--hidden", args.hidden] if args.hidden is not None else []
+    out += ["--epochs", str(args.epochs)] if args.epochs is not None else []
+    return out + ["--seed", str(args.seed), "--out", str(args.out)]
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -98,8 +120,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     fs.add_argument("--recalibrate", metavar="MODEL", default=None,
                     help="keep this model's network, fit only its calibration to these episodes (e.g. a real camera "
                          "or cell's); 'pick_success' is the shipped one")
-    fs.add_argument("--hidden", default="32,16", help="hidden layer widths of the MLP")
-    fs.add_argument("--epochs", type=int, default=300, help="full-batch Adam steps")
+    fs.add_argument("--pipeline", default=None,
+                    help="--dataset: the pipeline whose actions the played episodes take (default: the default one)")
+    fs.add_argument("--candidates", type=int, default=0, metavar="N",
+                    help="--dataset: add the ranked candidates (the first 8) of the ground-truth-free generators of "
+                         "--candidates-pipeline on every object of N of the images played (drawn by --seed): their "
+                         "mistakes (flips, a neighbouring part) are what a verifier must learn to refuse; ~1 s a "
+                         "generator and object")
+    fs.add_argument("--candidates-pipeline", default="cell", help="whose generators and parameters (default: cell)")
+    fs.add_argument("--crops", action="store_true",
+                    help="also look at each hypothesis' rendered-against-observed crop (a small CNN beside the "
+                         "features; vision/verifier_crop.py): the verifier for real frames")
+    fs.add_argument("--symmetries", choices=("declared", "derived"), default="declared",
+                    help="label against the symmetries the models declare (the simulated pick's), or 'derived': "
+                         "where a model declares none, those of its surface (a flip of a nearly symmetric box is "
+                         "right: for a cell's real parts)")
+    fs.add_argument("--hidden", default=None, help="hidden layer widths of the MLP (default 32,16; with --crops 64)")
+    fs.add_argument("--epochs", type=int, default=None,
+                    help=f"full-batch Adam steps (default 300); with --crops passes over the data "
+                         f"(default {CROP_EPOCHS})")
     fs.add_argument("--seed", type=int, default=0)
     fs.add_argument("--out", type=Path, required=True, help="folder for the model, reliability.png, metrics.json")
     fs.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -33,14 +33,16 @@ import numpy as np
 from ..blocks.features import pick_features
 from ..blocks.pick import SimulatedPick
 from ..core.geometry import Pose
-from ..core.metrics import pose_mssd
+from ..core.metrics import pose_mssd, pose_mssd_derived
 from ..core.pose_json import pose_arrays, pose_from_json, pose_json
 from ..datasets.bop import BopDataset
 from ..vision.pick_features import FEATURE_NAMES, rgb_only
+from ..vision.verifier_crop import DEPTH_CHANNELS
 
 # the pick criterion: MSSD <= this x diameter, SimulatedPick's default (blocks/pick.py), read from the block
 PICK_MSSD_SHARE = float(next(p.default for p in SimulatedPick.params if p.name == "mssd_threshold"))
 DEFAULT_COLLECT_LAMBDAS = (0.1, 0.3, 0.5, 0.7, 1.0)
+CANDIDATES_PER_CALL = 8  # collect_candidate_rows: the first this many ranked candidates of a call
 
 
 def load_step_rows(store_path: str | Path, busy_timeout: float | None = None) -> list[dict[str, Any]]:
@@ -103,6 +105,51 @@ def collect_step_rows(dataset: str | Path, n_episodes: int, lambdas: Sequence[fl
     return rows
 
 
+def collect_candidate_rows(dataset: str | Path, pipeline: Any = None,
+                           image_keys: Sequence[tuple[int, int]] | None = None,
+                           per_call: int = CANDIDATES_PER_CALL, min_visib: float = 0.3, seed: int = 0,
+                           use_depth: bool = True, progress: bool = True) -> list[dict[str, Any]]:
+    """The ranked candidates (the first `per_call`) of every ground-truth-free generator of
+    `pipeline` (its generator and actions of kind generation that need no ground truth, with its
+    parameters; default the cell's) on every annotated object (visib_fract >= `min_visib`) of
+    the images `image_keys` (default all) of `dataset`: one row per candidate, in the store's
+    shape. They hold the generators' own mistakes (a box half a turn away, a part placed on its
+    neighbour), the hard cases a verifier must learn to refuse. Seeded; the generators run within
+    their wall-clock budgets, so a loaded machine gives fewer candidates."""
+    from tqdm import tqdm
+
+    from ..bench.generators import pipeline_params
+    from ..blocks.base import GROUND_TRUTH, BlockInput, Kind, create
+    from ..blocks.pipeline import load_pipeline
+
+    pipe = pipeline if pipeline is not None and not isinstance(pipeline, (str, Path)) else load_pipeline(
+        pipeline or "cell")
+    params = pipeline_params(pipe)
+    names = [b.name for b in [pipe.generator] + [a.block for a in pipe.actions]
+             if b.kind == Kind.GENERATION and GROUND_TRUTH not in b.inputs]
+    blocks = [create(n, **params.get(n, {})) for n in dict.fromkeys(names)]
+    ds = BopDataset(Path(dataset), "test", use_depth=use_depth)
+    keys = list(image_keys) if image_keys is not None else ds.image_keys()
+    rows: list[dict[str, Any]] = []
+    for scene_id, im_id in tqdm(keys, desc="generator candidates", disable=not progress, unit="image"):
+        frame = ds.load_frame(scene_id, im_id)
+        cache: dict = {}
+        for index, o in enumerate(frame.objects):
+            if o.gt is None or o.model is None or (o.visib_fract is not None and o.visib_fract < min_visib):
+                continue
+            for block in blocks:
+                if block.frame_lacks(frame):
+                    continue
+                rng = np.random.default_rng([seed, scene_id, im_id, index])
+                r = block(BlockInput(frame=frame, model=o.model, rng=rng, cache=cache))
+                for _, pose in r.candidates[:per_call]:
+                    rows.append({"episode_id": -1, "episode_dataset": str(dataset), "episode_scene_id": scene_id,
+                                 "episode_im_id": im_id, "episode_obj_id": o.obj_id, "episode_noise_lambda": None,
+                                 "action": block.name, "pose": pose_arrays(pose_json(pose)), "picked": None,
+                                 "pick_source": None})
+    return rows
+
+
 @dataclass
 class FeatureTable:
     """Features (n, F) float64 with NaN for missing, labels, and where each row came from."""
@@ -114,6 +161,7 @@ class FeatureTable:
     mssd_share: np.ndarray  # (n,) MSSD / diameter (NaN when the label is a stored pick outcome only)
     noise_lambda: np.ndarray  # (n,) the episode's lambda (NaN when unknown)
     feature_names: tuple[str, ...] = FEATURE_NAMES
+    crops: np.ndarray | None = None  # (n, C, CROP, CROP) float16: each row's crop (featurise(crops=True))
 
     def __len__(self) -> int:
         return int(len(self.y))
@@ -121,12 +169,23 @@ class FeatureTable:
     def subset(self, keep: np.ndarray) -> "FeatureTable":
         idx = np.flatnonzero(keep)
         return FeatureTable(self.X[idx], self.y[idx], [self.images[i] for i in idx], self.rgb_only[idx],
-                            self.mssd_share[idx], self.noise_lambda[idx], self.feature_names)
+                            self.mssd_share[idx], self.noise_lambda[idx], self.feature_names,
+                            None if self.crops is None else self.crops[idx])
+
+    def inputs(self, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(features, crops or None) of the rows `keep` (a mask or indices): a model's input."""
+        return self.X[keep], None if self.crops is None else self.crops[keep]
 
 
-def pick_label(model: Any, pose: Pose, ground_truths: Iterable[Pose]) -> tuple[bool, float]:
-    """(picks, MSSD / diameter) of `pose` against the nearest of the instances' ground truths."""
-    share = min((pose_mssd(pose, gt, model) / model.diameter for gt in ground_truths), default=math.inf)
+def pick_label(model: Any, pose: Pose, ground_truths: Iterable[Pose], symmetries: str = "declared"
+               ) -> tuple[bool, float]:
+    """(picks, MSSD / diameter) of `pose` against the nearest of the instances' ground truths;
+    `symmetries`: "declared" (the simulated pick's) or "derived" (the model's declared ones, or
+    where it declares none those of its surface: a flip of a nearly symmetric box is right)."""
+    if symmetries not in ("declared", "derived"):
+        raise ValueError(f"symmetries must be 'declared' or 'derived', got {symmetries!r}")
+    err = pose_mssd if symmetries == "declared" else pose_mssd_derived
+    share = min((err(pose, gt, model) / model.diameter for gt in ground_truths), default=math.inf)
     return bool(share <= PICK_MSSD_SHARE), float(share)
 
 
@@ -244,15 +303,19 @@ class _ImageSource:
 
 def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None, with_rgb_only: bool = True,
               progress: bool = True, frames_dir: str | Path | None = None,
-              models_dir: str | Path | None = None) -> FeatureTable:
+              models_dir: str | Path | None = None, crops: bool = False,
+              symmetries: str = "declared") -> FeatureTable:
     """The FeatureTable of step rows (module docstring). `dataset` replaces the rows' own
     `episode_dataset` (a store written on another machine names its path there). Rows of the
     configurator's estimates name a kept frame by stamp instead of an image: they are read from
     `frames_dir` (store/frames.py) with their objects' models from `models_dir`, labelled by the
     frame's ground truth when it came with one, else by a stored pick outcome alone (a robot
     cell: only the picked hypotheses are labelled); rows with neither, or whose frame was pruned,
-    are left out."""
+    are left out. `crops`: each row's crop too (vision/verifier_crop.py; for a model with a crop
+    branch). `symmetries`: of the label (pick_label)."""
     from tqdm import tqdm
+
+    from ..blocks.features import hypothesis_crop
 
     rows = _dedupe(rows)
     if not rows:
@@ -263,7 +326,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
         key = source.key(row)
         if key is not None:
             groups.setdefault(key, []).append(row)
-    X, y, images, blank, share, lams = [], [], [], [], [], []
+    X, y, images, blank, share, lams, crop_rows = [], [], [], [], [], [], []
     bar = tqdm(total=len(rows), desc="features", disable=not progress, unit="pose")
     for key, group in groups.items():
         loaded = source.load(key, {int(r["episode_obj_id"]) for r in group})
@@ -279,7 +342,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
             pose = pose_from_json(row["pose"])
             if not pose.is_valid():
                 continue
-            label, mssd = pick_label(model, pose, truths) if truths else (None, math.nan)
+            label, mssd = pick_label(model, pose, truths, symmetries) if truths else (None, math.nan)
             if row.get("picked") is not None:
                 label = bool(row["picked"])
             if label is None:
@@ -289,7 +352,10 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
             variants = [(f, frame.depth is None)]
             if with_rgb_only and frame.depth is not None:
                 variants.append((rgb_only(f), True))
+            crop = hypothesis_crop(frame, model, pose, cache).astype(np.float16) if crops else None
             for feats, is_rgb in variants:
+                if crop is not None:
+                    crop_rows.append(_blank_depth(crop) if is_rgb else crop)
                 X.append([feats[n] for n in FEATURE_NAMES])
                 y.append(label)
                 images.append(key)
@@ -300,7 +366,15 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
     if not X:
         raise ValueError("no step row has a valid hypothesis pose with a label (ground truth or a pick outcome)")
     return FeatureTable(np.asarray(X, float), np.asarray(y, bool), images, np.asarray(blank, bool),
-                        np.asarray(share, float), np.asarray(lams, float))
+                        np.asarray(share, float), np.asarray(lams, float),
+                        crops=np.stack(crop_rows) if crops else None)
+
+
+def _blank_depth(crop: np.ndarray) -> np.ndarray:
+    """The crop as an RGB-only frame gives it: its depth channels zero."""
+    out = crop.copy()
+    out[list(DEPTH_CHANNELS)] = 0
+    return out
 
 
 __all__ = ["load_step_rows", "collect_step_rows", "featurise", "pick_label", "FeatureTable", "FeatureMemo",

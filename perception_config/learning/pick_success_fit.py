@@ -20,6 +20,7 @@ import numpy as np
 from ..core.score_metrics import score_metrics
 from ..rl.episodes import DEFAULT_SPLIT_SEED, DEFAULT_TEST_FRACTION, split_image_keys
 from ..util.atomic_file import atomic_write
+from ..vision.crop_network import fit_hybrid
 from ..vision.pick_success_model import MODEL_FILE, PickSuccessModel, encode, fit_mlp, fit_platt, robust_scaling
 from .pick_success_data import FeatureTable
 
@@ -41,11 +42,14 @@ def split_images(table: FeatureTable, test_fraction: float = DEFAULT_TEST_FRACTI
 
 def fit_model(table: FeatureTable, hidden: Sequence[int] = (32, 16), epochs: int = 300, seed: int = 0,
               test_fraction: float = DEFAULT_TEST_FRACTION, split_seed: int = DEFAULT_SPLIT_SEED,
-              base: PickSuccessModel | None = None) -> tuple[PickSuccessModel, dict[str, Any], dict[str, np.ndarray]]:
+              base: PickSuccessModel | None = None, progress: bool = False,
+              ) -> tuple[PickSuccessModel, dict[str, Any], dict[str, np.ndarray]]:
     """(model, metrics, split masks): the MLP trained on the fit images, Platt-calibrated on the
     calibration images, measured on the held-out images. With a `base` model, only recalibrated:
     its network kept, Platt scaling fitted again on the fit and calibration images (a camera or
-    cell whose frames the base never saw: the ranking stays, the probabilities move)."""
+    cell whose frames the base never saw: the ranking stays, the probabilities move). A table
+    with crops trains a model with a crop branch (vision/crop_network.fit_hybrid; `progress`: its
+    epochs' bar)."""
     masks = split_images(table, test_fraction, split_seed)
     fit, cal, test = masks["fit"], masks["calibration"], masks["test"]
     if base is not None:
@@ -55,27 +59,35 @@ def fit_model(table: FeatureTable, hidden: Sequence[int] = (32, 16), epochs: int
             which = "successes" if table.y[m].all() else "failures"
             raise ValueError(f"the {name} images' hypotheses are all {which}: nothing to learn from; collect more "
                              f"episodes (or several lambdas)")
+    if base is not None and base.uses_crop and table.crops is None:
+        raise ValueError("the model to recalibrate looks at crops: featurise the rows with crops=True")
     if base is None:
         median, spread = robust_scaling(table.X[fit])
-        layers = fit_mlp(encode(table.X[fit], median, spread), table.y[fit], hidden, epochs, seed=seed)
-        model = PickSuccessModel(tuple(table.feature_names), median, spread, layers)
+        Z = encode(table.X[fit], median, spread)
+        conv: list = []
+        if table.crops is not None:
+            conv, layers = fit_hybrid(Z, table.crops[fit], table.y[fit], hidden, epochs, seed=seed, progress=progress)
+        else:
+            layers = fit_mlp(Z, table.y[fit], hidden, epochs, seed=seed)
+        model = PickSuccessModel(tuple(table.feature_names), median, spread, layers, conv=conv)
     else:
-        model = PickSuccessModel(base.feature_names, base.median, base.spread, base.layers)
-    model.calibration = fit_platt(model.logit(table.X[cal]), table.y[cal])
+        model = PickSuccessModel(base.feature_names, base.median, base.spread, base.layers, conv=base.conv)
+    model.calibration = fit_platt(model.logit(*table.inputs(cal)), table.y[cal])
     metrics: dict[str, Any] = {}
     for name, m in (("fit", fit), ("calibration", cal), ("test", test)):
-        p = model.predict(table.X[m])
+        p = model.predict(*table.inputs(m))
         metrics[name] = {"all": score_metrics(p, table.y[m]),
                          "rgbd": score_metrics(p[~table.rgb_only[m]], table.y[m][~table.rgb_only[m]]),
                          "rgb_only": score_metrics(p[table.rgb_only[m]], table.y[m][table.rgb_only[m]])}
     metrics["images"] = {name: len({table.images[i] for i in np.flatnonzero(m)}) for name, m in masks.items()}
     model.record = {"hidden": [w.shape[0] for w, _ in model.layers[:-1]], "epochs": int(epochs), "seed": int(seed),
+                    "crop_branch": [int(w.shape[0]) for w, _ in model.conv],
                     "rows": len(table), "images": metrics["images"],
                     "test": {k: {m: metrics["test"][k].get(m) for m in ("n", "auc", "brier", "ece")}
                              for k in ("all", "rgbd", "rgb_only")}}
     if base is not None:
         model.record.update(recalibrated_from=base.record, base_calibration=list(base.calibration))
-        p = base.predict(table.X[test])
+        p = base.predict(*table.inputs(test))
         metrics["test_before_recalibration"] = {
             "all": score_metrics(p, table.y[test]),
             "rgbd": score_metrics(p[~table.rgb_only[test]], table.y[test][~table.rgb_only[test]]),
@@ -110,15 +122,15 @@ def plot_reliability(p_by_set: dict[str, tuple[np.ndarray, np.ndarray]], path: s
 
 
 def fit_score(table: FeatureTable, out_dir: str | Path, hidden: Sequence[int] = (32, 16), epochs: int = 300,
-              seed: int = 0, source: dict[str, Any] | None = None, base: PickSuccessModel | None = None
-              ) -> dict[str, Any]:
+              seed: int = 0, source: dict[str, Any] | None = None, base: PickSuccessModel | None = None,
+              progress: bool = False) -> dict[str, Any]:
     """Fit (or with `base` only recalibrate), calibrate, measure; write MODEL_FILE,
     reliability.png and metrics.json into `out_dir`. Returns the metrics (with the written paths)."""
     out = Path(out_dir)
-    model, metrics, masks = fit_model(table, hidden, epochs, seed, base=base)
+    model, metrics, masks = fit_model(table, hidden, epochs, seed, base=base, progress=progress)
     model.record["source"] = source or {}
     test = masks["test"]
-    p = model.predict(table.X[test])
+    p = model.predict(*table.inputs(test))
     y, rgb = table.y[test], table.rgb_only[test]
     model_path = model.save(out / MODEL_FILE)
     plot = plot_reliability({"RGB-D": (p[~rgb], y[~rgb]), "RGB-only": (p[rgb], y[rgb])}, out / "reliability.png")

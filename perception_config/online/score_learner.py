@@ -13,7 +13,8 @@ One cycle (`refit_score_once`):
    held-out share are never fitted on);
 2. candidates: the serving model recalibrated (its network kept, Platt scaling fitted again:
    cheap, safe with few frames) and, from `REFIT_ROWS` labelled hypotheses on, a model fitted
-   anew on the cell's rows alone;
+   anew on the cell's rows alone (not for a model with a crop branch: its convolutions are
+   trained offline on synthetic images, `fit-score --crops`; the cell recalibrates it);
 3. the check: the Brier score (mean squared error of the probability) of the serving model and
    of each candidate on the held-out frames; the best candidate is promoted only if its Brier is
    below (1 - margin) x the serving one's AND the gain holds across the held-out frames: the
@@ -88,8 +89,9 @@ def initial_score_version(learn_dir: str | Path, pipeline: Any) -> str | None:
     return versions.promote(path, {"start": str(path)})
 
 
-def labelled_rows(learn_dir: Path, models_dir: str | Path) -> Any:
-    """The FeatureTable of the stored hypotheses that carry a label (module docstring)."""
+def labelled_rows(learn_dir: Path, models_dir: str | Path, crops: bool = False) -> Any:
+    """The FeatureTable of the stored hypotheses that carry a label (module docstring); `crops`:
+    with each hypothesis' crop (a serving model with a crop branch needs them)."""
     try:
         rows = load_step_rows(confined(learn_dir / STORE_NAME, learn_dir, "episode store"), busy_timeout=2.0)
     except (sqlite3.Error, OSError, EpisodeStoreError) as exc:
@@ -99,7 +101,7 @@ def labelled_rows(learn_dir: Path, models_dir: str | Path) -> Any:
     try:
         # the cell's own camera only (no RGB-only copies of RGB-D frames: the cell's frames are what they are)
         return featurise(rows, with_rgb_only=False, progress=False, frames_dir=learn_dir / "frames",
-                         models_dir=models_dir)
+                         models_dir=models_dir, crops=crops)
     except ValueError as exc:
         raise ScoreLearnError(str(exc)) from None
 
@@ -117,7 +119,7 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
             raise ScoreLearnError(f"no pick_success version in {versions.folder}")
         serving_model = load_model(str(versions.path(serving)))
         started = time.perf_counter()
-        table = labelled_rows(learn_dir, models_dir)
+        table = labelled_rows(learn_dir, models_dir, crops=serving_model.uses_crop)
         frames = len(set(table.images))
         if frames < MIN_FRAMES:
             raise ScoreLearnError(f"{frames} labelled frames ({len(table)} hypotheses); at least {MIN_FRAMES} needed")
@@ -126,13 +128,13 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
         if len(set(held_frames)) < MIN_HELD_OUT_FRAMES:
             raise ScoreLearnError(f"{len(set(held_frames))} held-out frames; at least {MIN_HELD_OUT_FRAMES} needed")
         y = table.y[held_out]
-        serving_err = (serving_model.predict(table.X[held_out]) - y) ** 2
+        serving_err = (serving_model.predict(*table.inputs(held_out)) - y) ** 2
         serving_brier = float(np.mean(serving_err))
         candidates: list[tuple[str, Any]] = []
         problems: list[str] = []
         for kind, base in (("recalibrated", serving_model), ("refit", None)):
-            if kind == "refit" and len(table) < REFIT_ROWS:
-                continue
+            if kind == "refit" and (len(table) < REFIT_ROWS or serving_model.uses_crop):
+                continue  # a model with a crop branch is recalibrated in the cell, its network refitted offline
             try:
                 model, _, _ = fit_model(table, seed=seed, split_seed=SPLIT_SEED, base=base)
             except (ValueError, RuntimeError) as exc:
@@ -141,11 +143,11 @@ def refit_score_once(learn_dir: str | Path, models_dir: str | Path, margin: floa
             candidates.append((kind, model))
         if not candidates:
             raise ScoreLearnError("no candidate could be fitted (" + "; ".join(problems) + ")")
-        scored = [((m.predict(table.X[held_out]) - y) ** 2, kind, m) for kind, m in candidates]
+        scored = [((m.predict(*table.inputs(held_out)) - y) ** 2, kind, m) for kind, m in candidates]
         err, kind, best = min(scored, key=lambda s: float(np.mean(s[0])))
         brier = float(np.mean(err))
         gain, lower, _ = per_frame_bound(serving_err - err, held_frames, CONFIDENCE, "lower")
-        held = score_metrics(best.predict(table.X[held_out]), y)
+        held = score_metrics(best.predict(*table.inputs(held_out)), y)
         result: dict[str, Any] = {
             "outcome": "discarded", "what": "pick_success", "candidate": kind, "rows": len(table), "frames": frames,
             "held_out": int(held_out.sum()), "held_out_frames": len(set(held_frames)), "brier": brier,

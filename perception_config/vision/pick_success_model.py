@@ -6,6 +6,12 @@ beside it, so RGB-D and RGB-only hypotheses share one model. Output: the probabi
 pick at the hypothesis succeeds: sigmoid(a * logit + b), where (a, b) is Platt scaling of the
 network's logit fitted on a calibration split of images the network did not train on.
 
+A model may also look at the hypothesis itself: with a crop branch (`conv`, version 2 files),
+the rendered-against-observed crop of vision/verifier_crop.py is embedded by the convolutions
+of vision/crop_network.py and the MLP takes that embedding beside the encoded features
+(`perception-config fit-score --crops`). Such a model needs the crop wherever it predicts
+(`uses_crop`); a version 1 file (no branch) is read as before.
+
 The file is safetensors (the arrays) with the metadata as JSON in its header (format,
 version, feature names, layer shapes, calibration, training record, a sha256 over both, as
 agents/policy_io.py writes policies): loading runs no code (no pickle), and a file for other
@@ -33,10 +39,13 @@ import numpy as np
 from ..util.atomic_file import atomic_write
 from ..util.checksum import CHECKSUM_KEY, content_checksum
 from ..util.safe_json import JsonLimitError, loads_limited, read_limited
+from .crop_network import check_conv, embed, embedding_width
 from .pick_features import FEATURE_NAMES
+from .verifier_crop import CHANNELS, CROP
 
 FORMAT = "perception_config.pick_success"
-VERSION = 1
+VERSION = 2  # 2: an optional crop branch; version 1 files (none) are read too
+MAX_CONV = 8
 META_KEY = "perception_config"
 MODEL_FILE = "pick_success.safetensors"
 MAX_MODEL_BYTES = 16 * 1024 * 1024  # a model file larger than this is refused before reading
@@ -84,24 +93,36 @@ class PickSuccessModel:
     layers: list[tuple[np.ndarray, np.ndarray]]  # (weight (out, in), bias (out,)) per layer
     calibration: tuple[float, float] = (1.0, 0.0)  # (a, b): p = sigmoid(a * logit + b)
     record: dict[str, Any] = field(default_factory=dict)  # how it was trained and what it measured
+    conv: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # the crop branch (W (O, C, 3, 3), b)
 
-    def logit(self, X: np.ndarray) -> np.ndarray:
-        """The uncalibrated network logits (n,) of raw features X (n, F)."""
+    @property
+    def uses_crop(self) -> bool:
+        """Whether the model needs the hypothesis' crop (vision/verifier_crop.py) to predict."""
+        return bool(self.conv)
+
+    def logit(self, X: np.ndarray, crops: np.ndarray | None = None) -> np.ndarray:
+        """The uncalibrated network logits (n,) of raw features X (n, F) and, for a model with a
+        crop branch, the hypotheses' crops (n, C, CROP, CROP)."""
         h = encode(X, self.median, self.spread).astype(np.float64)
+        if self.conv:
+            if crops is None or len(crops) != len(h):
+                raise ValueError("this pick-success model looks at the hypothesis' crop: give one crop per row")
+            h = np.concatenate([h, embed(crops, self.conv).astype(np.float64)], axis=1)
         for i, (W, b) in enumerate(self.layers):
             h = h @ W.T + b
             if i < len(self.layers) - 1:
                 h = np.maximum(h, 0.0)
         return h[:, 0]
 
-    def predict(self, X: np.ndarray) -> np.ndarray:
-        """Calibrated probabilities (n,) that a pick at each hypothesis succeeds."""
+    def predict(self, X: np.ndarray, crops: np.ndarray | None = None) -> np.ndarray:
+        """Calibrated probabilities (n,) that a pick at each hypothesis succeeds (`crops`: as logit)."""
         a, b = self.calibration
-        return 1.0 / (1.0 + np.exp(-np.clip(a * self.logit(X) + b, -60.0, 60.0)))
+        return 1.0 / (1.0 + np.exp(-np.clip(a * self.logit(X, crops) + b, -60.0, 60.0)))
 
-    def predict_one(self, features: dict[str, float]) -> float:
-        """The probability for one feature dict (pick_features' output)."""
-        return float(self.predict(np.array([[features.get(n, math.nan) for n in self.feature_names]]))[0])
+    def predict_one(self, features: dict[str, float], crop: np.ndarray | None = None) -> float:
+        """The probability for one feature dict (pick_features' output) and its crop (C, CROP, CROP)."""
+        X = np.array([[features.get(n, math.nan) for n in self.feature_names]])
+        return float(self.predict(X, None if crop is None else crop[None])[0])
 
     # -- files ---------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
@@ -112,10 +133,15 @@ class PickSuccessModel:
         for i, (W, b) in enumerate(self.layers):
             tensors[f"layer{i}.weight"] = np.ascontiguousarray(W, np.float32)
             tensors[f"layer{i}.bias"] = np.ascontiguousarray(b, np.float32)
-        meta = {"format": FORMAT, "version": VERSION, "feature_names": list(self.feature_names),
+        for i, (W, b) in enumerate(self.conv):
+            tensors[f"conv{i}.weight"] = np.ascontiguousarray(W, np.float32)
+            tensors[f"conv{i}.bias"] = np.ascontiguousarray(b, np.float32)
+        meta = {"format": FORMAT, "version": 2 if self.conv else 1, "feature_names": list(self.feature_names),
                 "n_layers": len(self.layers), "activation": "relu",
                 "calibration": {"method": "platt", "a": float(self.calibration[0]), "b": float(self.calibration[1])},
                 "record": self.record}
+        if self.conv:
+            meta["crop"] = {"channels": list(CHANNELS), "size": CROP, "n_conv": len(self.conv)}
         meta[CHECKSUM_KEY] = content_checksum(meta, tensors)
         return atomic_write(path, save(tensors, metadata={META_KEY: json.dumps(meta)}))
 
@@ -136,8 +162,9 @@ class PickSuccessModel:
                 f"(not in the model: {missing}; not computed here: {extra}): fit it again with "
                 f"`perception-config fit-score`")
         F = len(names)
+        conv = _crop_branch(meta, tensors, path)
         layers = []
-        width = 2 * F
+        width = 2 * F + embedding_width(conv)
         for i in range(meta["n_layers"]):
             W, b = tensors.get(f"layer{i}.weight"), tensors.get(f"layer{i}.bias")
             if W is None or b is None or W.ndim != 2 or W.shape[1] != width or b.shape != (W.shape[0],):
@@ -154,7 +181,33 @@ class PickSuccessModel:
                                         f"its {F} features")
         cal = meta["calibration"]
         return cls(tuple(names), median.astype(np.float64), spread.astype(np.float64), layers,
-                   (float(cal["a"]), float(cal["b"])), dict(meta.get("record", {})))
+                   (float(cal["a"]), float(cal["b"])), dict(meta.get("record", {})), conv)
+
+
+def _crop_branch(meta: dict[str, Any], tensors: dict[str, np.ndarray],
+                 path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The crop branch's layers of a model file ([] without one), checked against this code's crop."""
+    crop = meta.get("crop")
+    if crop is None:
+        return []
+    if not isinstance(crop, dict) or crop.get("channels") != list(CHANNELS) or crop.get("size") != CROP:
+        theirs = (crop.get("channels"), crop.get("size")) if isinstance(crop, dict) else crop
+        raise PickSuccessModelError(
+            f"pick-success model {path} looks at another crop than this code makes (its channels and size: "
+            f"{theirs}; here {list(CHANNELS)}, {CROP}): fit it again with `perception-config fit-score --crops`")
+    n = crop.get("n_conv")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_CONV:
+        raise PickSuccessModelError(f"pick-success model {path} is corrupt: crop.n_conv = {n!r}")
+    conv = []
+    for i in range(n):
+        W, b = tensors.get(f"conv{i}.weight"), tensors.get(f"conv{i}.bias")
+        if W is None or b is None:
+            raise PickSuccessModelError(f"pick-success model {path} is corrupt: convolution {i} is missing")
+        conv.append((W.astype(np.float32), b.astype(np.float32)))
+    problem = check_conv(conv, len(CHANNELS), CROP)
+    if problem:
+        raise PickSuccessModelError(f"pick-success model {path} is corrupt: {problem}")
+    return conv
 
 
 def _read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
