@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from perception_config.blocks.features import pick_features  # noqa: E402
+from perception_config.blocks.features import hypothesis_crop, pick_features  # noqa: E402
 from perception_config.blocks.pick_success import SHIPPED_MODEL, load_model  # noqa: E402
 from perception_config.core.geometry import perturb  # noqa: E402
 from perception_config.core.metrics import pose_mssd  # noqa: E402
@@ -38,7 +38,6 @@ from perception_config.core.score_metrics import auc, score_metrics  # noqa: E40
 from perception_config.datasets.bop import BopDataset  # noqa: E402
 from perception_config.learning.pick_success_fit import plot_reliability  # noqa: E402
 from perception_config.util.atomic_file import atomic_write  # noqa: E402
-from perception_config.vision.pick_features import FEATURE_NAMES  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 LAMBDAS = (0.1, 0.3, 0.5)
@@ -63,8 +62,9 @@ def score_frames(ds: BopDataset, model, seeds: int, use_depth: bool) -> dict[str
                     pose = perturb(obj.gt, lam, d, rng)
                     t0 = time.perf_counter()
                     f = pick_features(frame, obj.model, pose, cache, use_depth=use_depth)
+                    crop = hypothesis_crop(frame, obj.model, pose, cache, use_depth) if model.uses_crop else None
                     ms.append(1e3 * (time.perf_counter() - t0))
-                    p.append(model.predict(np.array([[f[n] for n in FEATURE_NAMES]]))[0])
+                    p.append(model.predict_one(f, crop))
                     y.append(pose_mssd(pose, obj.gt, obj.model) <= 0.1 * d)
                     lams.append(lam)
                     inst.append(hash((scene_id, im_id, oi)))

@@ -72,6 +72,7 @@ def test_the_numpy_network_is_torchs_forward():
         h = net.conv(torch.from_numpy(crops))
         ref = torch.cat([h.mean(dim=(2, 3)), h.amax(dim=(2, 3))], 1).numpy()
     np.testing.assert_allclose(embed(crops, conv), ref, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(embed(crops, conv, chunk=2), ref, rtol=1e-4, atol=1e-5)  # in chunks: the same
     assert "convolution 1" in check_conv([conv[0], conv[2]], len(CHANNELS), CROP)
 
 
@@ -129,8 +130,11 @@ def test_a_crop_model_of_another_crop_or_with_bad_convolutions_is_refused(tmp_pa
     from perception_config.vision.pick_success_model import META_KEY, _read
 
     meta, tensors = _read(path)
+    def narrow(m: dict, t: dict) -> None:
+        t["conv2.weight"] = np.ascontiguousarray(t["conv2.weight"][:, :5])
+
     for change, message in ((lambda m, t: m["crop"].update(size=32), "another crop"),
-                            (lambda m, t: t.update({"conv2.weight": np.ascontiguousarray(t["conv2.weight"][:, :5])}), "convolution 2"),
+                            (narrow, "convolution 2"),
                             (lambda m, t: m["crop"].update(n_conv=0), "n_conv")):
         m, t = json.loads(json.dumps(meta)), dict(tensors)
         change(m, t)

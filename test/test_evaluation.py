@@ -331,6 +331,16 @@ def test_split_and_settings_come_from_the_policy_metadata(tmp_path):
     other = save_agent(RandomAgent(spec), tmp_path / "q.json", extra={**extra, "split_seed": 6})
     with pytest.raises(ValueError, match="split_seed"):
         policy_settings([path, other])
+    # Trained on simulated images, played on real frames: no image there was trained on, so its
+    # split is neither checked nor taken; on its own dataset it still is.
+    (tmp_path / "sim").mkdir()
+    (tmp_path / "real").mkdir()
+    sim = save_agent(RandomAgent(spec), tmp_path / "s.json", extra={**extra, "dataset": str(tmp_path / "sim")})
+    elsewhere = policy_settings([sim], test_fraction=0.8, dataset=tmp_path / "real")
+    assert (elsewhere.split_seed, elsewhere.test_fraction, elsewhere.env) == (0, 0.8, trained)
+    assert policy_settings([sim], dataset=tmp_path / "real").test_fraction == 0.3
+    with pytest.raises(ValueError, match="test_fraction"):
+        policy_settings([sim], test_fraction=0.8, dataset=tmp_path / "sim")
     # Other settings may be changed, and that is said.
     measured = policy_settings([path], time_mode="measured")
     assert measured.env == trained.replace(time_mode="measured")

@@ -45,15 +45,26 @@ def _same(key: str, a: Any, b: Any) -> bool:
     return int(a) == int(b)
 
 
+def _same_folder(a: Any, b: Any) -> bool:
+    try:
+        folder = b.root if hasattr(b, "image_keys") else b  # a BopDataset or a path (Path.root is "/")
+        return Path(a).resolve() == Path(folder).resolve()
+    except (TypeError, OSError):
+        return False
+
+
 def policy_settings(
     policies: Sequence[Any] = (), *, split_seed: int | None = None, test_fraction: float | None = None,
-    pipeline: Any = None, **env_overrides: Any,
+    pipeline: Any = None, dataset: Any = None, **env_overrides: Any,
 ) -> PolicySettings:
     """The settings to run `policies` (files; agent names and objects are skipped) with.
 
     Explicit values (not None) win, but split_seed, test_fraction, pipeline and max_ops must
     agree with what the files record (ValueError naming the file otherwise); the files must
-    agree with each other on them. `env_overrides`: EnvSettings fields (max_ops, time_mode, ...).
+    agree with each other on them. `dataset`: the folder the policies will play; a policy trained
+    on another dataset (simulated images of the real frames' meshes, say) has no train images
+    there, so its split is neither checked nor taken. `env_overrides`: EnvSettings fields
+    (max_ops, time_mode, ...).
     """
     given = {"split_seed": split_seed, "test_fraction": test_fraction, "pipeline": pipeline,
              "max_ops": env_overrides.get("max_ops")}
@@ -70,6 +81,8 @@ def policy_settings(
             trained.append((str(spec), recorded_env))
         recorded = {"split_seed": extra.get("split_seed"), "test_fraction": extra.get("test_fraction"),
                     "pipeline": extra.get("pipeline"), "max_ops": recorded_env.max_ops if recorded_env else None}
+        if dataset is not None and extra.get("dataset") and not _same_folder(extra["dataset"], dataset):
+            recorded.update(split_seed=None, test_fraction=None)  # trained elsewhere: no image of here was seen
         for key, value in recorded.items():
             if value is None:
                 continue

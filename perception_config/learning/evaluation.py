@@ -186,7 +186,7 @@ def evaluate(
     check_options(best_static_length, best_static_episodes)
     out = Path(out)
     settings = policy_settings(policies, split_seed=split_seed, test_fraction=test_fraction, pipeline=pipeline,
-                               **env_overrides)
+                               dataset=dataset, **env_overrides)
     for note in settings.notes:
         print(f"note: {note}", file=sys.stderr)
     ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset), split=split, use_depth=use_depth)

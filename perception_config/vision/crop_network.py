@@ -19,6 +19,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 CONV_WIDTHS = (16, 32, 48, 64)  # output channels of the four convolutions
 POOLED = 3  # the first this many convolutions are followed by a 2x2 max pooling
+EMBED_CHUNK = 64  # crops embedded at once: bounds the im2col buffers to ~100 MB
 
 
 def conv3x3(x: np.ndarray, W: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -38,9 +39,12 @@ def max_pool2(x: np.ndarray) -> np.ndarray:
     return x.reshape(n, C, H // 2, 2, W // 2, 2).max(axis=(3, 5))
 
 
-def embed(crops: np.ndarray, conv: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+def embed(crops: np.ndarray, conv: Sequence[tuple[np.ndarray, np.ndarray]], chunk: int = EMBED_CHUNK) -> np.ndarray:
     """The embedding (n, 2 x last width) of crops (n, C, H, W) by the layers `conv`
-    [(W (O, C, 3, 3), b (O,))] (module docstring)."""
+    [(W (O, C, 3, 3), b (O,))] (module docstring), `chunk` crops at a time (im2col of a 64 x 64
+    crop is ~1 MB)."""
+    if len(crops) > chunk:
+        return np.concatenate([embed(crops[s:s + chunk], conv, chunk) for s in range(0, len(crops), chunk)])
     h = np.asarray(crops, np.float32)
     for i, (W, b) in enumerate(conv):
         h = np.maximum(conv3x3(h, W.astype(np.float32), b.astype(np.float32)), 0.0)
