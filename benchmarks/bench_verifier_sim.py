@@ -23,13 +23,15 @@ Per real RGB-D set of ../shared/data (skipped when absent) and per variant:
    under the declared or derived symmetries), and each generator ranked by it and refusing
    below 0.5 (offered, top-1, confident wrong).
 The real frames are never trained on. A step whose output exists is not run again. Writes
-results/verifier_sim.json (one entry per set and variant) and prints one line each.
+results/verifier_sim.json (one entry per set and variant), copies step 4's files to
+results/generators_<set>_<variant>.{json,png}, and prints one line each.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -105,6 +107,9 @@ def main() -> int:
                     f"(synthetic held-out AUC {synthetic.get('auc', float('nan')):.3f})")
             if (generators / "generators.json").is_file():
                 g = json.loads((generators / "generators.json").read_text())
+                keep = args.out.parent / f"generators_{name.replace('-', '_')}_{variant.replace('-', '_')}"
+                for ext in ("json", "png"):  # beside the other generator results (docs: Results, generators)
+                    shutil.copyfile(generators / f"generators.{ext}", keep.with_suffix(f".{ext}"))
                 v = g["verifier_all"]
                 results[tag]["candidates"] = {"all": v, "per_generator": {
                     n: {"own": {"refused": r["summary"]["refused"], **r["summary"]["derived"]},
