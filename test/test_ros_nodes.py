@@ -629,7 +629,12 @@ def test_the_estimate_deadline_and_the_operations_cap_hold_whatever_the_policy(r
         req.frame.stamp.sec, req.frame.stamp.nanosec = divmod(stamp_ns(0), 1_000_000_000)
         discovery = time.monotonic() + 60  # the first estimates may hit the deadline while the operators are
         while True:                          # discovered (on a loaded machine: over 10 tries of 1.5 s)
-            res = call(ros_node, est, req, timeout=30)
+            try:
+                res = call(ros_node, est, req, timeout=10)
+            except AssertionError:  # an answer lost while DDS matches the reply's reader: ask again
+                if time.monotonic() > discovery:
+                    raise
+                continue
             if res.operations or "estimate_timeout" not in res.message or time.monotonic() > discovery:
                 break
         assert res.success and list(res.operations) == ["icp_coarse", "icp_fine"], (res.message, res.operations)
