@@ -14,7 +14,7 @@ from ..core.geometry import Pose
 from ..core.models import ObjectModel
 from ..core.scene import Frame
 from ..vision.pick_features import SCORE_FEATURES, features_from_scores
-from ..vision.verifier_crop import CHANNELS, CROP, DEPTH_CHANNELS, verifier_crop
+from ..vision.verifier_crop import CHANNELS, CROP, verifier_crop, without_depth
 from .base import BlockInput, create
 
 _scorers: dict[str, Any] = {}
@@ -65,6 +65,4 @@ def hypothesis_crop(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | 
     crop = verifier_crop(frame, model, pose, cache)
     if crop is None:
         return np.zeros((len(CHANNELS), CROP, CROP), np.float32)
-    if not use_depth:
-        crop[list(DEPTH_CHANNELS)] = 0.0
-    return crop
+    return crop if use_depth else without_depth(crop)

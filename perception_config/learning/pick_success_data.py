@@ -37,7 +37,7 @@ from ..core.metrics import pose_mssd, pose_mssd_derived
 from ..core.pose_json import pose_arrays, pose_from_json, pose_json
 from ..datasets.bop import BopDataset
 from ..vision.pick_features import FEATURE_NAMES, rgb_only
-from ..vision.verifier_crop import DEPTH_CHANNELS
+from ..vision.verifier_crop import without_depth
 
 # the pick criterion: MSSD <= this x diameter, SimulatedPick's default (blocks/pick.py), read from the block
 PICK_MSSD_SHARE = float(next(p.default for p in SimulatedPick.params if p.name == "mssd_threshold"))
@@ -355,7 +355,7 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
             crop = hypothesis_crop(frame, model, pose, cache).astype(np.float16) if crops else None
             for feats, is_rgb in variants:
                 if crop is not None:
-                    crop_rows.append(_blank_depth(crop) if is_rgb else crop)
+                    crop_rows.append(without_depth(crop) if is_rgb else crop)
                 X.append([feats[n] for n in FEATURE_NAMES])
                 y.append(label)
                 images.append(key)
@@ -368,13 +368,6 @@ def featurise(rows: Iterable[dict[str, Any]], dataset: str | Path | None = None,
     return FeatureTable(np.asarray(X, float), np.asarray(y, bool), images, np.asarray(blank, bool),
                         np.asarray(share, float), np.asarray(lams, float),
                         crops=np.stack(crop_rows) if crops else None)
-
-
-def _blank_depth(crop: np.ndarray) -> np.ndarray:
-    """The crop as an RGB-only frame gives it: its depth channels zero."""
-    out = crop.copy()
-    out[list(DEPTH_CHANNELS)] = 0
-    return out
 
 
 __all__ = ["load_step_rows", "collect_step_rows", "featurise", "pick_label", "FeatureTable", "FeatureMemo",

@@ -112,4 +112,11 @@ def verifier_crop(frame: Frame, model: ObjectModel, pose: Pose, cache: dict | No
     return out
 
 
-__all__ = ["CROP", "CHANNELS", "DEPTH_CHANNELS", "verifier_crop"]
+def without_depth(crop: np.ndarray) -> np.ndarray:
+    """A copy of `crop` as an RGB-only frame gives it: its depth channels zero."""
+    out = crop.copy()
+    out[list(DEPTH_CHANNELS)] = 0
+    return out
+
+
+__all__ = ["CROP", "CHANNELS", "DEPTH_CHANNELS", "verifier_crop", "without_depth"]
