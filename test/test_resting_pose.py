@@ -16,9 +16,11 @@ from perception_config.core.metrics import pose_mssd
 from perception_config.core.models import make_model
 from perception_config.vision.ppf import canonical_poses
 from perception_config.vision.resting_poses import (
+    SHIFT_STEPS,
     moved_in_plane,
     planar_icp,
     planar_icp_many,
+    planar_shift_step,
     plane_basis,
     resting_poses,
     settled_on_plane,
@@ -27,6 +29,7 @@ from perception_config.vision.resting_poses import (
 from rl_helpers import tiny_dataset
 
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo"
+YCBV = LMO.parent / "ycbv-rgbd"
 
 
 def test_rotation_to_takes_a_onto_b():
@@ -81,6 +84,30 @@ def test_planar_icp_recovers_a_turn_and_a_shift():
     assert abs(math.degrees(math.atan2(R[1, 0], R[0, 0])) - 9.0) < 1.0
     assert np.allclose(shift[:2], [0.006, -0.004], atol=0.001) and shift[2] == 0.0 and np.allclose(R[2], [0, 0, 1])
 
+
+
+def test_shift_steps_place_a_partly_hidden_part_under_its_region():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(2)
+    model = np.concatenate([np.c_[rng.uniform(0, 0.06, 200), rng.uniform(0, 0.01, 200), rng.uniform(0, 0.01, 200)],
+                            np.c_[rng.uniform(0, 0.01, 150), rng.uniform(0, 0.04, 150), rng.uniform(0, 0.01, 150)]])
+    prest = model - model.mean(axis=0)
+    Rzs = np.stack([np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+                    for a in (0.0, 2.0, 4.0)])
+    p = prest @ Rzs.transpose(0, 2, 1)  # (turns, P, 3)
+    truth = np.array([0.012, -0.006, 0.0])
+    q = p[0] + truth
+    q = q[q[:, 0] < np.percentile(q[:, 0], 60)]  # the far end of the long arm hidden behind something
+    vis = np.ones(p.shape[:2], bool)
+    shifts = np.zeros((3, 3))
+    shifts[:, :2] = q[:, :2].mean(axis=0) - p[..., :2].mean(axis=1)  # centroid on centroid: off by the hidden part
+    start = np.linalg.norm(shifts[0, :2] - truth[:2])
+    assert start > 0.006
+    for _ in range(SHIFT_STEPS):
+        shifts[:, :2] += planar_shift_step(p, vis, vis.sum(axis=1), shifts, q, cKDTree(q), prest, cKDTree(prest),
+                                           Rzs, 0.02)
+    assert np.linalg.norm(shifts[0, :2] - truth[:2]) < 0.75 * start  # measured: 14 -> 9 mm
 
 def test_planar_icp_many_aligns_each_set_as_planar_icp_does_alone():
     """The batch pads the sets to one length: the padding must never match, and a set that
@@ -236,3 +263,21 @@ def test_the_real_lmo_frame():
         r = block(BlockInput(frame=frame, model=o.model, cache=cache, time_bounded=False))
         found += any(pose_mssd(p, o.gt, o.model) <= 0.1 * o.model.diameter for _, p in r.candidates)
     assert found >= 5, found
+
+
+@pytest.mark.skipif(not (YCBV / "models" / "models_info.json").exists(), reason="../shared/data/ycbv-rgbd absent")
+def test_the_real_ycbv_frames():
+    """Real YCB-Video RGB-D frames: the mug stands upright with its handle hidden (its turn shows only
+    in what the body hides), the gelatin box touches the keyboard behind it in image 6 (one coarse
+    region: the split level parts them). Both in the top 5 (measured: all 10 images, mug 9 of 10)."""
+    from perception_config.core.metrics import pose_mssd_derived
+    from perception_config.datasets.bop import BopDataset
+
+    ds = BopDataset(YCBV, "test")
+    block = create("resting_pose")
+    for im_id, obj_id in ((1, 14), (6, 8)):
+        frame = ds.load_frame(0, im_id)
+        o = next(o for o in frame.objects if o.obj_id == obj_id)
+        r = block(BlockInput(frame=frame, model=o.model, time_bounded=False))
+        errors = [pose_mssd_derived(p, o.gt, o.model) / o.model.diameter for _, p in r.candidates]
+        assert min(errors[:5]) <= 0.1, (im_id, obj_id, errors)

@@ -11,17 +11,20 @@ frame's cache) gives the support plane and the object-like regions whose size fi
 (`min_extent` .. `max_extent` diameters); (2) under each region, every stable face at `turns`
 turns about the normal is scored cheaply (no rendering), and in the `max_regions` regions the
 part fits best the `per_rest` best turns of each face are aligned in the plane and scored again;
-(3) the best `per_region` hypotheses of each, best first, are verified by
-rendering, the best `n_polish` polished by ICP and verified again (verification.
-verify_polish_rank, as in `ppf`); (4) the `sweep_candidates` best distinct ones are swept in
-the plane, turns then shifts, and keep what verifies best (resting_poses.sweep_in_plane: ICP
-leaves a flange's or hex nut's turn where it started); (5) a candidate floating above the
-plane or sunk into it by less than `settle` diameters is moved onto it unless a verification
-at a third of the tolerance prefers it where it was (resting_poses.settled_on_plane); the
-distinct results are the ranked candidates (confidence = verification score clipped to
-[0, 1]). The per-model preparation (the stable faces from the convex hull, a coarse distance
-field of the surface samples) takes milliseconds, also for a model of millions of faces, and
-is kept in memory: nothing to cache on disk.
+(3) the best `per_region` hypotheses of each (regions that repeat one another across the
+segmentation's levels counted once), best first, are verified by rendering, the best `n_polish`
+polished by ICP and verified again (verification.verify_polish_rank, as in `ppf`); (4) the
+`sweep_candidates` best distinct ones are swept in the plane, turns then shifts, and keep what
+verifies best (resting_poses.sweep_in_plane: ICP leaves a flange's or hex nut's turn where it
+started); up to `sweep_alternatives` other poses the sweep verified within `sweep_margin` of its
+best compete for the remaining ranks (a mug whose handle is hidden verifies alike over a range
+of turns: the candidates then span it); (5) a candidate floating above the plane or sunk into it
+by less than `settle` diameters is moved onto it unless a verification at a third of the
+tolerance prefers it where it was (resting_poses.settled_on_plane); the distinct results are the
+ranked candidates (confidence = verification score clipped to [0, 1]). The per-model preparation
+(the stable faces from the convex hull, a coarse distance field of the surface samples) takes
+milliseconds, also for a model of millions of faces, and is kept in memory: nothing to cache on
+disk.
 
 Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
 cannot be used (models.model_defect) or is too small for a region of the frame.
@@ -32,6 +35,7 @@ import math
 import threading
 import time
 
+from ..core.geometry import Pose
 from ..core.models import ObjectModel, model_defect
 from ..vision.resting_poses import (
     RestingPose,
@@ -43,7 +47,7 @@ from ..vision.resting_poses import (
     surface_field,
     sweep_in_plane,
 )
-from ..vision.segmentation import frame_segmentation, too_small
+from ..vision.segmentation import distinct_regions, frame_segmentation, too_small
 from ..vision.verification import ranked_candidates, verify, verify_polish_rank
 from .base import DEPTH, MODEL, Block, BlockInput, BlockResult, Kind, Param, register
 from .verified import VERIFIER_PARAMS, RanksByVerifier
@@ -90,6 +94,11 @@ class RestingPoseGenerator(RanksByVerifier, Block):
         Param("sweep_span", 30.0, 0.0, 180.0, doc="degrees: turns swept either side of a candidate"),
         Param("sweep_step", 6.0, 0.5, 90.0, doc="degrees between swept turns (then half a step beside the best)"),
         Param("sweep_shift", 0.03, 0.0, 0.5, doc="diameters: the shifts along the plane tried after the best turn"),
+        Param("sweep_alternatives", 1, 0, 10, doc="other turns or shifts of each sweep offered as candidates when "
+                                                   "they verify within sweep_margin of its best (a part whose turn "
+                                                   "the view cannot settle: a mug with its handle hidden)"),
+        Param("sweep_margin", 0.05, 0.0, 1.0, doc="verification below a sweep's best within which its alternatives "
+                                                  "count as alike"),
         Param("sweep_stop", 0.9, 0.0, 1.01, doc="when the first candidate sweeps to this verification or above, "
                                                  "the others are not swept (1.01: they always are)"),
         Param("settle", 0.2, 0.0, 1.0, doc="diameters: a candidate floating above the plane or sunk into it by less "
@@ -130,6 +139,7 @@ class RestingPoseGenerator(RanksByVerifier, Block):
         # The cheap fit gets half the budget at most, the regions nearest the part's size first
         # (a cluttered frame has ~80 of them); alignment and verification get the rest.
         regions.sort(key=lambda cl: abs(math.log(max(cl.extent, 1e-6) / (0.8 * d))))
+        regions = distinct_regions(regions)  # the segmentation's levels repeat most regions
         half = start + t_prep + 0.5 * (deadline - start - t_prep) if math.isfinite(deadline) else deadline
         shortlists = []
         for cl in regions:
@@ -159,15 +169,19 @@ class RestingPoseGenerator(RanksByVerifier, Block):
         n_swept = 0
         if ranked and n_sweep:
             B, _ = plane_basis(seg.plane)
-            swept = []
+            swept, tried = [], []
             for s, pose in ranked[:n_sweep]:
                 if swept and swept[0][0] >= c["sweep_stop"]:
                     swept.append((s, pose))  # the first verifies so well that no rival is swept
                     continue
                 n_swept += 1
+                seen: list[tuple[float, Pose]] = []
                 swept.append(sweep_in_plane(model, pose, s, B, score, deadline, c["sweep_span"], c["sweep_step"],
-                                            c["sweep_shift"]))
-            ranked = ranked_candidates(swept + ranked[n_sweep:], model, int(c["top_k"]))
+                                            c["sweep_shift"], seen))
+                best = swept[-1]
+                near = [q for q in seen if q[0] >= best[0] - c["sweep_margin"]]
+                tried.extend(ranked_candidates([best] + near, model, 1 + int(c["sweep_alternatives"]))[1:])
+            ranked = ranked_candidates(swept + ranked[n_sweep:] + tried, model, int(c["top_k"]))
         n_settled = 0
         if ranked and c["settle"] > 0:
             # a part at rest touches the plane: close a small gap when a verification at a tighter

@@ -29,6 +29,9 @@ from ..core.models import ObjectModel
 from .features import DistanceField
 
 MAX_SAMPLES = 150  # model and region points per comparison: enough to tell turns apart, cheap to query
+# Translation-only ICP steps that place each turn under its region before it is scored: the region's
+# centroid alone is off by a part's occluded share (a mug behind a brick), which hides the right turn.
+SHIFT_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -227,12 +230,51 @@ def _samples(model: ObjectModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return com, model.points[::step] - com, model.point_normals[::step]
 
 
+def planar_shift_step(p: np.ndarray, vis: np.ndarray, n_vis: np.ndarray, shifts: np.ndarray, q: np.ndarray,
+                tree_q: cKDTree, prest: np.ndarray, tree_m: cKDTree, Rzs: np.ndarray,
+                max_dist: float) -> np.ndarray:
+    """(T, 2): one translation-only ICP step in the plane for each of T turns: the mean offset of
+    the matched pairs (nearest within `max_dist`, both ways: camera-facing model samples to the
+    region's points, region's points to all samples)."""
+    T = len(shifts)
+    placed = (p + shifts[:, None, :])[vis]  # (M, 3)
+    dist, idx = tree_q.query(placed, distance_upper_bound=max_dist)
+    ok = np.isfinite(dist)
+    disp = np.where(ok[:, None], q[np.minimum(idx, len(q) - 1)] - placed, 0.0)[:, :2]
+    turn_of = np.repeat(np.arange(T), n_vis)
+    total = np.stack([np.bincount(turn_of, weights=disp[:, k], minlength=T) for k in (0, 1)], axis=1)
+    count = np.bincount(turn_of, weights=ok, minlength=T)
+    back = (q[None] - shifts[:, None, :]) @ Rzs  # (T, N, 3): the region in each turn's rest frame
+    dist2, idx2 = tree_m.query(back, distance_upper_bound=max_dist)
+    ok2 = np.isfinite(dist2)
+    near = prest[np.minimum(idx2, len(prest) - 1)]
+    disp2 = np.einsum("tij,tnj->tni", Rzs, back - near)[..., :2] * ok2[..., None]
+    total += disp2.sum(axis=1)
+    count += ok2.sum(axis=1)
+    return total / np.maximum(count, 1.0)[:, None]
+
+
+def _cheap_cost(p: np.ndarray, vis: np.ndarray, n_vis: np.ndarray, shifts: np.ndarray, q: np.ndarray,
+                tree_q: cKDTree, field: DistanceField, R_model: np.ndarray, com: np.ndarray,
+                tau: float) -> np.ndarray:
+    """(T,) metres: shortlist_rests' cost of each turn placed at its shift, the mean distance
+    (truncated at `tau`) of the camera-facing samples to the region plus that of the region's
+    points to the model's surface."""
+    # model -> observed: the camera-facing samples of every turn in one query
+    dm = np.minimum(tree_q.query((p + shifts[:, None, :])[vis], distance_upper_bound=tau)[0], tau)
+    model_to_obs = np.add.reduceat(dm, np.concatenate([[0], np.cumsum(n_vis)[:-1]])) / n_vis
+    # observed -> model: the region's points in the model frame of every turn, on the distance field
+    x_model = (q[None] - shifts[:, None, :]) @ R_model + com
+    return model_to_obs + np.minimum(field.lookup(x_model)[0], tau).mean(axis=1)
+
+
 def shortlist_rests(
     model: ObjectModel, rests: list[RestingPose], plane: np.ndarray, region: np.ndarray, turns: int = 24,
     per_rest: int = 3, truncate: float = 0.1,
 ) -> RegionShortlist | None:
     """Every rest at `turns` turns about the plane's normal, shifted under `region` ((N, 3)
-    camera-frame points of one observed region) and scored cheaply: the mean truncated
+    camera-frame points of one observed region: centroid on centroid, then SHIFT_STEPS
+    translation-only ICP steps, planar_shift_step) and scored cheaply: the mean truncated
     (`truncate` diameters) distance of the region's points to the model's surface (its
     distance field) plus that of the model's camera-facing samples to the region's points, in
     diameters; the `per_rest` best turns of each rest. Rests much taller or much lower than the
@@ -246,6 +288,8 @@ def shortlist_rests(
     view = np.append(centre, top / 2.0) - (-o) @ B  # camera -> region, plane frame
     view /= np.linalg.norm(view)
     tree_q = cKDTree(q)
+    q_half = q[::2]
+    tree_half = cKDTree(q_half)
     field = surface_field(model)
     d, tau = model.diameter, truncate * model.diameter
     com, pts, nrm = _samples(model)
@@ -262,12 +306,17 @@ def shortlist_rests(
         n_vis = vis.sum(axis=1)
         mean_xy = np.einsum("tp,tpi->ti", vis, p[..., :2]) / n_vis[:, None]
         shifts = np.concatenate([centre - mean_xy, np.full((turns, 1), base + rest.lift)], axis=1)  # (T, 3)
-        # model -> observed: the camera-facing samples of every turn in one query
-        dm = np.minimum(tree_q.query((p + shifts[:, None, :])[vis], distance_upper_bound=tau)[0], tau)
-        model_to_obs = np.add.reduceat(dm, np.concatenate([[0], np.cumsum(n_vis)[:-1]])) / n_vis
-        # observed -> model: the region's points in the model frame of every turn, on the distance field
-        x_model = (q[None] - shifts[:, None, :]) @ (Rzs @ rest.R) + com
-        total = (model_to_obs + np.minimum(field.lookup(x_model)[0], tau).mean(axis=1)) / d
+        R_model = Rzs @ rest.R
+        total = _cheap_cost(p, vis, n_vis, shifts, q, tree_q, field, R_model, com, tau) / d
+        if SHIFT_STEPS:  # the steps' shifts where they fit better (every other point suffices to move them)
+            ps, vs, prest = p[:, ::2], vis[:, ::2], (pts @ rest.R.T)[::2]
+            tree_m, moved = cKDTree(prest), shifts.copy()
+            for _ in range(SHIFT_STEPS):
+                moved[:, :2] += planar_shift_step(ps, vs, vs.sum(axis=1), moved, q_half, tree_half, prest, tree_m,
+                                                  Rzs, 2.0 * tau)
+            total_moved = _cheap_cost(p, vis, n_vis, moved, q, tree_q, field, R_model, com, tau) / d
+            better = total_moved < total
+            total[better], shifts[better] = total_moved[better], moved[better]
         for k in np.argsort(total, kind="stable")[:per_rest]:
             picks.append((i, int(k), shifts[k]))
             best = min(best, float(total[k]))
@@ -326,14 +375,16 @@ def settled_on_plane(model: ObjectModel, pose: Pose, plane: np.ndarray, max_gap:
 
 def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, verify: Callable[[Pose], float],
                    deadline: float = math.inf, span_deg: float = 30.0, step_deg: float = 6.0,
-                   shift: float = 0.03) -> tuple[float, Pose]:
+                   shift: float = 0.03, tried: list | None = None) -> tuple[float, Pose]:
     """The best-verifying pose near `pose` (verification `score`) among its turns about the
     plane's normal through the part's centre (every `step_deg` within +-`span_deg`, then half a
     step either side of the best), then its shifts by `shift` diameters along the plane's axes
     and diagonals. ICP leaves the turn of a flat or near-symmetric part (a flange's bolt holes,
     a hex nut's flats) where it started, 15-25 deg off; rendering sees the holes and flats (on
     the synthetic parts: the right turn verifies best in 8 of 10 such near misses). Stops at
-    `deadline` (perf_counter) with the best so far."""
+    `deadline` (perf_counter) with the best so far. `tried`, if given, receives every (score, pose)
+    verified on the way: a part whose turn the view cannot settle (a mug with its handle hidden)
+    verifies alike over a range of turns, and those are the alternatives worth offering."""
     pivot = pose.transform(model.points.mean(axis=0)[None])[0]
     best = (score, 0.0, 0.0, 0.0)  # (score, turn, dx, dy)
     fine = math.radians(step_deg / 2.0)
@@ -352,7 +403,10 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
     for a, dx, dy in tries():
         if time.perf_counter() >= deadline:
             break
-        s = verify(moved_in_plane(pose, B, pivot, a, dx, dy))
+        moved = moved_in_plane(pose, B, pivot, a, dx, dy)
+        s = verify(moved)
+        if tried is not None:
+            tried.append((s, moved))
         if s > best[0]:
             best = (s, a, dx, dy)
     return best[0], moved_in_plane(pose, B, pivot, best[1], best[2], best[3])
@@ -360,4 +414,4 @@ def sweep_in_plane(model: ObjectModel, pose: Pose, score: float, B: np.ndarray, 
 
 __all__ = ["RestingPose", "RegionShortlist", "resting_poses", "shortlist_rests", "refine_rests", "planar_icp",
            "planar_icp_many", "plane_basis", "surface_field", "moved_in_plane", "settled_on_plane",
-           "sweep_in_plane"]
+           "sweep_in_plane", "planar_shift_step"]

@@ -2,7 +2,7 @@
 
 `segment_scene` removes the support surfaces (table, bin floor and walls; RANSAC planes) and
 splits what stands on them into connected object-like regions of the depth image, cut at depth
-jumps and concave creases, at two levels of detail (`Segmentation`, `Cluster`). Helpers:
+jumps and concave creases, at three levels of detail (`Segmentation`, `Cluster`). Helpers:
 organised points and normals of a depth image, a box-filtered depth, a robust region size.
 """
 from __future__ import annotations
@@ -35,9 +35,9 @@ class Cluster:
 
 @dataclass
 class Segmentation:
-    """Support surfaces removed, the rest split into clusters at two levels of detail: the
-    same object region can appear twice (fine and coarse), which is harmless for a generator
-    that tries regions one after the other."""
+    """Support surfaces removed, the rest split into clusters at three levels of detail (fine,
+    split, coarse): the same object region can appear more than once, which is harmless for a
+    generator that tries regions one after the other."""
 
     plane: np.ndarray | None  # (4,) n . p + d = 0, n towards the camera; None when no dominant plane
     plane_share: float  # share of valid pixels on the plane
@@ -120,11 +120,14 @@ def segment_scene(
 
     Regions: 8-connected components after removing the pixels at depth jumps larger than
     max(`depth_jump` z^2, 8 mm) and on concave creases sharper than `concave_angle_deg` (where
-    two touching objects meet; LCCP-style, convex edges of one object are kept). Two levels:
+    two touching objects meet; LCCP-style, convex edges of one object are kept). Three levels:
     "fine" additionally opens the mask with a 3x3 square (breaks thin bridges between touching
-    objects: needed on the cluttered LM-O frame), "coarse" does not (keeps thin rims of small
-    parts in one piece: needed for the synthetic bushings and flanges). Regions smaller than
-    `min_pixels` are dropped; a coarse region identical to a fine one is kept once. An RGB-only
+    objects: needed on the cluttered LM-O frame), "split" holds the parts of the coarse regions
+    that wider openings break apart (split_regions: a box touching the keyboard behind it, a mug
+    touching the brick in front of it, on the real YCB-Video frames), "coarse" does not open
+    (keeps thin rims of small parts in one piece: needed for the synthetic bushings and
+    flanges). Regions smaller than `min_pixels` are dropped; a region identical to one of an
+    earlier level is kept once. An RGB-only
     frame (depth None) has no valid pixel: no plane, no region."""
     depth, K = frame.depth, frame.K
     if depth is None:  # an RGB-only frame: no depth to segment, no region (as an all-missing depth)
@@ -179,30 +182,91 @@ def segment_scene(
         cut |= concave_edges(Ps, normals, concave_angle_deg)
     coarse = (keep & ~cut).astype(np.uint8)
     fine = cv2.morphologyEx(coarse, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n_coarse, coarse_labels = cv2.connectedComponents(coarse, connectivity=8)
 
     clusters: list[Cluster] = []
     seen: dict[tuple[int, int, int], int] = {}
     levels = []
     Pf = P.reshape(-1, 3)
-    for mask in (fine, coarse):
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    for n, labels in (cv2.connectedComponents(fine, connectivity=8), split_regions(coarse_labels, n_coarse, min_pixels),
+                      (n_coarse, coarse_labels)):
         flat = labels.ravel()
         order = np.argsort(flat, kind="stable")
         bounds = np.searchsorted(flat[order], np.arange(n + 1))
         index = np.full(n, -1, np.int32)
         for lab in range(1, n):
-            if stats[lab, cv2.CC_STAT_AREA] < min_pixels:
-                continue
             pix = order[bounds[lab]:bounds[lab + 1]]
+            if len(pix) < min_pixels:
+                continue
             key = (len(pix), int(pix[0]), int(pix[-1]))
             if key in seen:
                 index[lab] = seen[key]
                 continue
             seen[key] = index[lab] = len(clusters)
             p = Pf[pix]
-            clusters.append(Cluster(pix, p, robust_extent(p), tuple(int(v) for v in stats[lab, :4])))
-        levels.append(index[labels])
+            xs, ys = pix % w, pix // w
+            box = (int(xs.min()), int(ys.min()), int(xs.max() - xs.min()) + 1, int(ys.max() - ys.min()) + 1)
+            clusters.append(Cluster(pix, p, robust_extent(p), box))
+        levels.append(np.where(labels > 0, index[labels], -1).astype(np.int32))
     return Segmentation(plane, share, clusters, n_valid, P, normals, levels, valid & ~keep)
+
+
+SPLIT_OPENINGS = (5, 9)  # pixels: the openings tried, smallest first, to split a region at its thin bridges
+
+
+def split_regions(labels: np.ndarray, n: int, min_pixels: int) -> tuple[int, np.ndarray]:
+    """The "split" level: each region of `labels` ((H, W) int, 0 background, 1..n-1) that an
+    opening of SPLIT_OPENINGS pixels (the smallest that does) breaks into two or more parts of
+    4 `min_pixels` or more, as those parts; a region no opening splits is left out (it is
+    already a region). Objects that touch through a bridge wider than the fine level's 3
+    pixels (a box against a keyboard behind it, a mug against a brick in front) come apart."""
+    out = np.zeros(labels.shape, np.int32)
+    count = 1
+    if n < 2:
+        return count, out
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(n + 1))
+    width = labels.shape[1]
+    for lab in range(1, n):
+        pix = order[bounds[lab]:bounds[lab + 1]]
+        ys, xs = pix // width, pix % width
+        if len(ys) < 8 * min_pixels:
+            continue
+        y0, x0 = ys.min(), xs.min()
+        region = np.zeros((ys.max() - y0 + 1, xs.max() - x0 + 1), np.uint8)
+        region[ys - y0, xs - x0] = 1
+        for k in SPLIT_OPENINGS:
+            opened = cv2.morphologyEx(region, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+            m, parts, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+            big = [i for i in range(1, m) if stats[i, cv2.CC_STAT_AREA] >= 4 * min_pixels]
+            if len(big) >= 2:
+                for i in big:
+                    py, px = np.nonzero(parts == i)
+                    out[py + y0, px + x0] = count
+                    count += 1
+                break
+    return count, out
+
+
+def distinct_regions(clusters: list[Cluster], max_iou: float = 0.8) -> list[Cluster]:
+    """`clusters` in their order without those overlapping an earlier kept one by more than
+    `max_iou` (intersection over union of their pixels): the levels repeat most regions with a
+    few pixels more or less, and a generator that fits a part to its best few regions would
+    spend its slots on copies."""
+    kept: list[Cluster] = []
+    for cl in clusters:
+        n = len(cl.pixels)
+        if all(_iou(cl.pixels, k.pixels) <= max_iou for k in kept
+               if min(n, len(k.pixels)) > max_iou * max(n, len(k.pixels))):
+            kept.append(cl)
+    return kept
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two sorted arrays of distinct pixel indices."""
+    inter = len(np.intersect1d(a, b, assume_unique=True))
+    return inter / (len(a) + len(b) - inter)
 
 
 def frame_segmentation(frame: Frame, cache: dict | None, plane_distance: float = 0.008) -> Segmentation:

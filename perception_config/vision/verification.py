@@ -133,7 +133,7 @@ def verify(
     count, so a flat hypothesis sunk into the table does not explain anything; and the
     clusters lying mostly (30 %) under the rendered silhouette should be covered by it: an
     object ends where its region ends. The covered share of their pixels ("explained", best of
-    the two segmentation levels) scales the score by (1 - explain_weight * (1 - explained)):
+    the segmentation levels) scales the score by (1 - explain_weight * (1 - explained)):
     it marks down a part hypothesised onto a face or corner of a larger object (an L-bracket
     on a box corner), which depth agreement alone accepts.
     -inf when nothing is rendered or the frame is RGB-only (depth None). `rendering`: render_box
@@ -178,12 +178,14 @@ def verify(
 
 def _explained_share(seg: Segmentation, r: Rendering, min_share: float = 0.3) -> float:
     """Covered share of the pixels of the clusters that lie at least `min_share` under the
-    rendered silhouette (best segmentation level); 0 when no cluster does."""
+    rendered silhouette (best of the fine and coarse levels: a part of the split level is a piece
+    of a region, and covering a piece is what a part placed on a larger object's face does); 0
+    when no cluster does."""
     rs, cs = r.crop_slices()
     m = r.mask >= 0
     sizes = np.array([len(c.pixels) for c in seg.clusters])
     best = 0.0
-    for level in seg.labels:
+    for level in seg.labels[:1] + seg.labels[-1:]:
         under = level[rs, cs][m]
         under = under[under >= 0]
         if not len(under):
