@@ -109,6 +109,19 @@ def test_symmetric_object_rotated_by_a_symmetry(frame, box, sym_box) -> None:
     assert r.picked is False and math.degrees(r.scores["pick_re"]) == pytest.approx(3.0, abs=1e-6)
 
 
+
+def test_derived_symmetries_let_a_box_that_declares_none_be_picked_flipped(frame, box, sym_box) -> None:
+    flipped = rotated(math.pi, (1, 0, 0))
+    assert pick(SimulatedPick(), frame, box, flipped).picked is False  # declared: none
+    r = pick(SimulatedPick(symmetries="derived"), frame, box, flipped)
+    assert r.ok and r.picked is True and r.scores["pick_mssd"] < 1e-3 * box.diameter  # derived: to ~1e-3 rad
+    assert pick(SimulatedPick(symmetries="derived", criterion="re_te"), frame, box, flipped).picked is True
+    # a turn that is no symmetry of the box still fails, and declared symmetries are kept as declared
+    assert pick(SimulatedPick(symmetries="derived"), frame, box, rotated(math.pi / 2, (1, 0, 0))).picked is False
+    assert pick(SimulatedPick(symmetries="derived"), frame, sym_box, flipped).picked is True
+    with pytest.raises(ValueError, match="symmetries"):
+        SimulatedPick(symmetries="guessed")
+
 def test_re_te_criterion_thresholds(frame, box) -> None:
     block = SimulatedPick(criterion="re_te")  # BOP's 5 deg / 5 cm
     assert pick(block, frame, box, rotated(math.radians(4), (1, 1, 0))).picked is True
@@ -148,7 +161,7 @@ def test_annotation_rotation_rounding_is_not_degenerate(frame, box) -> None:
 
 def test_parameters_are_validated() -> None:
     assert SimulatedPick().config == {"criterion": "mssd", "mssd_threshold": 0.1, "max_re_deg": 5.0,
-                                      "max_te": 0.05, "symmetry_aware": True}
+                                      "max_te": 0.05, "symmetry_aware": True, "symmetries": "declared"}
     for bad in ({"mssd_threshold": 2.0}, {"mssd_threshold": 0.0}, {"criterion": "add"}, {"max_te": -1.0},
                 {"grip": 1}):
         with pytest.raises(ValueError):

@@ -18,7 +18,7 @@ from typing import Any, Callable, ClassVar, Protocol
 import numpy as np
 
 from ..core.geometry import Pose
-from ..core.metrics import eval_symmetries, pose_mssd
+from ..core.metrics import derived_eval_symmetries, eval_symmetries, pose_mssd, pose_mssd_derived
 from ..core.models import ObjectModel
 from ..core.scene import Frame
 from .base import GROUND_TRUTH, MODEL, POSE, Block, BlockInput, BlockResult, Kind, Param, register
@@ -32,7 +32,8 @@ class SimulatedPick(Block):
 
     criterion "mssd" (default, BOP 2019): symmetry-aware maximum surface distance <=
     mssd_threshold x diameter; a hypothesis that differs from the ground truth by a symmetry of
-    the object picks. criterion "re_te" (BOP's 5 deg / 5 cm): rotation error <= max_re_deg and
+    the object picks (`symmetries`: declared, or derived from the shape of a model declaring
+    none). criterion "re_te" (BOP's 5 deg / 5 cm): rotation error <= max_re_deg and
     translation error <= max_te, taken at the best symmetry when `symmetry_aware` (default),
     plain otherwise. Scores: pick_mssd (m), pick_re (rad), pick_te (m) whatever the criterion.
     """
@@ -48,6 +49,10 @@ class SimulatedPick(Block):
         Param("max_re_deg", 5.0, 0.1, 180.0, doc="re_te: max rotation error, degrees"),
         Param("max_te", 0.05, 0.001, 1.0, doc="re_te: max translation error, metres"),
         Param("symmetry_aware", True, doc="re_te: errors at the best symmetry of the object"),
+        Param("symmetries", "declared", choices=("declared", "derived"),
+              doc="the symmetries a pick tolerates: those the model declares (BOP), or, for a model declaring "
+                  "none, those its shape has (a gripper picks a nearly symmetric box flipped; real meshes "
+                  "rarely declare them)"),
     )
 
     def run(self, inp: BlockInput) -> BlockResult:
@@ -59,8 +64,10 @@ class SimulatedPick(Block):
             return BlockResult.fail("the ground-truth pose is degenerate (NaN, not a rotation, or behind the camera)")
         if not (math.isfinite(model.diameter) and model.diameter > 0):
             return BlockResult.fail(f"model {model.obj_id} has no valid diameter ({model.diameter})")
-        err_mssd = pose_mssd(est, gt, model)
-        syms = eval_symmetries(model) if self.config["symmetry_aware"] else [Pose.identity()]
+        derived = self.config["symmetries"] == "derived"
+        err_mssd = pose_mssd_derived(est, gt, model) if derived else pose_mssd(est, gt, model)
+        syms = ((derived_eval_symmetries(model) if derived else eval_symmetries(model))
+                if self.config["symmetry_aware"] else [Pose.identity()])
         err_re, err_te = _best_re_te(est, gt, syms, math.radians(self.config["max_re_deg"]), self.config["max_te"])
         scores = {"pick_mssd": err_mssd, "pick_re": err_re, "pick_te": err_te}
         if not all(math.isfinite(v) for v in scores.values()):

@@ -47,7 +47,7 @@ def icp_target(
     if not rendering.empty:
         rs, cs = rendering.crop_slices()
         m = rendering.mask >= 0
-        for level in seg.labels:
+        for level in seg.labels[:1] + seg.labels[-1:]:  # the split level's pieces would take in neighbours' parts
             under = level[rs, cs][m]
             under = under[under >= 0]
             if len(under):
