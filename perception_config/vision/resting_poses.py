@@ -32,6 +32,7 @@ MAX_SAMPLES = 150  # model and region points per comparison: enough to tell turn
 # Translation-only ICP steps that place each turn under its region before it is scored: the region's
 # centroid alone is off by a part's occluded share (a mug behind a brick), which hides the right turn.
 SHIFT_STEPS = 2
+STEP_THIN = 2  # every STEP_THIN-th point of the region and of the samples moves the shift
 
 
 @dataclass(frozen=True)
@@ -288,7 +289,7 @@ def shortlist_rests(
     view = np.append(centre, top / 2.0) - (-o) @ B  # camera -> region, plane frame
     view /= np.linalg.norm(view)
     tree_q = cKDTree(q)
-    q_half = q[::2]
+    q_half = q[::STEP_THIN]
     tree_half = cKDTree(q_half)
     field = surface_field(model)
     d, tau = model.diameter, truncate * model.diameter
@@ -309,7 +310,7 @@ def shortlist_rests(
         R_model = Rzs @ rest.R
         total = _cheap_cost(p, vis, n_vis, shifts, q, tree_q, field, R_model, com, tau) / d
         if SHIFT_STEPS:  # the steps' shifts where they fit better (every other point suffices to move them)
-            ps, vs, prest = p[:, ::2], vis[:, ::2], (pts @ rest.R.T)[::2]
+            ps, vs, prest = p[:, ::STEP_THIN], vis[:, ::STEP_THIN], (pts @ rest.R.T)[::STEP_THIN]
             tree_m, moved = cKDTree(prest), shifts.copy()
             for _ in range(SHIFT_STEPS):
                 moved[:, :2] += planar_shift_step(ps, vs, vs.sum(axis=1), moved, q_half, tree_half, prest, tree_m,
