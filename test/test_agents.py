@@ -142,6 +142,18 @@ def test_same_names_other_parameters_is_a_clear_error(env, tmp_path_factory, tmp
         load_agent(path, changed)
 
 
+
+def test_a_parameter_a_block_gained_since_is_taken_at_its_default(env, tmp_path):
+    from perception_config.agents.policy_io import check_compatible
+
+    meta, _ = read_file(save_agent(_agent("pg", env), tmp_path / "pg.safetensors"))
+    pick = next(a for a in meta["env"]["actions"] if a["block"] == "simulated_pick")
+    assert pick["params"].pop("symmetries") == "declared"  # as saved before simulated_pick had it
+    check_compatible(meta, EnvSpec.from_env(env))
+    pick["params"]["symmetries"] = "derived"  # a policy that ran with another value does not fit
+    with pytest.raises(PolicyError, match="pick.*derived.*declared"):
+        check_compatible(meta, EnvSpec.from_env(env))
+
 def test_corrupt_policy_file_is_a_clear_error(env, tmp_path):
     good = save_agent(_agent("pg", env), tmp_path / "pg.safetensors").read_bytes()
     cases = {

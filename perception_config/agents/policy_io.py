@@ -293,6 +293,21 @@ def _diff_lists(name: str, saved: list[Any], current: list[Any]) -> str:
     return "; ".join(parts)
 
 
+def _with_defaults(action: Any) -> Any:
+    """A saved action description with the parameters its block has gained since at their
+    defaults: a policy trained before a block grew an option ran with what its default is."""
+    from ..blocks.base import REGISTRY, load_all
+
+    if not isinstance(action, dict) or not isinstance(action.get("params"), dict):
+        return action
+    if action.get("block") not in REGISTRY:
+        load_all()
+    cls = REGISTRY.get(action.get("block"))
+    if cls is None:
+        return action
+    return {**action, "params": {**{p.name: p.default for p in cls.params}, **action["params"]}}
+
+
 def check_compatible(meta: dict[str, Any], spec: EnvSpec, path: str | Path = "<policy>") -> None:
     """Raise PolicyError unless the file's action set and observation layout are the env's."""
     try:
@@ -303,9 +318,9 @@ def check_compatible(meta: dict[str, Any], spec: EnvSpec, path: str | Path = "<p
     if list(saved.action_names) != list(spec.action_names):
         problems.append("action set differs: "
                         + _diff_lists("actions", list(saved.action_names), list(spec.action_names)))
-    elif saved.actions and spec.actions and list(saved.actions) != list(spec.actions):
+    elif saved.actions and spec.actions and [_with_defaults(a) for a in saved.actions] != list(spec.actions):
         changed = [f"{a['name']}: {a.get('block')} {a.get('params')} -> {b.get('block')} {b.get('params')}"
-                   for a, b in zip(saved.actions, spec.actions) if a != b]
+                   for a, b in zip(saved.actions, spec.actions) if _with_defaults(a) != b]
         problems.append("actions have the same names but different blocks or parameters: " + "; ".join(changed))
     if list(saved.observation_layout) != list(spec.observation_layout):
         problems.append("observation layout differs: "
