@@ -232,11 +232,14 @@ def _samples(model: ObjectModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def planar_shift_step(p: np.ndarray, vis: np.ndarray, n_vis: np.ndarray, shifts: np.ndarray, q: np.ndarray,
-                tree_q: cKDTree, prest: np.ndarray, tree_m: cKDTree, Rzs: np.ndarray,
-                max_dist: float) -> np.ndarray:
-    """(T, 2): one translation-only ICP step in the plane for each of T turns: the mean offset of
-    the matched pairs (nearest within `max_dist`, both ways: camera-facing model samples to the
-    region's points, region's points to all samples)."""
+                      tree_q: cKDTree, prest: np.ndarray, tree_m: cKDTree, Rzs: np.ndarray,
+                      max_dist: float) -> np.ndarray:
+    """(T, 2) metres: one translation-only ICP step in the plane for each of T turns: the mean
+    offset of the matched pairs (nearest within `max_dist`, both ways: camera-facing model
+    samples to the region's points, the region's points to all samples). `p` (T, P, 3): the
+    samples turned (prest @ Rzs[t].T), `vis` (T, P) which face the camera (`n_vis` per turn),
+    `shifts` (T, 3) where each turn is placed, `q` (N, 3) the region (plane frame), `prest`
+    (P, 3) the samples in the rest's frame, `Rzs` (T, 3, 3) the turns; trees over q and prest."""
     T = len(shifts)
     placed = (p + shifts[:, None, :])[vis]  # (M, 3)
     dist, idx = tree_q.query(placed, distance_upper_bound=max_dist)
@@ -274,8 +277,8 @@ def shortlist_rests(
     per_rest: int = 3, truncate: float = 0.1,
 ) -> RegionShortlist | None:
     """Every rest at `turns` turns about the plane's normal, shifted under `region` ((N, 3)
-    camera-frame points of one observed region: centroid on centroid, then SHIFT_STEPS
-    translation-only ICP steps, planar_shift_step) and scored cheaply: the mean truncated
+    camera-frame points of one observed region: centroid on centroid, or after SHIFT_STEPS
+    translation-only ICP steps (planar_shift_step) where that fits better) and scored cheaply: the mean truncated
     (`truncate` diameters) distance of the region's points to the model's surface (its
     distance field) plus that of the model's camera-facing samples to the region's points, in
     diameters; the `per_rest` best turns of each rest. Rests much taller or much lower than the
@@ -289,8 +292,8 @@ def shortlist_rests(
     view = np.append(centre, top / 2.0) - (-o) @ B  # camera -> region, plane frame
     view /= np.linalg.norm(view)
     tree_q = cKDTree(q)
-    q_half = q[::STEP_THIN]
-    tree_half = cKDTree(q_half)
+    q_thin = q[::STEP_THIN]
+    tree_thin = cKDTree(q_thin)
     field = surface_field(model)
     d, tau = model.diameter, truncate * model.diameter
     com, pts, nrm = _samples(model)
@@ -313,7 +316,7 @@ def shortlist_rests(
             ps, vs, prest = p[:, ::STEP_THIN], vis[:, ::STEP_THIN], (pts @ rest.R.T)[::STEP_THIN]
             tree_m, moved = cKDTree(prest), shifts.copy()
             for _ in range(SHIFT_STEPS):
-                moved[:, :2] += planar_shift_step(ps, vs, vs.sum(axis=1), moved, q_half, tree_half, prest, tree_m,
+                moved[:, :2] += planar_shift_step(ps, vs, vs.sum(axis=1), moved, q_thin, tree_thin, prest, tree_m,
                                                   Rzs, 2.0 * tau)
             total_moved = _cheap_cost(p, vis, n_vis, moved, q, tree_q, field, R_model, com, tau) / d
             better = total_moved < total

@@ -127,8 +127,8 @@ def segment_scene(
     touching the brick in front of it, on the real YCB-Video frames), "coarse" does not open
     (keeps thin rims of small parts in one piece: needed for the synthetic bushings and
     flanges). Regions smaller than `min_pixels` are dropped; a region identical to one of an
-    earlier level is kept once. An RGB-only
-    frame (depth None) has no valid pixel: no plane, no region."""
+    earlier level is kept once. An RGB-only frame (depth None) has no valid pixel: no plane, no
+    region."""
     depth, K = frame.depth, frame.K
     if depth is None:  # an RGB-only frame: no depth to segment, no region (as an all-missing depth)
         depth = np.full((frame.height, frame.width), np.nan, np.float32)
@@ -230,9 +230,9 @@ def split_regions(labels: np.ndarray, n: int, min_pixels: int) -> tuple[int, np.
     width = labels.shape[1]
     for lab in range(1, n):
         pix = order[bounds[lab]:bounds[lab + 1]]
-        ys, xs = pix // width, pix % width
-        if len(ys) < 8 * min_pixels:
+        if len(pix) < 8 * min_pixels:
             continue
+        ys, xs = pix // width, pix % width
         y0, x0 = ys.min(), xs.min()
         region = np.zeros((ys.max() - y0 + 1, xs.max() - x0 + 1), np.uint8)
         region[ys - y0, xs - x0] = 1
