@@ -9,22 +9,23 @@ of freedom instead.
 Steps: (1) the frame's segmentation (shared with `ppf` and `global_registration` through the
 frame's cache) gives the support plane and the object-like regions whose size fits the model
 (`min_extent` .. `max_extent` diameters); (2) under each region, every stable face at `turns`
-turns about the normal is scored cheaply (no rendering), and in the `max_regions` regions the
-part fits best the `per_rest` best turns of each face are aligned in the plane and scored again;
-(3) the best `per_region` hypotheses of each (regions that repeat one another across the
-segmentation's levels counted once), best first, are verified by rendering, the best `n_polish`
-polished by ICP and verified again (verification.verify_polish_rank, as in `ppf`); (4) the
-`sweep_candidates` best distinct ones are swept in the plane, turns then shifts, and keep what
-verifies best (resting_poses.sweep_in_plane: ICP leaves a flange's or hex nut's turn where it
-started); up to `sweep_alternatives` other poses the sweep verified within `sweep_margin` of its
-best compete for the remaining ranks (a mug whose handle is hidden verifies alike over a range
-of turns: the candidates then span it); (5) a candidate floating above the plane or sunk into it
-by less than `settle` diameters is moved onto it unless a verification at a third of the
-tolerance prefers it where it was (resting_poses.settled_on_plane); the distinct results are the
-ranked candidates (confidence = verification score clipped to [0, 1]). The per-model preparation
-(the stable faces from the convex hull, a coarse distance field of the surface samples) takes
-milliseconds, also for a model of millions of faces, and is kept in memory: nothing to cache on
-disk.
+turns about the normal is scored cheaply (no rendering; in the 2 `max_regions` regions that fit
+best with each turn's centroid on the region's, again with each turn placed by two ICP steps),
+and in the `max_regions` regions the part fits best the `per_rest` best turns of each face are
+aligned in the plane and scored again; (3) the best `per_region` hypotheses of each (regions
+that repeat one another across the segmentation's levels counted once), best first, are verified
+by rendering, the best `n_polish` polished by ICP and verified again
+(verification.verify_polish_rank, as in `ppf`); (4) the `sweep_candidates` best distinct ones
+are swept in the plane, turns then shifts, and keep what verifies best
+(resting_poses.sweep_in_plane: ICP leaves a flange's or hex nut's turn where it started); up to
+`sweep_alternatives` other poses the sweep verified within `sweep_margin` of its best compete
+for the remaining ranks (a mug whose handle is hidden verifies alike over a range of turns: the
+candidates then span it); (5) a candidate floating above the plane or sunk into it by less than
+`settle` diameters is moved onto it unless a verification at a third of the tolerance prefers it
+where it was (resting_poses.settled_on_plane); the distinct results are the ranked candidates
+(confidence = verification score clipped to [0, 1]). The per-model preparation (the stable faces
+from the convex hull, a coarse distance field of the surface samples) takes milliseconds, also
+for a model of millions of faces, and is kept in memory: nothing to cache on disk.
 
 Refused at once, with the reason: an RGB-only frame, no support plane in view, a model that
 cannot be used (models.model_defect) or is too small for a region of the frame.
@@ -142,13 +143,22 @@ class RestingPoseGenerator(RanksByVerifier, Block):
         regions = distinct_regions(regions)  # the segmentation's levels repeat most regions
         half = start + t_prep + 0.5 * (deadline - start - t_prep) if math.isfinite(deadline) else deadline
         shortlists = []
-        for cl in regions:
+        for cl in regions:  # centroid placement only: a first ranking of the regions
             if time.perf_counter() >= half:
                 break
-            sl = shortlist_rests(model, rests, seg.plane, cl.points, int(c["turns"]), int(c["per_rest"]))
+            sl = shortlist_rests(model, rests, seg.plane, cl.points, int(c["turns"]), int(c["per_rest"]),
+                                 shift_steps=0)
             if sl is not None:
-                shortlists.append(sl)
-        shortlists.sort(key=lambda sl: sl.best)  # the regions the part fits best first
+                shortlists.append((sl, cl))
+        shortlists.sort(key=lambda q: q[0].best)
+        # the best 2 max_regions again with each turn placed by ICP steps (a mug behind a brick)
+        n_placed = 2 * int(c["max_regions"])
+        for k, (sl, cl) in enumerate(shortlists[:n_placed]):
+            if time.perf_counter() >= half:
+                break
+            placed = shortlist_rests(model, rests, seg.plane, cl.points, int(c["turns"]), int(c["per_rest"]))
+            shortlists[k] = (placed or sl, cl)
+        shortlists = sorted((q[0] for q in shortlists), key=lambda sl: sl.best)  # best-fitting regions first
         hypotheses = []
         for sl in shortlists[: int(c["max_regions"])]:
             if time.perf_counter() >= deadline:

@@ -274,10 +274,10 @@ def _cheap_cost(p: np.ndarray, vis: np.ndarray, n_vis: np.ndarray, shifts: np.nd
 
 def shortlist_rests(
     model: ObjectModel, rests: list[RestingPose], plane: np.ndarray, region: np.ndarray, turns: int = 24,
-    per_rest: int = 3, truncate: float = 0.1,
+    per_rest: int = 3, truncate: float = 0.1, shift_steps: int = SHIFT_STEPS,
 ) -> RegionShortlist | None:
     """Every rest at `turns` turns about the plane's normal, shifted under `region` ((N, 3)
-    camera-frame points of one observed region: centroid on centroid, or after SHIFT_STEPS
+    camera-frame points of one observed region: centroid on centroid, or after `shift_steps`
     translation-only ICP steps (planar_shift_step) where that fits better) and scored cheaply: the mean truncated
     (`truncate` diameters) distance of the region's points to the model's surface (its
     distance field) plus that of the model's camera-facing samples to the region's points, in
@@ -312,10 +312,10 @@ def shortlist_rests(
         shifts = np.concatenate([centre - mean_xy, np.full((turns, 1), base + rest.lift)], axis=1)  # (T, 3)
         R_model = Rzs @ rest.R
         total = _cheap_cost(p, vis, n_vis, shifts, q, tree_q, field, R_model, com, tau) / d
-        if SHIFT_STEPS:  # the steps' shifts where they fit better (every other point suffices to move them)
+        if shift_steps:  # the steps' shifts where they fit better (every other point suffices to move them)
             ps, vs, prest = p[:, ::STEP_THIN], vis[:, ::STEP_THIN], (pts @ rest.R.T)[::STEP_THIN]
             tree_m, moved = cKDTree(prest), shifts.copy()
-            for _ in range(SHIFT_STEPS):
+            for _ in range(shift_steps):
                 moved[:, :2] += planar_shift_step(ps, vs, vs.sum(axis=1), moved, q_thin, tree_thin, prest, tree_m,
                                                   Rzs, 2.0 * tau)
             total_moved = _cheap_cost(p, vis, n_vis, moved, q, tree_q, field, R_model, com, tau) / d
