@@ -18,7 +18,7 @@ from perception_config.core.render import MIN_Z
 from perception_config.core.scene import Frame
 from perception_config.vision.colour import colours_agree
 from perception_config.vision.features import kabsch_batch
-from perception_config.vision.segmentation import fit_plane_ransac, segment_scene, split_regions
+from perception_config.vision.segmentation import fit_plane_ransac, pixel_groups, segment_scene, split_regions
 from perception_config.vision.verification import verify
 
 # --------------------------------------------------------------------------- helpers
@@ -185,15 +185,15 @@ def test_the_split_level_parts_objects_touching_through_a_bridge():
     labels[40:44, 80:120] = 1
     labels[20:80, 120:180] = 1
     labels[90:115, 20:60] = 2  # a lone block: no opening splits it
-    n, parts = split_regions(labels, 3, min_pixels=40)
+    n, parts = split_regions(pixel_groups(labels, 3), labels.shape, min_pixels=40)
     assert n == 3  # background + the two squares
     assert (parts[50, 50] != parts[50, 150]) and parts[50, 50] > 0 and parts[50, 150] > 0
     assert not parts[42, 100] and not parts[100:, :].any()
     labels[40:50, 80:120] = 1  # a bridge 10 px wide is the object itself, not a bridge
-    assert split_regions(labels, 3, min_pixels=40)[0] == 1
+    assert split_regions(pixel_groups(labels, 3), labels.shape, min_pixels=40)[0] == 1
     small = np.zeros((40, 40), np.int32)
     small[5:12, 5:12] = small[5:12, 20:27] = small[8:9, 12:20] = 1  # too small to part (8 min_pixels)
-    assert split_regions(small, 2, min_pixels=40)[0] == 1
+    assert split_regions(pixel_groups(small, 2), small.shape, min_pixels=40)[0] == 1
 
 def test_verification_prefers_the_true_pose(parts):
     model = parts["bracket"]

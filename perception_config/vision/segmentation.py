@@ -48,6 +48,13 @@ class Segmentation:
     labels: list[np.ndarray]  # per level, (H, W) int32 index into `clusters`, -1 outside
     support: np.ndarray  # (H, W) bool: pixels on the removed support surfaces (or below the table)
 
+    @property
+    def whole_levels(self) -> list[np.ndarray]:
+        """The fine and coarse levels of `labels`, without the split one: their regions are whole
+        objects as the depth shows them, where a split part can be a piece of a larger object
+        (covering a piece is what a part placed on a larger object's face does)."""
+        return self.labels[:1] + self.labels[-1:]
+
 
 def organised_points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(H, W, 3) camera-frame points of every pixel (NaN where depth is missing or <= 0)."""
@@ -182,20 +189,21 @@ def segment_scene(
         cut |= concave_edges(Ps, normals, concave_angle_deg)
     coarse = (keep & ~cut).astype(np.uint8)
     fine = cv2.morphologyEx(coarse, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n_fine, fine_labels = cv2.connectedComponents(fine, connectivity=8)
     n_coarse, coarse_labels = cv2.connectedComponents(coarse, connectivity=8)
+    coarse_groups = pixel_groups(coarse_labels, n_coarse)
+    n_split, split_labels = split_regions(coarse_groups, coarse_labels.shape, min_pixels)
 
     clusters: list[Cluster] = []
     seen: dict[tuple[int, int, int], int] = {}
     levels = []
     Pf = P.reshape(-1, 3)
-    for n, labels in (cv2.connectedComponents(fine, connectivity=8), split_regions(coarse_labels, n_coarse, min_pixels),
-                      (n_coarse, coarse_labels)):
-        flat = labels.ravel()
-        order = np.argsort(flat, kind="stable")
-        bounds = np.searchsorted(flat[order], np.arange(n + 1))
+    for n, labels, groups in ((n_fine, fine_labels, pixel_groups(fine_labels, n_fine)),
+                              (n_split, split_labels, pixel_groups(split_labels, n_split)),
+                              (n_coarse, coarse_labels, coarse_groups)):
         index = np.full(n, -1, np.int32)
         for lab in range(1, n):
-            pix = order[bounds[lab]:bounds[lab + 1]]
+            pix = groups[lab]
             if len(pix) < min_pixels:
                 continue
             key = (len(pix), int(pix[0]), int(pix[-1]))
@@ -214,22 +222,25 @@ def segment_scene(
 SPLIT_OPENINGS = (5, 9)  # pixels: the openings tried, smallest first, to split a region at its thin bridges
 
 
-def split_regions(labels: np.ndarray, n: int, min_pixels: int) -> tuple[int, np.ndarray]:
-    """The "split" level: each region of `labels` ((H, W) int, 0 background, 1..n-1) that an
-    opening of SPLIT_OPENINGS pixels (the smallest that does) breaks into two or more parts of
-    4 `min_pixels` or more, as those parts; a region no opening splits is left out (it is
-    already a region). Objects that touch through a bridge wider than the fine level's 3
-    pixels (a box against a keyboard behind it, a mug against a brick in front) come apart."""
-    out = np.zeros(labels.shape, np.int32)
-    count = 1
-    if n < 2:
-        return count, out
+def pixel_groups(labels: np.ndarray, n: int) -> list[np.ndarray]:
+    """The flat pixel indices of each label 0..n-1 of `labels` ((H, W) int), ascending."""
     flat = labels.ravel()
     order = np.argsort(flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(n + 1))
-    width = labels.shape[1]
-    for lab in range(1, n):
-        pix = order[bounds[lab]:bounds[lab + 1]]
+    return [order[bounds[lab]:bounds[lab + 1]] for lab in range(n)]
+
+
+def split_regions(groups: list[np.ndarray], shape: tuple[int, int], min_pixels: int) -> tuple[int, np.ndarray]:
+    """The "split" level: each region (`groups`: pixel_groups of a level's labels, 0 the
+    background) that an opening of SPLIT_OPENINGS pixels (the smallest that does) breaks into
+    two or more parts of 4 `min_pixels` or more, as those parts, labelled 1.. in an (H, W) image
+    of `shape`; a region no opening splits is left out (it is already a region). Objects that
+    touch through a bridge wider than the fine level's 3 pixels (a box against a keyboard behind
+    it, a mug against a brick in front) come apart."""
+    out = np.zeros(shape, np.int32)
+    count = 1
+    width = shape[1]
+    for pix in groups[1:]:
         if len(pix) < 8 * min_pixels:
             continue
         ys, xs = pix // width, pix % width

@@ -47,7 +47,7 @@ def icp_target(
     if not rendering.empty:
         rs, cs = rendering.crop_slices()
         m = rendering.mask >= 0
-        for level in seg.labels[:1] + seg.labels[-1:]:  # the split level's pieces would take in neighbours' parts
+        for level in seg.whole_levels:  # a split level's piece would take in a neighbour's parts
             under = level[rs, cs][m]
             under = under[under >= 0]
             if len(under):
@@ -178,14 +178,12 @@ def verify(
 
 def _explained_share(seg: Segmentation, r: Rendering, min_share: float = 0.3) -> float:
     """Covered share of the pixels of the clusters that lie at least `min_share` under the
-    rendered silhouette (best of the fine and coarse levels: a part of the split level is a piece
-    of a region, and covering a piece is what a part placed on a larger object's face does); 0
-    when no cluster does."""
+    rendered silhouette (best of Segmentation.whole_levels); 0 when no cluster does."""
     rs, cs = r.crop_slices()
     m = r.mask >= 0
     sizes = np.array([len(c.pixels) for c in seg.clusters])
     best = 0.0
-    for level in seg.labels[:1] + seg.labels[-1:]:
+    for level in seg.whole_levels:
         under = level[rs, cs][m]
         under = under[under >= 0]
         if not len(under):
